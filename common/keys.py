@@ -1,0 +1,128 @@
+"""Every key expression, built in one place from namespace + robot.
+
+Layout: ``<ns>/<robot>/<topic>``, e.g. ``topoexplore/robot1/scan``. Liveliness tokens live at
+``<ns>/<robot>/alive/<service>`` and state queryables at ``<ns>/<robot>/<service>/state``.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+from common import messages as m
+
+DEFAULT_NAMESPACE = "topoexplore"
+DEFAULT_ROBOT = "robot1"
+
+# topic -> message type: the one table of what travels on which key
+TOPICS: dict[str, type] = {
+    "scan": m.LaserScan,
+    "odom": m.Odometry,
+    "truth": m.Pose,
+    "cmd_vel": m.Twist,
+    "map": m.OccupancyGrid,
+    "topo": m.TopoGraph,
+    "reliability": m.Reliability,
+    "plan": m.Path,
+    "explore/status": m.ExploreStatus,
+    "sim/status": m.SimStatus,
+}
+
+SERVICES = ("sim", "mapper", "topology", "reliability", "planner", "controller")
+
+_SEGMENT = re.compile(r"^[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*$")
+
+
+def check_segment(value: str, what: str) -> str:
+    """Validate a namespace or robot name (one or more plain key segments)."""
+    if not _SEGMENT.match(value or ""):
+        raise ValueError(f"bad {what} {value!r}: use letters, digits, '_', '-' and '/' separators")
+    return value
+
+
+@dataclass(frozen=True)
+class Keys:
+    namespace: str = DEFAULT_NAMESPACE
+    robot: str = DEFAULT_ROBOT
+
+    def __post_init__(self) -> None:
+        check_segment(self.namespace, "namespace")
+        check_segment(self.robot, "robot name")
+
+    @property
+    def prefix(self) -> str:
+        return f"{self.namespace}/{self.robot}"
+
+    def topic(self, name: str) -> str:
+        if name not in TOPICS:
+            raise KeyError(f"unknown topic {name!r}")
+        return f"{self.prefix}/{name}"
+
+    def alive(self, service: str) -> str:
+        return f"{self.prefix}/alive/{service}"
+
+    def alive_all(self) -> str:
+        return f"{self.prefix}/alive/*"
+
+    def state(self, service: str) -> str:
+        return f"{self.prefix}/{service}/state"
+
+    def all(self) -> str:
+        return f"{self.prefix}/**"
+
+    # convenience attributes
+    @property
+    def scan(self) -> str:
+        return self.topic("scan")
+
+    @property
+    def odom(self) -> str:
+        return self.topic("odom")
+
+    @property
+    def truth(self) -> str:
+        return self.topic("truth")
+
+    @property
+    def cmd_vel(self) -> str:
+        return self.topic("cmd_vel")
+
+    @property
+    def map(self) -> str:
+        return self.topic("map")
+
+    @property
+    def topo(self) -> str:
+        return self.topic("topo")
+
+    @property
+    def reliability(self) -> str:
+        return self.topic("reliability")
+
+    @property
+    def plan(self) -> str:
+        return self.topic("plan")
+
+    @property
+    def explore_status(self) -> str:
+        return self.topic("explore/status")
+
+    @property
+    def sim_status(self) -> str:
+        return self.topic("sim/status")
+
+    def topic_of(self, key: str) -> str | None:
+        """Inverse of :meth:`topic`: the topic name for a full key, or None."""
+        pre = self.prefix + "/"
+        if not key.startswith(pre):
+            return None
+        rest = key[len(pre) :]
+        return rest if rest in TOPICS else None
+
+
+def type_for_key(key: str) -> type | None:
+    """Message type for any full key ``<ns>/<robot>/<topic>`` (namespace-agnostic)."""
+    for topic, t in TOPICS.items():
+        if key.endswith("/" + topic):
+            return t
+    return None

@@ -1,0 +1,435 @@
+"""Every message that crosses the bus, defined once.
+
+Wire format: MessagePack maps with field names (msgspec structs, not array-like), so any plain
+msgpack client (``msgpack.unpackb(raw)``) reads every message as nested dicts and lists. Bulk
+grid data travels as a msgpack ``bin`` (bytes).
+
+Conventions (REP-103/105): SI units, x forward, y left, angles counter-clockwise in radians.
+Every message has a :class:`Header`: ``seq`` (per publisher), ``stamp`` (sim or wall time, s),
+``frame`` and ``src_seq`` — the sequence number of the laser scan the message was derived from,
+so a stage can tell how fresh its input is and lockstep mode can wait for it.
+
+:func:`decode` validates strictly (types, lengths, finite numbers, sane sizes); every problem
+raises the one error type :class:`MessageError`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import msgspec
+import numpy as np
+
+__all__ = [
+    "MessageError",
+    "Header",
+    "LaserScan",
+    "Pose2D",
+    "Odometry",
+    "Pose",
+    "Twist",
+    "OccupancyGrid",
+    "TopoNode",
+    "TopoEdge",
+    "TopoGraph",
+    "NodeReliability",
+    "Reliability",
+    "Path",
+    "ExploreStatus",
+    "SimStatus",
+    "MESSAGE_TYPES",
+    "encode",
+    "decode",
+    "grid_to_array",
+    "array_to_grid_bytes",
+]
+
+# Sanity limits for decoded messages.
+MAX_BEAMS = 10_000
+MAX_GRID_CELLS = 25_000_000  # 5000 x 5000 cells (500 m x 500 m at 0.1 m)
+MAX_NODES = 100_000
+MAX_EDGES = 200_000
+MAX_POINTS = 2_000_000  # all polyline points in one graph
+MAX_WAYPOINTS = 100_000
+MAX_STR = 256
+MAX_COORD = 1.0e6  # [m]
+
+NODE_KINDS = ("end", "branch", "corner")
+EXPLORE_STATES = ("idle", "exploring", "done", "failed")
+
+
+class MessageError(ValueError):
+    """A message could not be decoded or failed validation."""
+
+
+class Header(msgspec.Struct, kw_only=True):
+    seq: int = 0
+    stamp: float = 0.0  # [s]
+    frame: str = "map"
+    src_seq: int = -1  # scan sequence number this message derives from (-1: none)
+
+
+class LaserScan(msgspec.Struct, kw_only=True):
+    header: Header
+    angle_min: float  # [rad]
+    angle_increment: float  # [rad]
+    range_min: float  # [m]
+    range_max: float  # [m]
+    ranges: list[float]  # [m]; range_max (or above) means no return
+
+
+class Pose2D(msgspec.Struct, kw_only=True):
+    x: float  # [m]
+    y: float  # [m]
+    theta: float  # [rad]
+
+
+class Odometry(msgspec.Struct, kw_only=True):
+    header: Header
+    pose: Pose2D
+    v: float = 0.0  # [m/s]
+    w: float = 0.0  # [rad/s]
+
+
+class Pose(msgspec.Struct, kw_only=True):
+    """A stamped pose (used for ground truth)."""
+
+    header: Header
+    pose: Pose2D
+
+
+class Twist(msgspec.Struct, kw_only=True):
+    header: Header
+    v: float = 0.0  # [m/s]
+    w: float = 0.0  # [rad/s]
+
+
+class OccupancyGrid(msgspec.Struct, kw_only=True):
+    """ROS-style grid: int8 row-major, x fastest, -1 unknown, 0..100 occupancy."""
+
+    header: Header
+    resolution: float  # [m/cell]
+    width: int  # cells along x
+    height: int  # cells along y
+    origin: Pose2D  # world pose of cell (0, 0)'s corner
+    data: bytes  # width*height int8
+
+
+class TopoNode(msgspec.Struct, kw_only=True):
+    id: int
+    kind: str  # "end" | "branch" | "corner"
+    x: float  # [m]
+    y: float  # [m]
+
+
+class TopoEdge(msgspec.Struct, kw_only=True):
+    a: int  # node id
+    b: int  # node id
+    points: list[list[float]]  # polyline [[x, y], ...] from a to b [m]
+    length: float  # [m]
+    clearance: float  # minimum distance to a non-free cell along the edge [m]
+
+
+class TopoGraph(msgspec.Struct, kw_only=True):
+    header: Header
+    nodes: list[TopoNode]
+    edges: list[TopoEdge]
+    gone: list[int] = []  # ids that vanished since the previous update
+
+
+class NodeReliability(msgspec.Struct, kw_only=True):
+    id: int
+    x: float  # [m]
+    y: float  # [m]
+    p: float  # position probability P (eq. 6)
+    d: float  # distance index D (eq. 1)
+    a: float  # angle index A (eq. 4)
+    r_min: float  # [m] minimum observed distance (eq. 2), inf if never observed
+    alpha_max: float  # [rad] circular spread of observation bearings (eq. 3)
+    visible: bool  # observed in this update
+    n_obs: int = 0  # observations since the history (re)started
+    visited: bool = False  # robot came within the visit radius
+
+
+class Reliability(msgspec.Struct, kw_only=True):
+    header: Header
+    nodes: list[NodeReliability]
+
+
+class Path(msgspec.Struct, kw_only=True):
+    header: Header
+    waypoints: list[list[float]]  # [[x, y], ...] [m]; empty = stop
+    target_id: int = -1
+    target_x: float = 0.0  # [m]
+    target_y: float = 0.0  # [m]
+    strategy: str = ""
+
+
+class ExploreStatus(msgspec.Struct, kw_only=True):
+    header: Header
+    state: str  # "idle" | "exploring" | "done" | "failed"
+    reason: str = ""
+    strategy: str = ""
+    target_id: int = -1
+    target_p: float = 0.0
+    candidates: int = 0
+    end_nodes: int = 0
+    reliable: int = 0
+    blacklisted: list[int] = []
+    replans: int = 0
+
+
+class SimStatus(msgspec.Struct, kw_only=True):
+    header: Header
+    world: str
+    mode: str  # "lockstep" | "realtime"
+    sim_time: float  # [s]
+    steps: int
+    collisions: int
+    path_length: float  # [m] integrated ground-truth travel
+    real_time_factor: float
+    watchdog_stops: int = 0
+    lockstep_timeouts: int = 0
+
+
+MESSAGE_TYPES: dict[str, type] = {
+    t.__name__: t
+    for t in (
+        LaserScan,
+        Odometry,
+        Pose,
+        Twist,
+        OccupancyGrid,
+        TopoGraph,
+        Reliability,
+        Path,
+        ExploreStatus,
+        SimStatus,
+    )
+}
+
+_encoder = msgspec.msgpack.Encoder()
+_decoders = {t: msgspec.msgpack.Decoder(t) for t in MESSAGE_TYPES.values()}
+
+
+def encode(msg: msgspec.Struct) -> bytes:
+    """Encode a message struct to MessagePack bytes."""
+    return _encoder.encode(msg)
+
+
+def decode(raw: bytes | bytearray | memoryview, msg_type: type) -> Any:
+    """Decode and validate; raise MessageError on any problem."""
+    try:
+        dec = _decoders[msg_type]
+    except KeyError:
+        raise MessageError(f"unknown message type {msg_type!r}") from None
+    if len(raw) > 64 * 1024 * 1024:
+        raise MessageError(f"{msg_type.__name__}: payload of {len(raw)} bytes is too large")
+    try:
+        msg = dec.decode(raw)
+    except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+        raise MessageError(f"{msg_type.__name__}: {exc}") from None
+    _VALIDATORS[msg_type](msg)
+    return msg
+
+
+# --- validation ----------------------------------------------------------------------------
+
+
+def _fail(msg: Any, text: str) -> None:
+    raise MessageError(f"{type(msg).__name__}: {text}")
+
+
+def _finite(msg: Any, name: str, value: float, lo: float = -MAX_COORD, hi: float = MAX_COORD):
+    if not math.isfinite(value):
+        _fail(msg, f"{name} is not finite ({value})")
+    if not lo <= value <= hi:
+        _fail(msg, f"{name}={value} outside [{lo}, {hi}]")
+
+
+def _header(msg: Any) -> None:
+    h = msg.header
+    if h.seq < 0 or h.seq > 2**62:
+        _fail(msg, f"header.seq={h.seq} out of range")
+    if h.src_seq < -1 or h.src_seq > 2**62:
+        _fail(msg, f"header.src_seq={h.src_seq} out of range")
+    _finite(msg, "header.stamp", h.stamp, 0.0, 1.0e12)
+    if len(h.frame) > MAX_STR:
+        _fail(msg, "header.frame too long")
+
+
+def _pose(msg: Any, name: str, p: Pose2D) -> None:
+    _finite(msg, f"{name}.x", p.x)
+    _finite(msg, f"{name}.y", p.y)
+    _finite(msg, f"{name}.theta", p.theta, -1000.0, 1000.0)
+
+
+def _v_scan(m: LaserScan) -> None:
+    _header(m)
+    n = len(m.ranges)
+    if not 1 <= n <= MAX_BEAMS:
+        _fail(m, f"{n} ranges (expected 1..{MAX_BEAMS})")
+    _finite(m, "angle_min", m.angle_min, -2 * math.pi, 2 * math.pi)
+    _finite(m, "angle_increment", m.angle_increment, -math.pi, math.pi)
+    if m.angle_increment == 0.0 and n > 1:
+        _fail(m, "angle_increment is zero")
+    _finite(m, "range_min", m.range_min, 0.0, 1000.0)
+    _finite(m, "range_max", m.range_max, 0.0, 1000.0)
+    if m.range_max <= m.range_min:
+        _fail(m, "range_max must exceed range_min")
+    r = np.asarray(m.ranges, dtype=np.float64)
+    if not np.all(np.isfinite(r)):
+        _fail(m, f"{int(np.sum(~np.isfinite(r)))} ranges are not finite (use range_max for no return)")
+    if np.any(r < 0.0):
+        _fail(m, "negative range")
+
+
+def _v_odom(m: Odometry) -> None:
+    _header(m)
+    _pose(m, "pose", m.pose)
+    _finite(m, "v", m.v, -100.0, 100.0)
+    _finite(m, "w", m.w, -100.0, 100.0)
+
+
+def _v_pose(m: Pose) -> None:
+    _header(m)
+    _pose(m, "pose", m.pose)
+
+
+def _v_twist(m: Twist) -> None:
+    _header(m)
+    _finite(m, "v", m.v, -100.0, 100.0)
+    _finite(m, "w", m.w, -100.0, 100.0)
+
+
+def _v_grid(m: OccupancyGrid) -> None:
+    _header(m)
+    _finite(m, "resolution", m.resolution, 1e-4, 100.0)
+    if m.width < 1 or m.height < 1 or m.width * m.height > MAX_GRID_CELLS:
+        _fail(m, f"grid size {m.width}x{m.height} not in 1..{MAX_GRID_CELLS} cells")
+    _pose(m, "origin", m.origin)
+    if len(m.data) != m.width * m.height:
+        _fail(m, f"data has {len(m.data)} bytes, expected width*height={m.width * m.height}")
+    a = np.frombuffer(m.data, dtype=np.int8)
+    if a.size and (a.min() < -1 or a.max() > 100):
+        _fail(m, "cell values must be -1 (unknown) or 0..100")
+
+
+def _v_topo(m: TopoGraph) -> None:
+    _header(m)
+    if len(m.nodes) > MAX_NODES or len(m.edges) > MAX_EDGES:
+        _fail(m, f"too many nodes/edges ({len(m.nodes)}/{len(m.edges)})")
+    ids = set()
+    for n in m.nodes:
+        if n.kind not in NODE_KINDS:
+            _fail(m, f"node {n.id} has unknown kind {n.kind!r}")
+        if n.id < 0 or n.id in ids:
+            _fail(m, f"node id {n.id} negative or duplicated")
+        ids.add(n.id)
+        _finite(m, f"node {n.id} x", n.x)
+        _finite(m, f"node {n.id} y", n.y)
+    total = 0
+    for e in m.edges:
+        if e.a not in ids or e.b not in ids:
+            _fail(m, f"edge {e.a}-{e.b} refers to an unknown node")
+        total += len(e.points)
+        if total > MAX_POINTS:
+            _fail(m, "too many polyline points")
+        for p in e.points:
+            if len(p) != 2:
+                _fail(m, f"edge {e.a}-{e.b} has a point with {len(p)} coordinates")
+        if e.points:
+            pts = np.asarray(e.points, dtype=np.float64)
+            if not np.all(np.isfinite(pts)) or np.any(np.abs(pts) > MAX_COORD):
+                _fail(m, f"edge {e.a}-{e.b} has a non-finite or absurd point")
+        _finite(m, f"edge {e.a}-{e.b} length", e.length, 0.0, MAX_COORD)
+        _finite(m, f"edge {e.a}-{e.b} clearance", e.clearance, 0.0, MAX_COORD)
+    if len(m.gone) > MAX_NODES:
+        _fail(m, "too many gone ids")
+
+
+def _v_rel(m: Reliability) -> None:
+    _header(m)
+    if len(m.nodes) > MAX_NODES:
+        _fail(m, "too many nodes")
+    for n in m.nodes:
+        _finite(m, f"node {n.id} x", n.x)
+        _finite(m, f"node {n.id} y", n.y)
+        for name in ("p", "d", "a"):
+            _finite(m, f"node {n.id} {name}", getattr(n, name), 0.0, 1.0)
+        if not (n.r_min >= 0.0):  # inf allowed: never observed
+            _fail(m, f"node {n.id} r_min={n.r_min} invalid")
+        _finite(m, f"node {n.id} alpha_max", n.alpha_max, 0.0, 2 * math.pi + 1e-9)
+        if n.n_obs < 0:
+            _fail(m, f"node {n.id} n_obs negative")
+
+
+def _v_path(m: Path) -> None:
+    _header(m)
+    if len(m.waypoints) > MAX_WAYPOINTS:
+        _fail(m, "too many waypoints")
+    for p in m.waypoints:
+        if len(p) != 2:
+            _fail(m, f"waypoint with {len(p)} coordinates")
+    if m.waypoints:
+        pts = np.asarray(m.waypoints, dtype=np.float64)
+        if not np.all(np.isfinite(pts)) or np.any(np.abs(pts) > MAX_COORD):
+            _fail(m, "non-finite or absurd waypoint")
+    _finite(m, "target_x", m.target_x)
+    _finite(m, "target_y", m.target_y)
+    if len(m.strategy) > MAX_STR:
+        _fail(m, "strategy too long")
+
+
+def _v_status(m: ExploreStatus) -> None:
+    _header(m)
+    if m.state not in EXPLORE_STATES:
+        _fail(m, f"unknown state {m.state!r}")
+    _finite(m, "target_p", m.target_p, 0.0, 1.0)
+    if len(m.reason) > 4096 or len(m.strategy) > MAX_STR or len(m.blacklisted) > MAX_NODES:
+        _fail(m, "field too long")
+    for name in ("candidates", "end_nodes", "reliable", "replans"):
+        if getattr(m, name) < 0:
+            _fail(m, f"{name} negative")
+
+
+def _v_sim(m: SimStatus) -> None:
+    _header(m)
+    if m.mode not in ("lockstep", "realtime"):
+        _fail(m, f"unknown mode {m.mode!r}")
+    if len(m.world) > MAX_STR:
+        _fail(m, "world name too long")
+    _finite(m, "sim_time", m.sim_time, 0.0, 1.0e12)
+    _finite(m, "path_length", m.path_length, 0.0, 1.0e12)
+    _finite(m, "real_time_factor", m.real_time_factor, 0.0, 1.0e9)
+    for name in ("steps", "collisions", "watchdog_stops", "lockstep_timeouts"):
+        if getattr(m, name) < 0:
+            _fail(m, f"{name} negative")
+
+
+_VALIDATORS = {
+    LaserScan: _v_scan,
+    Odometry: _v_odom,
+    Pose: _v_pose,
+    Twist: _v_twist,
+    OccupancyGrid: _v_grid,
+    TopoGraph: _v_topo,
+    Reliability: _v_rel,
+    Path: _v_path,
+    ExploreStatus: _v_status,
+    SimStatus: _v_sim,
+}
+
+
+# --- symmetric conversions -----------------------------------------------------------------
+
+
+def grid_to_array(m: OccupancyGrid) -> np.ndarray:
+    """OccupancyGrid -> int8 array of shape (height, width); row = y, column = x."""
+    return np.frombuffer(m.data, dtype=np.int8).reshape(m.height, m.width)
+
+
+def array_to_grid_bytes(arr: np.ndarray) -> bytes:
+    """int8 array (height, width) -> OccupancyGrid.data (inverse of grid_to_array)."""
+    return np.ascontiguousarray(arr, dtype=np.int8).tobytes()

@@ -1,0 +1,268 @@
+"""All parameters, in one place, with the paper's constants as defaults.
+
+One plain struct per service, grouped in :class:`Params`. Load from a TOML file whose tables are
+the section names (``[sim]``, ``[mapper]``, ...) and override single values from the command line
+with ``--set section.name=value``. :func:`load_params` validates everything in one place and
+raises :class:`ParamError` (one line) on any problem.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import msgspec
+
+__all__ = [
+    "ParamError",
+    "SimParams",
+    "MapperParams",
+    "TopologyParams",
+    "ReliabilityParams",
+    "PlannerParams",
+    "ControllerParams",
+    "BusParams",
+    "Params",
+    "load_params",
+    "apply_overrides",
+    "params_to_dict",
+]
+
+
+class ParamError(ValueError):
+    """A parameter file or override is invalid."""
+
+
+class _P(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    pass
+
+
+class SimParams(_P):
+    physics_hz: float = 50.0  # [Hz] physics steps
+    scan_hz: float = 5.0  # [Hz] laser rate (paper: about 5 Hz)
+    odom_hz: float = 20.0  # [Hz]
+    beams: int = 181  # paper: SICK LMS200, 181 readings at 1 deg
+    fov: float = math.pi  # [rad] 180 deg, forward
+    range_max: float = 8.0  # [m]
+    range_min: float = 0.02  # [m]
+    range_noise: float = 0.01  # [m] Gaussian sigma
+    laser_offset: float = 0.0  # [m] laser ahead of the robot centre
+    robot_radius: float = 0.2  # [m] paper: Pioneer 2DX, r = 0.2 m
+    v_limit: float = 1.0  # [m/s] base limits (commands are clipped)
+    w_limit: float = 2.0  # [rad/s]
+    watchdog: float = 0.5  # [s] sim time without cmd_vel -> stop
+    speed: float = 1.0  # real-time factor in real-time mode
+    lockstep: bool = False
+    lockstep_timeout: float = 10.0  # [s] wall time to wait for cmd_vel before stepping anyway
+    odom_drift: float = 0.0  # relative odometry noise per metre (0 = perfect odometry)
+    seed: int = 0
+
+
+class MapperParams(_P):
+    resolution: float = 0.1  # [m] paper: 10 cm cells
+    l_occ: float = 0.85  # log-odds added at a hit
+    l_free: float = -0.4  # log-odds added along a beam
+    l_min: float = -4.0  # clamp so cells can change back
+    l_max: float = 4.0
+    p_free: float = 0.35  # below: known free
+    p_occ: float = 0.65  # above: occupied
+    initial_size: float = 20.0  # [m] grid side at start, centred on the first pose
+    grow_margin: float = 10.0  # [m] added on a side when a beam leaves the grid
+    max_size: float = 400.0  # [m] refuse to grow beyond (bad pose protection)
+
+
+class TopologyParams(_P):
+    robot_radius: float = 0.2  # [m]
+    spur_length: float = 0.5  # [m] leaf edges shorter than this are pruned
+    fill_holes: float = 0.05  # [m^2] occupied/unknown islands smaller than this count as free
+    min_free_area: float = 0.5  # [m^2] free specks smaller than this are dropped
+    open_cells: int = 1  # morphological opening radius of the free mask [cells]
+    id_gate: float = 0.5  # [m] node identity gate
+    corner_nodes: bool = True
+    corner_min_deviation: float = 0.2  # [m] ignore corners closer than this to the chord
+    skeleton_method: str = "zhang"  # see docs/topology.md
+
+
+class ReliabilityParams(_P):
+    r_near: float = 0.5  # [m] eq. 2: D = 1 at and below
+    r_far: float = 4.5  # [m] eq. 2 interpretation: D = 0.5 at and beyond
+    d_c: float = 3.5  # eq. 1: D = 4 / (r + 3.5)
+    alpha_full: float = math.pi / 2  # [rad] eq. 4: A = 1 at 90 deg
+    p_init: float = 0.5  # paper: initial position probability
+    p_reliable: float = 0.9  # paper: threshold
+    p_max: float = 0.999  # numerical ceiling so a later reset is meaningful
+    move_tolerance: float = 0.3  # [m] movement that resets belief
+    fov: float = math.pi  # [rad]
+    range_max: float = 8.0  # [m]
+    laser_offset: float = 0.0  # [m]
+    visit_radius: float = 0.5  # [m] counts as visited
+
+
+class PlannerParams(_P):
+    strategy: str = "reliability"  # reliability | all-end-nodes | frontier
+    p_reliable: float = 0.9
+    robot_radius: float = 0.2  # [m]
+    clearance_margin: float = 0.05  # [m] edges need clearance >= radius + margin
+    visit_radius: float = 0.5  # [m] all-end-nodes: visited when this close
+    goal_tolerance: float = 0.3  # [m]
+    progress_timeout: float = 20.0  # [s] sim time without progress -> blacklist target
+    progress_distance: float = 0.3  # [m] progress = this much closer to target
+    max_attempts: int = 2  # blacklist after this many failures of the same target
+    blacklist_radius: float = 0.5  # [m] blacklisted positions also cover moved nodes
+    replan_period: float = 2.0  # [s] re-evaluate target choice at most this often
+    switch_ratio: float = 0.7  # switch target only if new cost < ratio * current cost
+    min_frontier_size: float = 0.5  # [m] explore_lite default
+    potential_scale: float = 3.0  # explore_lite default
+    gain_scale: float = 1.0  # explore_lite default
+    status_hz: float = 1.0  # [Hz]
+
+
+class ControllerParams(_P):
+    v_max: float = 0.2  # [m/s] paper: 200 mm/s
+    w_max: float = 1.0  # [rad/s]
+    lookahead: float = 0.4  # [m] pure pursuit
+    rotate_angle: float = 0.8  # [rad] rotate in place above this heading error
+    goal_tolerance: float = 0.15  # [m]
+    slow_distance: float = 0.6  # [m] start slowing when the front is closer
+    safety_distance: float = 0.3  # [m] hard stop when the front sector is closer
+    front_half_angle: float = 0.5  # [rad] front sector half width
+    robot_radius: float = 0.2  # [m]
+    stuck_time: float = 4.0  # [s] no motion while commanding -> recovery
+    recovery_time: float = 1.5  # [s]
+    recovery_speed: float = 0.1  # [m/s] backwards
+
+
+class BusParams(_P):
+    namespace: str = "topoexplore"
+    robot: str = "robot1"
+    connect: str = "tcp/127.0.0.1:7447"
+
+
+class Params(_P):
+    sim: SimParams = msgspec.field(default_factory=SimParams)
+    mapper: MapperParams = msgspec.field(default_factory=MapperParams)
+    topology: TopologyParams = msgspec.field(default_factory=TopologyParams)
+    reliability: ReliabilityParams = msgspec.field(default_factory=ReliabilityParams)
+    planner: PlannerParams = msgspec.field(default_factory=PlannerParams)
+    controller: ControllerParams = msgspec.field(default_factory=ControllerParams)
+    bus: BusParams = msgspec.field(default_factory=BusParams)
+
+
+STRATEGIES = ("reliability", "all-end-nodes", "frontier")
+
+
+def params_to_dict(p: Params) -> dict[str, Any]:
+    return msgspec.to_builtins(p)
+
+
+def _parse_value(text: str) -> Any:
+    """Parse an override value as TOML (numbers, booleans, strings, arrays); bare words are strings."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
+    """Apply ``section.name=value`` overrides to a nested dict (copy)."""
+    out = {k: dict(v) if isinstance(v, dict) else v for k, v in data.items()}
+    for item in overrides:
+        if "=" not in item or "." not in item.split("=", 1)[0]:
+            raise ParamError(f"bad override {item!r}: expected section.name=value")
+        path, value = item.split("=", 1)
+        section, name = path.strip().split(".", 1)
+        out.setdefault(section, {})
+        if not isinstance(out[section], dict):
+            raise ParamError(f"bad override {item!r}: {section!r} is not a section")
+        out[section][name.strip()] = _parse_value(value.strip())
+    return out
+
+
+def _validate(p: Params) -> None:
+    def pos(section: str, name: str, v: float) -> None:
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            raise ParamError(f"{section}.{name} must be a positive finite number (got {v!r})")
+
+    s = p.sim
+    for name in ("physics_hz", "scan_hz", "odom_hz", "fov", "range_max", "robot_radius",
+                 "v_limit", "w_limit", "watchdog", "speed", "lockstep_timeout"):
+        pos("sim", name, getattr(s, name))
+    if s.beams < 2 or s.beams > 10000:
+        raise ParamError(f"sim.beams must be in 2..10000 (got {s.beams})")
+    if s.scan_hz > s.physics_hz:
+        raise ParamError("sim.scan_hz must not exceed sim.physics_hz")
+    if s.range_noise < 0 or s.odom_drift < 0 or s.range_min < 0 or s.range_min >= s.range_max:
+        raise ParamError("sim: noise and drift must be >= 0 and range_min < range_max")
+    mp = p.mapper
+    pos("mapper", "resolution", mp.resolution)
+    pos("mapper", "initial_size", mp.initial_size)
+    pos("mapper", "max_size", mp.max_size)
+    if not (mp.l_min < 0 < mp.l_max and mp.l_free < 0 < mp.l_occ):
+        raise ParamError("mapper: need l_min < 0 < l_max and l_free < 0 < l_occ")
+    if not (0 < mp.p_free < 0.5 < mp.p_occ < 1):
+        raise ParamError("mapper: need 0 < p_free < 0.5 < p_occ < 1")
+    t = p.topology
+    pos("topology", "robot_radius", t.robot_radius)
+    pos("topology", "id_gate", t.id_gate)
+    if t.spur_length < 0 or t.fill_holes < 0 or t.min_free_area < 0 or t.open_cells < 0:
+        raise ParamError("topology: sizes must be >= 0")
+    r = p.reliability
+    if not (0 < r.r_near < r.r_far):
+        raise ParamError("reliability: need 0 < r_near < r_far")
+    if not (0 < r.p_init < r.p_reliable < r.p_max < 1):
+        raise ParamError("reliability: need 0 < p_init < p_reliable < p_max < 1")
+    for name in ("alpha_full", "move_tolerance", "fov", "range_max", "visit_radius"):
+        pos("reliability", name, getattr(r, name))
+    pl = p.planner
+    if pl.strategy not in STRATEGIES:
+        raise ParamError(f"planner.strategy must be one of {', '.join(STRATEGIES)} (got {pl.strategy!r})")
+    if not 0 < pl.p_reliable < 1:
+        raise ParamError("planner.p_reliable must be in (0, 1)")
+    for name in ("robot_radius", "visit_radius", "goal_tolerance", "progress_timeout",
+                 "progress_distance", "replan_period", "status_hz"):
+        pos("planner", name, getattr(pl, name))
+    if pl.max_attempts < 1:
+        raise ParamError("planner.max_attempts must be >= 1")
+    c = p.controller
+    for name in ("v_max", "w_max", "lookahead", "rotate_angle", "goal_tolerance",
+                 "safety_distance", "front_half_angle", "robot_radius", "stuck_time",
+                 "recovery_time"):
+        pos("controller", name, getattr(c, name))
+    from common.keys import check_segment
+
+    try:
+        check_segment(p.bus.namespace, "namespace")
+        check_segment(p.bus.robot, "robot name")
+    except ValueError as exc:
+        raise ParamError(str(exc)) from None
+
+
+def load_params(path: str | Path | None = None, overrides: list[str] | None = None) -> Params:
+    """Defaults <- TOML file <- overrides; validated. Raises ParamError with one line."""
+    data: dict[str, Any] = {}
+    if path is not None:
+        try:
+            data = tomllib.loads(Path(path).read_text())
+        except FileNotFoundError:
+            raise ParamError(f"parameter file not found: {path}") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ParamError(f"cannot read parameter file {path}: {exc}") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ParamError(f"parameter file {path} is not valid TOML: {exc}") from None
+    data = apply_overrides(data, overrides or [])
+    try:
+        p = msgspec.convert(data, Params, strict=False)
+    except msgspec.ValidationError as exc:
+        raise ParamError(f"bad parameter: {exc}") from None
+    _validate(p)
+    return p
+
+
+def with_changes(p: Params, section: str, **changes: Any) -> Params:
+    """Copy of p with fields of one section replaced (re-validated)."""
+    sub = msgspec.structs.replace(getattr(p, section), **changes)
+    out = msgspec.structs.replace(p, **{section: sub})
+    _validate(out)
+    return out
