@@ -164,6 +164,7 @@ class Path(msgspec.Struct, kw_only=True):
     target_x: float = 0.0  # [m]
     target_y: float = 0.0  # [m]
     strategy: str = ""
+    plan_id: int = 0  # changes only when the path is replaced (new target or re-plan)
 
 
 class ExploreStatus(msgspec.Struct, kw_only=True):

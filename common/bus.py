@@ -1,0 +1,290 @@
+"""The bus: the one module in topoexplore that imports zenoh.
+
+Everything else talks to Zenoh through :class:`Bus`:
+
+- sessions from config: a router (``open_router``) or a client of a router (default), or any
+  Zenoh JSON5 config file (``--zenoh-config``);
+- publishers of typed messages with a chosen congestion control (BLOCK where loss is not
+  acceptable, e.g. lockstep; DROP for conflated real-time data);
+- subscribers that decode and validate every message (:func:`common.messages.decode`), count and
+  log bad ones per key, and never let an exception vanish in a zenoh callback thread;
+- liveliness tokens and liveliness watching; a state queryable per service; ``get``;
+- clean close (always close: an open session with callbacks keeps the process alive).
+
+See ../shared/ZENOH_NOTES.md for the measured facts behind these choices.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgspec
+import zenoh
+
+from common import messages as m
+
+log = logging.getLogger("topoexplore.bus")
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+MSGPACK = "application/msgpack"
+
+
+class BusError(RuntimeError):
+    """The bus could not be opened or configured (bad endpoint, no router, bad config file)."""
+
+
+def _endpoints(value: str | list[str] | None) -> list[str]:
+    if value is None:
+        return []
+    if isinstance(value, str):
+        return [v.strip() for v in value.split(",") if v.strip()]
+    return list(value)
+
+
+def make_config(
+    mode: str = "client",
+    connect: str | list[str] | None = DEFAULT_ENDPOINT,
+    listen: str | list[str] | None = None,
+    config_file: str | None = None,
+    wait_for_router: bool = False,
+) -> zenoh.Config:
+    """Build a Zenoh config. A config file, when given, is the base; mode/endpoints override it."""
+    import json
+
+    try:
+        cfg = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+        if mode not in ("client", "router", "peer"):
+            raise BusError(f"unknown zenoh mode {mode!r} (client, router or peer)")
+        if not config_file or mode:
+            cfg.insert_json5("mode", json.dumps(mode))
+        if connect and mode != "router":
+            cfg.insert_json5("connect/endpoints", json.dumps(_endpoints(connect)))
+        if listen or mode == "router":
+            cfg.insert_json5("listen/endpoints", json.dumps(_endpoints(listen or connect)))
+        if mode == "router":
+            cfg.insert_json5("scouting/delay", "0")
+            cfg.insert_json5("scouting/multicast/enabled", "false")
+        if wait_for_router and mode == "client":
+            cfg.insert_json5("connect/timeout_ms", "-1")
+    except BusError:
+        raise
+    except Exception as exc:  # zenoh raises ZError for bad keys/values/files
+        raise BusError(f"bad zenoh configuration: {exc}") from None
+    return cfg
+
+
+@dataclass
+class BadMessageCounter:
+    """Counts and logs bad messages per key (rate-limited logging)."""
+
+    counts: dict[str, int] = field(default_factory=dict)
+    last_error: str = ""
+    _last_log: dict[str, float] = field(default_factory=dict)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def add(self, key: str, error: str) -> None:
+        with self._lock:
+            self.counts[key] = self.counts.get(key, 0) + 1
+            self.last_error = f"{key}: {error}"
+            now = time.monotonic()
+            first = self.counts[key] == 1
+            if first or now - self._last_log.get(key, 0.0) > 5.0:
+                self._last_log[key] = now
+                log.warning("bad message #%d on %s: %s", self.counts[key], key, error)
+
+    @property
+    def total(self) -> int:
+        with self._lock:
+            return sum(self.counts.values())
+
+
+class Publisher:
+    """Publisher of one message type on one key."""
+
+    def __init__(self, zpub: Any, key: str, msg_type: type | None):
+        self._pub = zpub
+        self.key = key
+        self.msg_type = msg_type
+        self.count = 0
+        self._lock = threading.Lock()
+
+    def put(self, msg: Any) -> None:
+        """Publish a message struct (encoded to msgpack) or raw bytes."""
+        payload = msg if isinstance(msg, (bytes, bytearray)) else m.encode(msg)
+        with self._lock:
+            self._pub.put(bytes(payload))
+            self.count += 1
+
+    @property
+    def matched(self) -> bool:
+        try:
+            return bool(self._pub.matching_status.matching)
+        except Exception:
+            return False
+
+
+class Bus:
+    """A Zenoh session with typed publish/subscribe, liveliness and queryables."""
+
+    def __init__(self, config: zenoh.Config, name: str = ""):
+        self.name = name
+        try:
+            self.session = zenoh.open(config)
+        except Exception as exc:
+            raise BusError(f"cannot open zenoh session: {exc}") from None
+        self.bad = BadMessageCounter()
+        self.callback_errors = 0
+        self._decls: list[Any] = []
+        self._closed = False
+        self._lock = threading.Lock()
+
+    # -- construction helpers -------------------------------------------------------------
+    @classmethod
+    def client(cls, connect: str = DEFAULT_ENDPOINT, name: str = "", config_file: str | None = None,
+               wait_for_router: bool = False) -> Bus:
+        return cls(make_config("client", connect=connect, config_file=config_file,
+                               wait_for_router=wait_for_router), name)
+
+    @classmethod
+    def router(cls, listen: str = DEFAULT_ENDPOINT, name: str = "router",
+               config_file: str | None = None) -> Bus:
+        return cls(make_config("router", connect=None, listen=listen, config_file=config_file), name)
+
+    def __enter__(self) -> Bus:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # -- publish --------------------------------------------------------------------------
+    def publisher(self, key: str, msg_type: type | None = None, reliable: bool = False) -> Publisher:
+        """Declare a publisher. reliable=True -> congestion control BLOCK (no loss), else DROP."""
+        cc = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
+        zpub = self.session.declare_publisher(key, encoding=MSGPACK, congestion_control=cc)
+        self._decls.append(zpub)
+        return Publisher(zpub, key, msg_type)
+
+    # -- subscribe ------------------------------------------------------------------------
+    def subscribe(self, key: str, msg_type: type, callback: Callable[[Any, str], None]) -> None:
+        """Subscribe with decoding + validation. callback(msg, key) runs on a zenoh thread.
+
+        Bad messages are counted per key and logged; exceptions in the callback are counted and
+        logged too (zenoh would swallow them silently).
+        """
+
+        def on_sample(sample: Any) -> None:
+            k = str(sample.key_expr)
+            try:
+                msg = m.decode(sample.payload.to_bytes(), msg_type)
+            except m.MessageError as exc:
+                self.bad.add(k, str(exc))
+                return
+            try:
+                callback(msg, k)
+            except Exception as exc:  # a service bug must not vanish
+                self.callback_errors += 1
+                log.exception("error handling message on %s: %s", k, exc)
+
+        sub = self.session.declare_subscriber(key, on_sample)
+        self._decls.append(sub)
+
+    def subscribe_raw(self, key: str, callback: Callable[[str, bytes, str], None]) -> None:
+        """Subscribe without decoding: callback(key, payload, encoding)."""
+
+        def on_sample(sample: Any) -> None:
+            try:
+                callback(str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding))
+            except Exception as exc:
+                self.callback_errors += 1
+                log.exception("error in raw subscriber on %s: %s", key, exc)
+
+        self._decls.append(self.session.declare_subscriber(key, on_sample))
+
+    # -- liveliness -----------------------------------------------------------------------
+    def declare_token(self, key: str) -> None:
+        self._decls.append(self.session.liveliness().declare_token(key))
+
+    def watch_liveliness(self, key: str, callback: Callable[[str, bool], None],
+                         history: bool = True) -> None:
+        """callback(key, alive) for every token appearing (True) or disappearing (False)."""
+
+        def on_sample(sample: Any) -> None:
+            try:
+                callback(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+            except Exception as exc:
+                log.exception("error in liveliness callback: %s", exc)
+
+        self._decls.append(
+            self.session.liveliness().declare_subscriber(key, on_sample, history=history)
+        )
+
+    def alive(self, key: str, timeout: float = 1.0) -> list[str]:
+        """Keys of live tokens matching key (a liveliness query)."""
+        out = []
+        for reply in self.session.liveliness().get(key, timeout=timeout):
+            if reply.ok is not None:
+                out.append(str(reply.ok.key_expr))
+        return sorted(out)
+
+    # -- queryables -----------------------------------------------------------------------
+    def queryable(self, key: str, handler: Callable[[str], Any]) -> None:
+        """Answer queries on key with msgpack of handler(parameters) (a dict or a struct)."""
+
+        def on_query(query: Any) -> None:
+            try:
+                params = str(query.parameters) if query.parameters is not None else ""
+                value = handler(params)
+                payload = value if isinstance(value, bytes) else msgspec.msgpack.encode(value)
+                query.reply(query.key_expr, payload, encoding=MSGPACK)
+            except Exception as exc:
+                log.exception("state query failed: %s", exc)
+                try:
+                    query.reply_err(f"{type(exc).__name__}: {exc}".encode())
+                except Exception:
+                    pass
+
+        self._decls.append(self.session.declare_queryable(key, on_query))
+
+    def get(self, selector: str, timeout: float = 2.0) -> list[tuple[str, bytes | None, str]]:
+        """Query; returns [(key, payload or None, error text)]."""
+        out = []
+        for reply in self.session.get(selector, timeout=timeout):
+            if reply.ok is not None:
+                out.append((str(reply.ok.key_expr), reply.ok.payload.to_bytes(), ""))
+            else:
+                out.append(("", None, reply.err.payload.to_bytes().decode(errors="replace")))
+        return out
+
+    # -- info / close ---------------------------------------------------------------------
+    def routers(self) -> list[str]:
+        try:
+            return [str(z) for z in self.session.info.routers_zid()]
+        except Exception:
+            return []
+
+    def close(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+        try:
+            self.session.close()
+        except Exception as exc:  # closing twice or after a router loss
+            log.debug("close: %s", exc)
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+
+def init_logging(level: int = logging.INFO) -> None:
+    """Keep zenoh's own Rust logging quiet unless asked (RUST_LOG)."""
+    try:
+        zenoh.init_log_from_env_or("error")
+    except Exception:
+        pass

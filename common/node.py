@@ -1,0 +1,333 @@
+"""Runtime shared by every service process (the thin shells): command line, bus, inbox, signals.
+
+A service shell builds a :class:`Node`, subscribes its inputs into the node's :class:`Inbox`,
+then runs one worker loop on the main thread: wait for the next input, call the pure core,
+publish. Zenoh callbacks only decode, validate and deposit messages, so no algorithm runs on a
+zenoh thread and a slow stage conflates (real-time) or queues (lockstep) its input.
+
+Lockstep: every stage stamps its outputs with the ``src_seq`` and ``stamp`` of the scan they
+derive from, processes its primary input in order, and waits until its secondary inputs have
+caught up with that ``src_seq``; the simulator advances only after the controller answered.
+"""
+
+from __future__ import annotations
+
+import argparse
+import bisect
+import logging
+import math
+import os
+import signal
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+from common import messages as m
+from common.bus import DEFAULT_ENDPOINT, Bus, BusError, Publisher, init_logging
+from common.keys import TOPICS, Keys
+from common.params import ParamError, Params, load_params, params_to_dict
+
+log = logging.getLogger("topoexplore")
+
+
+# --- pure helpers (unit-tested without a bus) ------------------------------------------------
+
+
+class OdomBuffer:
+    """Recent odometry poses by stamp; ``pose_at(t)`` interpolates (pure, thread-safe)."""
+
+    def __init__(self, horizon: float = 5.0):
+        self.horizon = horizon  # [s] history kept
+        self._t: list[float] = []
+        self._p: list[tuple[float, float, float]] = []
+        self._lock = threading.Lock()
+
+    def add(self, stamp: float, pose: tuple[float, float, float]) -> None:
+        with self._lock:
+            if self._t and stamp < self._t[-1]:
+                if stamp < self._t[-1] - self.horizon:  # clock went back (sim restarted)
+                    self._t.clear()
+                    self._p.clear()
+                else:
+                    i = bisect.bisect_right(self._t, stamp)
+                    self._t.insert(i, stamp)
+                    self._p.insert(i, pose)
+                    return
+            self._t.append(stamp)
+            self._p.append(pose)
+            cut = bisect.bisect_left(self._t, stamp - self.horizon)
+            if cut > 0:
+                del self._t[:cut]
+                del self._p[:cut]
+
+    @property
+    def newest(self) -> float:
+        with self._lock:
+            return self._t[-1] if self._t else -math.inf
+
+    def latest(self) -> tuple[float, tuple[float, float, float]] | None:
+        with self._lock:
+            return (self._t[-1], self._p[-1]) if self._t else None
+
+    def pose_at(self, stamp: float, tolerance: float = 1e-6) -> tuple[float, float, float] | None:
+        """Pose at stamp (linear interpolation, angle-aware); None if not covered yet."""
+        with self._lock:
+            if not self._t or stamp > self._t[-1] + tolerance or stamp < self._t[0] - tolerance:
+                return None
+            i = bisect.bisect_left(self._t, stamp - tolerance)
+            if i < len(self._t) and abs(self._t[i] - stamp) <= tolerance:
+                return self._p[i]
+            if i == 0:
+                return self._p[0]
+            t0, t1 = self._t[i - 1], self._t[i]
+            p0, p1 = self._p[i - 1], self._p[i]
+        a = (stamp - t0) / (t1 - t0) if t1 > t0 else 1.0
+        dth = math.atan2(math.sin(p1[2] - p0[2]), math.cos(p1[2] - p0[2]))
+        return (p0[0] + a * (p1[0] - p0[0]), p0[1] + a * (p1[1] - p0[1]), p0[2] + a * dth)
+
+
+class Inbox:
+    """Latest message per topic, plus an ordered queue for the primary input.
+
+    In real-time mode the primary queue holds one message (conflation: keep the newest); in
+    lockstep it keeps every message so none is skipped.
+    """
+
+    def __init__(self) -> None:
+        self.cv = threading.Condition()
+        self.latest: dict[str, Any] = {}
+        self.received: dict[str, int] = {}
+        self._queues: dict[str, deque] = {}
+        self.dropped: dict[str, int] = {}
+
+    def make_queue(self, topic: str, maxlen: int) -> None:
+        with self.cv:
+            self._queues[topic] = deque(maxlen=maxlen)
+
+    def put(self, topic: str, msg: Any) -> None:
+        with self.cv:
+            self.latest[topic] = msg
+            self.received[topic] = self.received.get(topic, 0) + 1
+            q = self._queues.get(topic)
+            if q is not None:
+                if q.maxlen is not None and len(q) == q.maxlen:
+                    self.dropped[topic] = self.dropped.get(topic, 0) + 1
+                q.append(msg)
+            self.cv.notify_all()
+
+    def notify(self) -> None:
+        with self.cv:
+            self.cv.notify_all()
+
+    def pending(self, topic: str) -> int:
+        with self.cv:
+            return len(self._queues.get(topic, ()))
+
+    def peek(self, topic: str) -> Any:
+        with self.cv:
+            q = self._queues.get(topic)
+            return q[0] if q else None
+
+    def pop(self, topic: str) -> Any:
+        with self.cv:
+            q = self._queues.get(topic)
+            return q.popleft() if q else None
+
+    def wait(self, predicate: Callable[[], bool], timeout: float) -> bool:
+        with self.cv:
+            return self.cv.wait_for(predicate, timeout)
+
+    def src_seq(self, topic: str) -> int:
+        msg = self.latest.get(topic)
+        return msg.header.src_seq if msg is not None else -2
+
+
+# --- the node ----------------------------------------------------------------------------------
+
+
+def add_bus_args(p: argparse.ArgumentParser) -> None:
+    """Command-line options shared by every process (zenoh-python examples style)."""
+    g = p.add_argument_group("bus")
+    g.add_argument("--connect", "-e", default=None,
+                   help=f"router endpoint(s), comma separated (default {DEFAULT_ENDPOINT})")
+    g.add_argument("--zenoh-config", default=None, help="Zenoh JSON5 config file (base config)")
+    g.add_argument("--namespace", default=None, help="key namespace (default topoexplore)")
+    g.add_argument("--robot", default=None, help="robot name (default robot1)")
+
+
+def add_param_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("parameters")
+    g.add_argument("--params", default=None, help="TOML parameter file ([sim], [mapper], ...)")
+    g.add_argument("--set", action="append", default=[], metavar="SECTION.NAME=VALUE",
+                   help="override one parameter (repeatable)")
+
+
+def params_from_args(args: argparse.Namespace) -> Params:
+    overrides = list(getattr(args, "set", []) or [])
+    if getattr(args, "namespace", None):
+        overrides.append(f'bus.namespace="{args.namespace}"')
+    if getattr(args, "robot", None):
+        overrides.append(f'bus.robot="{args.robot}"')
+    if getattr(args, "connect", None):
+        overrides.append(f'bus.connect="{args.connect}"')
+    return load_params(getattr(args, "params", None), overrides)
+
+
+class Node:
+    """One service process: bus session, keys, inbox, counters, state queryable, liveliness."""
+
+    def __init__(self, service: str, params: Params, zenoh_config: str | None = None):
+        self.service = service
+        self.params = params
+        self.lockstep = params.sim.lockstep
+        self.keys = Keys(params.bus.namespace, params.bus.robot)
+        self.stop = threading.Event()
+        self.inbox = Inbox()
+        self.started = time.monotonic()
+        self.published: dict[str, int] = {}
+        self.processed = 0
+        self.errors = 0
+        self._state_fns: list[Callable[[], dict]] = []
+        self.bus = Bus.client(params.bus.connect, name=service, config_file=zenoh_config,
+                              wait_for_router=True)
+        self._seq: dict[str, int] = {}
+
+    # -- wiring ---------------------------------------------------------------------------
+    def publisher(self, topic: str, reliable: bool | None = None) -> Publisher:
+        """reliable defaults to lockstep (BLOCK, no loss) vs real-time (DROP, conflate)."""
+        return self.bus.publisher(self.keys.topic(topic), TOPICS[topic],
+                                  self.lockstep if reliable is None else reliable)
+
+    def subscribe(self, topic: str, queue: bool = False,
+                  on_msg: Callable[[Any], None] | None = None) -> None:
+        """Deposit decoded messages of a topic into the inbox (and/or call on_msg)."""
+        if queue:
+            self.inbox.make_queue(topic, 10_000 if self.lockstep else 1)
+
+        def cb(msg: Any, key: str) -> None:
+            if on_msg is not None:
+                on_msg(msg)
+            self.inbox.put(topic, msg)
+
+        self.bus.subscribe(self.keys.topic(topic), TOPICS[topic], cb)
+
+    def subscribe_odom(self, buffer: OdomBuffer) -> None:
+        self.subscribe("odom", on_msg=lambda o: buffer.add(
+            o.header.stamp, (o.pose.x, o.pose.y, o.pose.theta)))
+
+    def header(self, topic: str, stamp: float, src_seq: int, frame: str = "map") -> m.Header:
+        seq = self._seq.get(topic, 0)
+        self._seq[topic] = seq + 1
+        return m.Header(seq=seq, stamp=stamp, frame=frame, src_seq=src_seq)
+
+    def take(self, topic: str, ready: Callable[[Any], bool] | None = None,
+             poll: float = 0.2) -> tuple[Any, bool] | None:
+        """Next message of a queued topic, once ready(msg) holds (secondary inputs caught up).
+
+        Returns None when nothing arrived within ``poll`` seconds, else (msg, ready_ok): ready_ok
+        is False when the secondaries did not catch up within the wait limit (lockstep:
+        ``sim.lockstep_timeout``; real-time: 0.5 s) — the caller decides whether to skip.
+        """
+        inbox = self.inbox
+        if not inbox.wait(lambda: self.stop.is_set() or inbox.pending(topic) > 0, poll):
+            return None
+        msg = inbox.pop(topic)
+        if msg is None:
+            return None
+        if ready is None:
+            return msg, True
+        limit = self.params.sim.lockstep_timeout if self.lockstep else 0.5
+        ok = inbox.wait(lambda: self.stop.is_set() or ready(msg), limit)
+        return msg, ok and not self.stop.is_set()
+
+    def add_state(self, fn: Callable[[], dict]) -> None:
+        self._state_fns.append(fn)
+
+    def state(self, parameters: str = "") -> dict:
+        out: dict[str, Any] = {
+            "service": self.service,
+            "pid": os.getpid(),
+            "uptime_s": round(time.monotonic() - self.started, 3),
+            "mode": "lockstep" if self.lockstep else "realtime",
+            "processed": self.processed,
+            "errors": self.errors,
+            "bad_messages": dict(self.bus.bad.counts),
+            "bad_messages_total": self.bus.bad.total,
+            "last_bad_message": self.bus.bad.last_error,
+            "callback_errors": self.bus.callback_errors,
+            "received": dict(self.inbox.received),
+            "dropped": dict(self.inbox.dropped),
+            "params": params_to_dict(self.params),
+        }
+        for fn in self._state_fns:
+            out.update(fn())
+        return out
+
+    def ready(self) -> None:
+        """Declare the state queryable and the liveliness token: the service is up."""
+        self.bus.queryable(self.keys.state(self.service), self.state)
+        self.bus.declare_token(self.keys.alive(self.service))
+        log.info("%s ready on %s (%s)", self.service, self.keys.prefix,
+                 "lockstep" if self.lockstep else "real-time")
+
+    def close(self) -> None:
+        self.stop.set()
+        self.inbox.notify()
+        self.bus.close()
+
+
+def _install_signals(node_stop: threading.Event, inbox: Inbox) -> None:
+    def handler(signum: int, frame: Any) -> None:
+        node_stop.set()
+        inbox.notify()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+
+
+def run_service(service: str, build: Callable[[Node], Callable[[], None]],
+                argv: list[str] | None = None, description: str = "") -> int:
+    """Parse the shared command line, open the node, run build(node)() until stopped.
+
+    build(node) wires subscriptions/publishers and returns ``step``: one iteration of the
+    worker loop (it should wait on the inbox with a short timeout). Errors in the command line,
+    parameters or bus -> one line on stderr and exit code 2.
+    """
+    parser = argparse.ArgumentParser(prog=f"topoexplore-{service}", description=description)
+    add_bus_args(parser)
+    add_param_args(parser)
+    parser.add_argument("--log-level", default="INFO",
+                        choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=getattr(logging, args.log_level), stream=sys.stderr,
+                        format="%(levelname)s %(name)s: %(message)s")
+    init_logging()
+    sys.setswitchinterval(0.0005)  # ZENOH_NOTES: shorter GIL hand-off for callback threads
+    try:
+        params = params_from_args(args)
+    except ParamError as exc:
+        print(f"topoexplore-{service}: {exc}", file=sys.stderr)
+        return 2
+    try:
+        node = Node(service, params, zenoh_config=args.zenoh_config)
+    except BusError as exc:
+        print(f"topoexplore-{service}: {exc}", file=sys.stderr)
+        return 2
+    _install_signals(node.stop, node.inbox)
+    try:
+        step = build(node)
+        node.ready()
+        while not node.stop.is_set():
+            try:
+                step()
+            except Exception as exc:  # keep running: count, log, go on
+                node.errors += 1
+                log.exception("%s: error in step: %s", service, exc)
+                time.sleep(0.05)
+    finally:
+        node.close()
+    log.info("%s stopped", service)
+    return 0

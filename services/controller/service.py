@@ -1,0 +1,73 @@
+"""Controller service: plan + odom + scan -> ``cmd_vel`` (pure pursuit with a safety stop).
+
+Runs once per scan; in lockstep it waits for the plan derived from that scan (``src_seq``),
+so the answer the simulator waits for is deterministic.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from common import messages as m
+from common.node import Node, OdomBuffer, run_service
+from services.controller.core import ControllerCore
+
+log = logging.getLogger("topoexplore.controller")
+
+
+class ControllerService:
+    def __init__(self, node: Node):
+        self.node = node
+        self.core = ControllerCore(node.params.controller)
+        self.odom = OdomBuffer()
+        self.pub = node.publisher("cmd_vel")
+        node.subscribe_odom(self.odom)
+        node.subscribe("plan")
+        node.subscribe("explore/status")
+        node.subscribe("scan", queue=True)
+        self.last_cmd = (0.0, 0.0, "idle")
+        node.add_state(self.state)
+
+    def ready(self, scan: m.LaserScan) -> bool:
+        ok = self.odom.newest >= scan.header.stamp - 1e-6
+        if self.node.lockstep:
+            ok = ok and self.node.inbox.src_seq("plan") >= scan.header.src_seq
+        return ok
+
+    def step(self) -> None:
+        got = self.node.take("scan", self.ready)
+        if got is None:
+            return
+        scan, _ = got
+        inbox = self.node.inbox
+        plan, status = inbox.latest.get("plan"), inbox.latest.get("explore/status")
+        pose = self.odom.pose_at(scan.header.stamp) or (self.odom.latest() or (0, None))[1]
+        if pose is None:
+            v, w, mode = 0.0, 0.0, "no-pose"
+        else:
+            waypoints = np.asarray(plan.waypoints, dtype=np.float64).reshape(-1, 2) \
+                if plan is not None else np.zeros((0, 2))
+            plan_id = plan.plan_id if plan is not None else -1
+            done = status is not None and status.state in ("done", "failed")
+            v, w, mode = self.core.update(
+                scan.header.stamp, pose, waypoints, plan_id, done,
+                (np.asarray(scan.ranges, dtype=np.float64), scan.angle_min, scan.angle_increment))
+        self.last_cmd = (v, w, mode)
+        self.pub.put(m.Twist(header=self.node.header("cmd_vel", scan.header.stamp,
+                                                     scan.header.src_seq), v=v, w=w))
+        self.node.processed += 1
+
+    def state(self) -> dict:
+        v, w, mode = self.last_cmd
+        return {"cmd": {"v": v, "w": w, "mode": mode}, "core": self.core.snapshot()}
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_service("controller", lambda node: ControllerService(node).step, argv,
+                       "pure pursuit path follower with obstacle safety stop")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,86 @@
+"""Mapper service: scan + odom -> log-odds occupancy grid -> ``map``.
+
+Each scan is integrated at the odometry pose interpolated to the scan stamp. The map is
+published after every scan (lockstep) or for the newest scan (real-time, conflated).
+Bad or inconsistent scans (wrong beam count, pose missing, rejected by the core) are counted
+and skipped. The state queryable answers with a summary and the full current map.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from common import messages as m
+from common.node import Node, OdomBuffer, run_service
+from services.mapper.core import MapperCore, ScanError
+
+log = logging.getLogger("topoexplore.mapper")
+
+
+class MapperService:
+    def __init__(self, node: Node):
+        self.node = node
+        self.core = MapperCore(node.params.mapper)
+        self.odom = OdomBuffer()
+        self.pub_map = node.publisher("map")
+        node.subscribe_odom(self.odom)
+        node.subscribe("scan", queue=True)
+        self.skipped: dict[str, int] = {}
+        self.last_map: m.OccupancyGrid | None = None
+        node.add_state(self.state)
+
+    def skip(self, reason: str, detail: str) -> None:
+        self.skipped[reason] = self.skipped.get(reason, 0) + 1
+        if self.skipped[reason] in (1, 10, 100) or self.skipped[reason] % 1000 == 0:
+            log.warning("skipped scan (%s, %d so far): %s", reason, self.skipped[reason], detail)
+
+    def step(self) -> None:
+        got = self.node.take("scan", lambda s: self.odom.newest >= s.header.stamp - 1e-6)
+        if got is None:
+            return
+        scan, ok = got
+        pose = self.odom.pose_at(scan.header.stamp, tolerance=1e-6) if ok else None
+        if pose is None:
+            self.skip("pose_missing", f"no odometry at stamp {scan.header.stamp:.3f}")
+            return
+        expected = self.node.params.sim.beams
+        if len(scan.ranges) != expected:
+            self.skip("beam_count", f"{len(scan.ranges)} beams, expected {expected}")
+            return
+        try:
+            self.core.integrate(pose, np.asarray(scan.ranges, dtype=np.float64), scan.angle_min,
+                                scan.angle_increment, scan.range_min, scan.range_max,
+                                laser_offset=self.node.params.sim.laser_offset)
+        except ScanError as exc:
+            self.skip("rejected", str(exc))
+            return
+        self.last_map = self.make_map(scan.header.stamp, scan.header.src_seq)
+        self.pub_map.put(self.last_map)
+        self.node.processed += 1
+
+    def make_map(self, stamp: float, src_seq: int) -> m.OccupancyGrid:
+        g = self.core.geometry
+        return m.OccupancyGrid(
+            header=self.node.header("map", stamp, src_seq), resolution=g.resolution,
+            width=g.width, height=g.height, origin=m.Pose2D(x=g.origin_x, y=g.origin_y, theta=0.0),
+            data=m.array_to_grid_bytes(self.core.occupancy()))
+
+    def state(self) -> dict:
+        g = self.core.geometry
+        return {
+            "skipped_scans": dict(self.skipped),
+            "grid": {"width": g.width, "height": g.height, "resolution": g.resolution,
+                     "origin": [g.origin_x, g.origin_y]},
+            "map": self.last_map,
+        }
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_service("mapper", lambda node: MapperService(node).step, argv,
+                       "log-odds occupancy grid mapper")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,98 @@
+"""Planner service: reliability + topo + map + odom -> ``plan`` and ``explore/status``.
+
+One plan per reliability update (so lockstep can wait for it by ``src_seq``); the status is
+published with every plan in lockstep and at ``planner.status_hz`` or on change in real time.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+from services.planner.core import PlannerCore
+
+from common import messages as m
+from common.grid import GridGeometry
+from common.node import Node, OdomBuffer, run_service
+
+log = logging.getLogger("topoexplore.planner")
+
+
+class PlannerService:
+    def __init__(self, node: Node):
+        self.node = node
+        self.p = node.params.planner
+        self.core = PlannerCore(self.p)
+        self.odom = OdomBuffer()
+        self.pub_plan = node.publisher("plan")
+        self.pub_status = node.publisher("explore/status", reliable=True)
+        node.subscribe_odom(self.odom)
+        node.subscribe("map")
+        node.subscribe("topo")
+        node.subscribe("reliability", queue=True)
+        self.last_status: m.ExploreStatus | None = None
+        self.last_status_wall = 0.0
+        self.last_key: tuple = ()
+        self.out = None
+        node.add_state(self.state)
+
+    def ready(self, rel: m.Reliability) -> bool:
+        k = rel.header.src_seq
+        inbox = self.node.inbox
+        return (inbox.src_seq("topo") >= k and inbox.src_seq("map") >= k
+                and self.odom.newest >= rel.header.stamp - 1e-6)
+
+    def step(self) -> None:
+        got = self.node.take("reliability", self.ready)
+        if got is None:
+            self.maybe_status(force=False)
+            return
+        rel, _ = got
+        inbox = self.node.inbox
+        topo, grid = inbox.latest.get("topo"), inbox.latest.get("map")
+        pose = self.odom.pose_at(rel.header.stamp) or (self.odom.latest() or (0, None))[1]
+        if pose is None:
+            log.warning("reliability %d skipped: no pose", rel.header.src_seq)
+            return
+        mp = self.node.params.mapper
+        out = self.core.update(
+            rel.header.stamp, pose, topo, rel,
+            m.grid_to_array(grid) if grid is not None else None,
+            GridGeometry.of(grid) if grid is not None else None, mp.p_free, mp.p_occ)
+        self.out = out
+        stamp, k = rel.header.stamp, rel.header.src_seq
+        self.pub_plan.put(m.Path(
+            header=self.node.header("plan", stamp, k),
+            waypoints=[[float(x), float(y)] for x, y in out.waypoints], target_id=out.target_id,
+            target_x=float(out.target_xy[0]), target_y=float(out.target_xy[1]),
+            strategy=self.p.strategy, plan_id=out.plan_id))
+        self.last_status = m.ExploreStatus(
+            header=self.node.header("explore/status", stamp, k), state=out.state,
+            reason=out.reason, strategy=self.p.strategy, target_id=out.target_id,
+            target_p=min(1.0, max(0.0, float(out.target_p))), candidates=out.candidates,
+            end_nodes=out.end_nodes, reliable=out.reliable, blacklisted=list(out.blacklisted),
+            replans=out.replans)
+        self.node.processed += 1
+        key = (out.state, out.target_id, out.reason, tuple(out.blacklisted))
+        self.maybe_status(force=self.node.lockstep or key != self.last_key)
+        self.last_key = key
+
+    def maybe_status(self, force: bool) -> None:
+        now = time.monotonic()
+        if self.last_status is None:
+            return
+        if force or now - self.last_status_wall >= 1.0 / self.p.status_hz:
+            self.last_status_wall = now
+            self.pub_status.put(self.last_status)
+
+    def state(self) -> dict:
+        return {"status": self.last_status, "core": self.core.snapshot()}
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_service("planner", lambda node: PlannerService(node).step, argv,
+                       "exploration planner (reliability | all-end-nodes | frontier)")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

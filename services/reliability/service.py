@@ -1,0 +1,67 @@
+"""Reliability service: topo + map + odom -> per end node position probability -> ``reliability``.
+
+For each topo update k, waits until the map it was derived from (``src_seq >= k``) is here,
+takes the robot pose at the topo stamp, and runs the Bayes update of paper eqs. 1-10.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from common import messages as m
+from common.grid import GridGeometry
+from common.node import Node, OdomBuffer, run_service
+from services.reliability.core import ReliabilityCore
+
+log = logging.getLogger("topoexplore.reliability")
+
+
+class ReliabilityService:
+    def __init__(self, node: Node):
+        self.node = node
+        self.core = ReliabilityCore(node.params.reliability)
+        self.odom = OdomBuffer()
+        self.pub = node.publisher("reliability")
+        node.subscribe_odom(self.odom)
+        node.subscribe("map")
+        node.subscribe("topo", queue=True)
+        self.skipped = 0
+        self.last: m.Reliability | None = None
+        node.add_state(self.state)
+
+    def ready(self, topo: m.TopoGraph) -> bool:
+        return (self.node.inbox.src_seq("map") >= topo.header.src_seq
+                and self.odom.newest >= topo.header.stamp - 1e-6)
+
+    def step(self) -> None:
+        got = self.node.take("topo", self.ready)
+        if got is None:
+            return
+        topo, _ = got
+        grid = self.node.inbox.latest.get("map")
+        pose = self.odom.pose_at(topo.header.stamp) or (self.odom.latest() or (0, None))[1]
+        if grid is None or pose is None:
+            self.skipped += 1
+            log.warning("topo %d skipped: %s missing", topo.header.src_seq,
+                        "map" if grid is None else "pose")
+            return
+        ends = [(n.id, n.x, n.y) for n in topo.nodes if n.kind == "end"]
+        nodes = self.core.update(ends, list(topo.gone), pose, m.grid_to_array(grid),
+                                 GridGeometry.of(grid), self.node.params.mapper.p_occ)
+        self.last = m.Reliability(
+            header=self.node.header("reliability", topo.header.stamp, topo.header.src_seq),
+            nodes=nodes)
+        self.pub.put(self.last)
+        self.node.processed += 1
+
+    def state(self) -> dict:
+        return {"skipped": self.skipped, "nodes": self.core.snapshot(), "last": self.last}
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_service("reliability", lambda node: ReliabilityService(node).step, argv,
+                       "end node position probability (Bayes update, paper eqs. 1-10)")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,67 @@
+"""Topology service: map -> thinning-based topological graph -> ``topo``.
+
+The robot position (needed to keep only its connected component) is the odometry pose at the
+map's stamp. Node ids are stable across updates; vanished ids are reported in ``gone``.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from services.topology.core import TopologyCore
+
+from common import messages as m
+from common.grid import GridGeometry
+from common.node import Node, OdomBuffer, run_service
+
+log = logging.getLogger("topoexplore.topology")
+
+
+class TopologyService:
+    def __init__(self, node: Node):
+        self.node = node
+        self.core = TopologyCore(node.params.topology)
+        self.odom = OdomBuffer()
+        self.pub = node.publisher("topo")
+        node.subscribe_odom(self.odom)
+        node.subscribe("map", queue=True)
+        self.skipped = 0
+        self.last: m.TopoGraph | None = None
+        node.add_state(self.state)
+
+    def step(self) -> None:
+        got = self.node.take("map", lambda g: self.odom.newest >= g.header.stamp - 1e-6)
+        if got is None:
+            return
+        grid, _ = got
+        pose = self.odom.pose_at(grid.header.stamp) or (self.odom.latest() or (0, None))[1]
+        if pose is None:
+            self.skipped += 1
+            log.warning("no odometry for map at %.3f: skipped", grid.header.stamp)
+            return
+        mp = self.node.params.mapper
+        res = self.core.update(m.grid_to_array(grid), GridGeometry.of(grid), (pose[0], pose[1]),
+                               mp.p_free, mp.p_occ)
+        self.last = m.TopoGraph(header=self.node.header("topo", grid.header.stamp,
+                                                        grid.header.src_seq),
+                                nodes=res.nodes, edges=res.edges, gone=res.gone)
+        self.pub.put(self.last)
+        self.node.processed += 1
+
+    def state(self) -> dict:
+        out = {"skipped_maps": self.skipped, "core": self.core.snapshot()}
+        if self.last is not None:
+            kinds: dict[str, int] = {}
+            for n in self.last.nodes:
+                kinds[n.kind] = kinds.get(n.kind, 0) + 1
+            out.update(nodes=kinds, edges=len(self.last.edges), topo=self.last)
+        return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_service("topology", lambda node: TopologyService(node).step, argv,
+                       "thinning-based topological map")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,179 @@
+"""Simulator service: runs :class:`sim.core.SimCore` and publishes scan, odom, truth, sim/status.
+
+Modes (DESIGN §5):
+- real-time: physics at ``physics_hz`` paced by the wall clock times ``speed``;
+- lockstep: after publishing scan k, wait for the cmd_vel answering it (``src_seq >= k``), then
+  advance one scan period. Runs are deterministic and faster than real time.
+
+Run: ``python -m sim.service --set sim.world=paper-room``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+
+import numpy as np
+
+from common import messages as m
+from common.node import Node, run_service
+from sim.core import SimCore
+from sim.world import WorldError, load_world
+
+log = logging.getLogger("topoexplore.sim")
+
+
+class SimService:
+    def __init__(self, node: Node):
+        self.node = node
+        p = node.params.sim
+        self.p = p
+        try:
+            self.world = load_world(p.world)
+        except WorldError as exc:
+            raise SystemExit(f"topoexplore-sim: {exc}") from None
+        self.core = SimCore(self.world, p, np.random.default_rng(p.seed))
+        self.steps_per_scan = max(1, round(p.physics_hz / p.scan_hz))
+        self.steps_per_odom = max(1, round(p.physics_hz / p.odom_hz))
+        self.pub_scan = node.publisher("scan")
+        self.pub_odom = node.publisher("odom")
+        self.pub_truth = node.publisher("truth")
+        self.pub_status = node.publisher("sim/status")
+        node.subscribe("cmd_vel")
+        self.scan_seq = -1
+        self.step_count = 0
+        self.lockstep_timeouts = 0
+        self.wall_start = time.monotonic()
+        self.last_status_wall = 0.0
+        self.started = False
+        self.applied_cmd_seq = -1
+        node.add_state(self.state)
+
+    # -- publishing -----------------------------------------------------------------------
+    def publish_odom(self) -> None:
+        t = self.core.time
+        x, y, th = self.core.odom_pose()
+        v, w = self.core.velocity()
+        hdr = self.node.header("odom", t, self.scan_seq)
+        self.pub_odom.put(m.Odometry(header=hdr, pose=m.Pose2D(x=x, y=y, theta=th), v=v, w=w))
+        tx, ty, tth = self.core.truth_pose()
+        self.pub_truth.put(m.Pose(header=self.node.header("truth", t, self.scan_seq),
+                                  pose=m.Pose2D(x=tx, y=ty, theta=tth)))
+
+    def publish_scan(self) -> None:
+        self.scan_seq += 1
+        self.publish_odom()  # the pose at the scan stamp, before the scan
+        ranges = self.core.scan()
+        hdr = m.Header(seq=self.scan_seq, stamp=self.core.time, frame="laser", src_seq=self.scan_seq)
+        self.pub_scan.put(m.LaserScan(
+            header=hdr, angle_min=self.core.angle_min, angle_increment=self.core.angle_increment,
+            range_min=self.p.range_min, range_max=self.p.range_max, ranges=ranges.tolist()))
+
+    def publish_status(self) -> None:
+        wall = time.monotonic() - self.wall_start
+        self.pub_status.put(m.SimStatus(
+            header=self.node.header("sim/status", self.core.time, self.scan_seq),
+            world=self.world.name, mode="lockstep" if self.node.lockstep else "realtime",
+            sim_time=self.core.time, steps=self.step_count, collisions=self.core.collisions,
+            path_length=self.core.path_length,
+            real_time_factor=self.core.time / wall if wall > 0 else 0.0,
+            watchdog_stops=self.core.watchdog_stops, lockstep_timeouts=self.lockstep_timeouts))
+
+    def apply_latest_cmd(self) -> None:
+        cmd = self.node.inbox.latest.get("cmd_vel")
+        if cmd is not None and cmd.header.seq != self.applied_cmd_seq:
+            self.applied_cmd_seq = cmd.header.seq
+            self.core.command(cmd.v, cmd.w)
+
+    def physics_step(self) -> None:
+        self.core.step()
+        self.step_count += 1
+        if self.step_count % self.steps_per_odom == 0:
+            self.publish_odom()
+
+    # -- modes ----------------------------------------------------------------------------
+    def wait_for_pipeline(self) -> None:
+        want = set(self.p.lockstep_wait_for)
+        if not want:
+            return
+        deadline = time.monotonic() + self.p.lockstep_wait
+        while not self.node.stop.is_set() and time.monotonic() < deadline:
+            alive = {k.rsplit("/", 1)[-1] for k in self.node.bus.alive(self.node.keys.alive_all())}
+            if want <= alive:
+                return
+            time.sleep(0.05)
+        log.warning("lockstep: starting without %s", sorted(want - alive))
+
+    def step_lockstep(self) -> None:
+        if not self.started:
+            self.wait_for_pipeline()
+            self.started = True
+            self.wall_start = time.monotonic()
+        self.publish_scan()
+        self.publish_status()
+        k = self.scan_seq
+        ok = self.node.inbox.wait(
+            lambda: self.node.stop.is_set() or self.node.inbox.src_seq("cmd_vel") >= k,
+            self.p.lockstep_timeout)
+        if self.node.stop.is_set():
+            return
+        if not ok:
+            self.lockstep_timeouts += 1
+            log.warning("lockstep: no cmd_vel for scan %d within %.1f s; stepping on", k,
+                        self.p.lockstep_timeout)
+        self.apply_latest_cmd()
+        for _ in range(self.steps_per_scan):
+            self.physics_step()
+        self.node.processed += 1
+
+    def step_realtime(self) -> None:
+        if not self.started:
+            self.started = True
+            self.wall_start = time.monotonic()
+            self.publish_scan()
+        self.apply_latest_cmd()
+        self.physics_step()
+        if self.step_count % self.steps_per_scan == 0:
+            self.publish_scan()
+            self.node.processed += 1
+        now = time.monotonic()
+        if now - self.last_status_wall >= 1.0 / self.p.status_hz:
+            self.last_status_wall = now
+            self.publish_status()
+        # pace: sim time runs at `speed` x wall time
+        target = self.wall_start + self.core.time / self.p.speed
+        delay = target - time.monotonic()
+        if delay > 0:
+            self.node.stop.wait(delay)
+
+    def step(self) -> None:
+        if self.node.lockstep:
+            self.step_lockstep()
+        else:
+            self.step_realtime()
+
+    def state(self) -> dict:
+        x, y, th = self.core.truth_pose()
+        return {
+            "world": self.world.name,
+            "world_source": self.world.source,
+            "sim_time": self.core.time,
+            "scan_seq": self.scan_seq,
+            "steps": self.step_count,
+            "collisions": self.core.collisions,
+            "path_length": self.core.path_length,
+            "watchdog_stops": self.core.watchdog_stops,
+            "lockstep_timeouts": self.lockstep_timeouts,
+            "truth_pose": [x, y, th],
+            "heading_deg": math.degrees(th),
+        }
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_service("sim", lambda node: SimService(node).step, argv,
+                       "pymunk differential-drive robot with a 181-beam laser")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
