@@ -1,0 +1,355 @@
+"""Map files: ROS map_server format (image + YAML) and PNG output. The only file I/O for maps.
+
+Format (ROS map_server / nav2 map_server)::
+
+    image: name.pgm          # relative to the YAML's directory, or absolute
+    resolution: 0.05         # [m/pixel]
+    origin: [x, y, yaw]      # [m, m, rad] world pose of the lower-left pixel's corner
+    negate: 0
+    occupied_thresh: 0.65
+    free_thresh: 0.196
+    mode: trinary            # optional: trinary (default) | scale | raw
+
+Image row 0 is the top of the map (max y); our grids have row 0 at min y, so rows are flipped.
+Reading follows nav2's ``map_io.cpp``: shade = mean of the colour channels / 255;
+occ = shade if negate else 1 - shade; trinary: occ > occupied_thresh -> 100, occ < free_thresh ->
+0, else -1; scale: transparent -> -1, else the same two tests, else rint(100 (occ - free) /
+(occupied - free)); raw: round(255 shade) if in 0..100 else -1.
+
+Writing produces what ROS map_saver produces in trinary mode: 254 free, 0 occupied, 205 unknown,
+with ``free_thresh: 0.196`` and ``occupied_thresh: 0.65`` in the YAML (205 reads back as unknown
+under those thresholds; the grid itself is classified with ``p_free`` / ``p_occ``).
+
+Only a flat ``key: value`` YAML subset is parsed (what map_server files contain), so no YAML
+dependency is needed. Every problem raises :class:`MapIOError` with a one-line message.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from common.grid import FREE, OCCUPIED, GridGeometry, classify
+
+__all__ = [
+    "MapIOError",
+    "write_map_server",
+    "read_map_server",
+    "read_map_yaml",
+    "write_png",
+    "PIX_FREE",
+    "PIX_OCCUPIED",
+    "PIX_UNKNOWN",
+]
+
+PIX_FREE = 254
+PIX_OCCUPIED = 0
+PIX_UNKNOWN = 205
+YAML_OCCUPIED_THRESH = 0.65
+YAML_FREE_THRESH = 0.196  # 205 -> occ = 50/255 = 0.19608, just above: unknown
+MODES = ("trinary", "scale", "raw")
+REQUIRED_KEYS = ("image", "resolution", "origin", "negate", "occupied_thresh", "free_thresh")
+
+
+class MapIOError(ValueError):
+    """A map file is missing, malformed or cannot be written."""
+
+
+# --- YAML subset -----------------------------------------------------------------------------
+
+
+def _scalar(text: str):
+    t = text.strip()
+    if len(t) >= 2 and t[0] == t[-1] and t[0] in "\"'":
+        return t[1:-1]
+    low = t.lower()
+    if low in ("true", "yes", "on"):
+        return True
+    if low in ("false", "no", "off"):
+        return False
+    try:
+        return int(t)
+    except ValueError:
+        pass
+    try:
+        return float(t)
+    except ValueError:
+        return t
+
+
+def _strip_comment(line: str) -> str:
+    # a '#' starts a comment at line start or after whitespace, outside quotes
+    quote = None
+    for i, ch in enumerate(line):
+        if quote:
+            if ch == quote:
+                quote = None
+        elif ch in "\"'":
+            quote = ch
+        elif ch == "#" and (i == 0 or line[i - 1].isspace()):
+            return line[:i]
+    return line
+
+
+_KEY = re.compile(r"^([A-Za-z_][A-Za-z0-9_]*)\s*:(?:\s+(.*))?$")
+
+
+def parse_flat_yaml(text: str, where: str = "YAML") -> dict:
+    """Parse flat ``key: value`` lines; values are scalars or one-line ``[a, b, c]`` lists."""
+    out: dict = {}
+    for n, raw in enumerate(text.splitlines(), 1):
+        line = _strip_comment(raw).rstrip()
+        if not line.strip() or line.strip() in ("---", "..."):
+            continue
+        if line[0].isspace():
+            raise MapIOError(f"{where}:{n}: nested or indented YAML is not supported: {raw!r}")
+        mk = _KEY.match(line)
+        if not mk:
+            raise MapIOError(f"{where}:{n}: expected 'key: value', got {raw!r}")
+        key, value = mk.group(1), (mk.group(2) or "").strip()
+        if key in out:
+            raise MapIOError(f"{where}:{n}: duplicate key {key!r}")
+        if value.startswith("["):
+            if not value.endswith("]"):
+                raise MapIOError(f"{where}:{n}: list for {key!r} must be on one line in [...]")
+            inner = value[1:-1].strip()
+            out[key] = [_scalar(v) for v in inner.split(",")] if inner else []
+        else:
+            out[key] = _scalar(value)
+    return out
+
+
+def _number(meta: dict, key: str, where: str) -> float:
+    v = meta[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise MapIOError(f"{where}: {key} must be a finite number (got {v!r})")
+    return float(v)
+
+
+def read_map_yaml(yaml_path: str | os.PathLike) -> dict:
+    """Parse and check a map_server YAML. Returns a dict with ``image`` (absolute Path),
+    ``resolution``, ``origin`` (x, y, yaw), ``negate`` (bool), ``occupied_thresh``,
+    ``free_thresh`` and ``mode``."""
+    path = Path(yaml_path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise MapIOError(f"map YAML not found: {path}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise MapIOError(f"cannot read map YAML {path}: {exc}") from None
+    meta = parse_flat_yaml(text, str(path))
+    missing = [k for k in REQUIRED_KEYS if k not in meta]
+    if missing:
+        raise MapIOError(f"{path}: missing key(s) {', '.join(missing)}")
+    image = meta["image"]
+    if not isinstance(image, str) or not image:
+        raise MapIOError(f"{path}: image must be a file name (got {image!r})")
+    res = _number(meta, "resolution", str(path))
+    if not res > 0:
+        raise MapIOError(f"{path}: resolution must be > 0 (got {res})")
+    origin = meta["origin"]
+    if (not isinstance(origin, list) or len(origin) != 3
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                       and math.isfinite(v) for v in origin)):
+        raise MapIOError(f"{path}: origin must be [x, y, yaw] with 3 finite numbers (got {origin!r})")
+    negate = meta["negate"]
+    if negate not in (0, 1, True, False):
+        raise MapIOError(f"{path}: negate must be 0 or 1 (got {negate!r})")
+    occ_t = _number(meta, "occupied_thresh", str(path))
+    free_t = _number(meta, "free_thresh", str(path))
+    if not 0.0 <= free_t < occ_t <= 1.0:
+        raise MapIOError(
+            f"{path}: need 0 <= free_thresh < occupied_thresh <= 1 (got {free_t}, {occ_t})"
+        )
+    mode = meta.get("mode", "trinary")
+    if mode not in MODES:
+        raise MapIOError(f"{path}: mode must be one of {', '.join(MODES)} (got {mode!r})")
+    img = Path(image)
+    if not img.is_absolute():
+        img = path.parent / img
+    return {
+        "image": img,
+        "resolution": res,
+        "origin": tuple(float(v) for v in origin),
+        "negate": bool(negate),
+        "occupied_thresh": occ_t,
+        "free_thresh": free_t,
+        "mode": mode,
+    }
+
+
+# --- reading -------------------------------------------------------------------------------
+
+
+def pixels_to_occupancy(img: np.ndarray, negate: bool, occupied_thresh: float,
+                        free_thresh: float, mode: str = "trinary") -> np.ndarray:
+    """Image as read (row 0 = top; gray, BGR or BGRA uint8) -> int8 grid (row 0 = bottom).
+
+    nav2 map_io semantics (see module docstring), including its trinary quirk of averaging the
+    alpha channel in with the colours.
+    """
+    a = np.asarray(img)
+    if a.dtype != np.uint8:
+        raise MapIOError(f"map image must be 8-bit (got {a.dtype})")
+    if a.ndim == 2:
+        shade = a.astype(np.float64) / 255.0
+        alpha = None
+    elif a.ndim == 3 and a.shape[2] in (3, 4):
+        chans = a[:, :, :3].astype(np.float64)
+        alpha = a[:, :, 3] if a.shape[2] == 4 else None
+        if mode == "trinary" and alpha is not None:
+            shade = (chans.sum(axis=2) + alpha) / (4.0 * 255.0)
+        else:
+            shade = chans.mean(axis=2) / 255.0
+    else:
+        raise MapIOError(f"map image must be gray, BGR or BGRA (got shape {a.shape})")
+    occ = shade if negate else 1.0 - shade
+    out = np.full(a.shape[:2], -1, np.int8)
+    if mode == "raw":
+        v = np.round(shade * 255.0)
+        ok = (v >= 0) & (v <= 100)
+        out[ok] = v[ok].astype(np.int8)
+    else:
+        occupied = occ > occupied_thresh
+        free = occ < free_thresh
+        out[occupied] = 100
+        out[free] = 0
+        if mode == "scale":
+            mid = ~occupied & ~free
+            out[mid] = np.rint(
+                (occ[mid] - free_thresh) / (occupied_thresh - free_thresh) * 100.0
+            ).astype(np.int8)
+            if alpha is not None:
+                out[alpha != 255] = -1
+    return np.ascontiguousarray(out[::-1])
+
+
+def read_map_server(yaml_path: str | os.PathLike) -> tuple[np.ndarray, GridGeometry]:
+    """Read a map_server map -> (int8 grid, row 0 = min y: 0 free, 100 occupied, -1 unknown,
+    1..99 in scale mode; GridGeometry). A non-zero origin yaw is refused (not representable)."""
+    meta = read_map_yaml(yaml_path)
+    x, y, yaw = meta["origin"]
+    if abs(yaw) > 1e-9:
+        raise MapIOError(f"{yaml_path}: rotated maps (origin yaw={yaw}) are not supported")
+    img_path = meta["image"]
+    if not img_path.is_file():
+        raise MapIOError(f"{yaml_path}: image file not found: {img_path}")
+    img = cv2.imread(str(img_path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise MapIOError(f"{yaml_path}: cannot decode image {img_path}")
+    grid = pixels_to_occupancy(img, meta["negate"], meta["occupied_thresh"],
+                               meta["free_thresh"], meta["mode"])
+    h, w = grid.shape
+    return grid, GridGeometry(meta["resolution"], x, y, w, h)
+
+
+# --- writing -------------------------------------------------------------------------------
+
+
+def occupancy_to_pixels(grid_int8: np.ndarray, p_free: float = 0.35,
+                        p_occ: float = 0.65) -> np.ndarray:
+    """int8 grid (row 0 = min y) -> trinary uint8 image (row 0 = top): 254 / 0 / 205."""
+    cls = classify(grid_int8, p_free, p_occ)
+    img = np.full(cls.shape, PIX_UNKNOWN, np.uint8)
+    img[cls == FREE] = PIX_FREE
+    img[cls == OCCUPIED] = PIX_OCCUPIED
+    return np.ascontiguousarray(img[::-1])
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    """Write via a temporary file in the same directory + rename (readers never see half)."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            os.fchmod(f.fileno(), 0o644)  # mkstemp creates 0600
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def _check_grid(grid_int8: np.ndarray, geom: GridGeometry) -> np.ndarray:
+    g = np.asarray(grid_int8)
+    if g.ndim != 2 or g.shape != (geom.height, geom.width) or g.size == 0:
+        raise MapIOError(f"grid shape {g.shape} does not match geometry {geom.height}x{geom.width}")
+    if not np.issubdtype(g.dtype, np.integer):
+        raise MapIOError(f"grid must be an integer array (got {g.dtype})")
+    if not (math.isfinite(geom.resolution) and geom.resolution > 0
+            and math.isfinite(geom.origin_x) and math.isfinite(geom.origin_y)):
+        raise MapIOError(f"bad geometry {geom}")
+    return g
+
+
+def write_map_server(yaml_path: str | os.PathLike, grid_int8: np.ndarray, geom: GridGeometry,
+                     p_free: float = 0.35, p_occ: float = 0.65) -> tuple[Path, Path]:
+    """Write ``<name>.yaml`` + ``<name>.pgm`` (P5, trinary), readable by ROS/nav2 map_server.
+
+    Cells are classified with ``p_free`` / ``p_occ`` (common.grid.classify). Parent directories
+    are created; each file is written atomically. Returns (yaml_path, pgm_path).
+    """
+    g = _check_grid(grid_int8, geom)
+    if not 0.0 < p_free <= p_occ < 1.0:
+        raise MapIOError(f"need 0 < p_free <= p_occ < 1 (got {p_free}, {p_occ})")
+    ypath = Path(yaml_path)
+    if ypath.suffix.lower() not in (".yaml", ".yml"):
+        raise MapIOError(f"map YAML path must end in .yaml or .yml: {ypath}")
+    pgm = ypath.with_suffix(".pgm")
+    img = occupancy_to_pixels(g, p_free, p_occ)
+    h, w = img.shape
+    header = f"P5\n# topoexplore map, {geom.resolution} m/pixel\n{w} {h}\n255\n".encode("ascii")
+    text = (
+        f"image: {pgm.name}\n"
+        f"resolution: {geom.resolution:.6f}\n"
+        f"origin: [{geom.origin_x:.6f}, {geom.origin_y:.6f}, 0.000000]\n"
+        "negate: 0\n"
+        f"occupied_thresh: {YAML_OCCUPIED_THRESH}\n"
+        f"free_thresh: {YAML_FREE_THRESH}\n"
+        "mode: trinary\n"
+    )
+    if float(f"{geom.resolution:.6f}") != geom.resolution or any(
+        float(f"{v:.6f}") != v for v in (geom.origin_x, geom.origin_y)
+    ):
+        text = (  # keep full precision when 6 decimals would change the geometry
+            f"image: {pgm.name}\n"
+            f"resolution: {geom.resolution!r}\n"
+            f"origin: [{geom.origin_x!r}, {geom.origin_y!r}, 0.0]\n"
+            + text.split("\n", 3)[3]
+        )
+    try:
+        ypath.parent.mkdir(parents=True, exist_ok=True)
+        _atomic_write(pgm, header + img.tobytes())
+        _atomic_write(ypath, text.encode("utf-8"))
+    except OSError as exc:
+        raise MapIOError(f"cannot write map {ypath}: {exc}") from None
+    return ypath, pgm
+
+
+def write_png(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """Write a uint8 gray/BGR/BGRA image as PNG (parents created, atomic). Returns the path."""
+    p = Path(path)
+    a = np.asarray(image)
+    if a.dtype != np.uint8 or not (a.ndim == 2 or (a.ndim == 3 and a.shape[2] in (3, 4))):
+        raise MapIOError(f"PNG image must be uint8 gray/BGR/BGRA (got {a.dtype} {a.shape})")
+    if a.size == 0:
+        raise MapIOError("PNG image is empty")
+    if p.suffix.lower() != ".png":
+        raise MapIOError(f"PNG path must end in .png: {p}")
+    ok, buf = cv2.imencode(".png", a)
+    if not ok:
+        raise MapIOError(f"cannot encode PNG for {p}")
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        _atomic_write(p, buf.tobytes())
+    except OSError as exc:
+        raise MapIOError(f"cannot write {p}: {exc}") from None
+    return p
