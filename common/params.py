@@ -98,6 +98,7 @@ class ReliabilityParams(_P):
     range_max: float = 8.0  # [m]
     laser_offset: float = 0.0  # [m]
     visit_radius: float = 0.5  # [m] counts as visited
+    bearing_bin: float = math.radians(0.5)  # [rad] bearings stored one per bin (eq. 3)
 
 
 class PlannerParams(_P):
@@ -213,7 +214,8 @@ def _validate(p: Params) -> None:
         raise ParamError("reliability: need 0 < r_near < r_far")
     if not (0 < r.p_init < r.p_reliable < r.p_max < 1):
         raise ParamError("reliability: need 0 < p_init < p_reliable < p_max < 1")
-    for name in ("alpha_full", "move_tolerance", "fov", "range_max", "visit_radius"):
+    for name in ("alpha_full", "move_tolerance", "fov", "range_max", "visit_radius",
+                 "bearing_bin", "d_c"):
         pos("reliability", name, getattr(r, name))
     pl = p.planner
     if pl.strategy not in STRATEGIES:

@@ -1,0 +1,390 @@
+"""Unit tests for the reliability core (paper eqs. 1-10, DESIGN.md §4 "Reliability")."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from common.grid import GridGeometry
+from common.messages import Header, NodeReliability, Reliability, decode, encode
+from common.params import ReliabilityParams
+from services.reliability.core import (
+    ReliabilityCore,
+    ReliabilityError,
+    angle_index,
+    bayes_update,
+    circular_spread,
+    distance_index,
+    is_observed,
+    line_cells,
+    line_of_sight,
+)
+
+P = ReliabilityParams()
+GEOM = GridGeometry(resolution=0.1, origin_x=-10.0, origin_y=-10.0, width=200, height=200)
+
+
+def free_grid() -> np.ndarray:
+    return np.zeros((GEOM.height, GEOM.width), dtype=np.int8)
+
+
+def wall_grid(x: float) -> np.ndarray:
+    """Free grid with a vertical occupied wall at world x = x (one cell thick)."""
+    g = free_grid()
+    _, col = GEOM.world_to_cell(x, 0.0)
+    g[:, int(col)] = 100
+    return g
+
+
+# --- eqs. 1-2: distance index ---------------------------------------------------------------
+
+
+@pytest.mark.parametrize("r", [0.0, 0.1, 0.3, 0.5])
+def test_distance_index_is_one_at_and_below_half_metre(r):
+    assert distance_index(r, P) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("r", [4.5, 5.0, 8.0, 100.0, math.inf])
+def test_distance_index_is_half_at_and_beyond_far(r):
+    assert distance_index(r, P) == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("r", [0.6, 1.0, 2.0, 3.3, 4.4])
+def test_distance_index_between_is_4_over_r_plus_3_5(r):
+    assert distance_index(r, P) == pytest.approx(4.0 / (r + 3.5))
+
+
+def test_distance_index_rejects_bad_input():
+    with pytest.raises(ReliabilityError):
+        distance_index(-0.1, P)
+    with pytest.raises(ReliabilityError):
+        distance_index(float("nan"), P)
+    with pytest.raises(ValueError):  # ReliabilityError is a ValueError
+        distance_index("far", P)
+
+
+# --- eq. 3: circular spread -------------------------------------------------------------------
+
+
+def deg(*a: float) -> np.ndarray:
+    return np.radians(np.array(a, dtype=np.float64))
+
+
+def test_spread_empty_and_single_is_zero():
+    assert circular_spread(np.array([])) == 0.0
+    assert circular_spread(deg(42.0)) == 0.0
+    assert circular_spread(deg(42.0, 42.0, 42.0)) == pytest.approx(0.0)
+
+
+def test_spread_across_the_seam_is_short_arc():
+    assert math.degrees(circular_spread(deg(170.0, -170.0))) == pytest.approx(20.0)
+    assert math.degrees(circular_spread(deg(-179.0, 179.0, 175.0))) == pytest.approx(6.0)
+
+
+def test_spread_simple_and_paper_fig8():
+    assert math.degrees(circular_spread(deg(10.0, 40.0, 70.0))) == pytest.approx(60.0)
+    # order and multiples of 2 pi do not matter
+    assert math.degrees(circular_spread(deg(70.0, 400.0, 10.0))) == pytest.approx(60.0)
+
+
+def test_spread_uses_largest_gap_not_extremes():
+    # 0, 170, 265 deg: gaps 170, 95, 95 -> spread 360 - 170 = 190
+    assert math.degrees(circular_spread(deg(0.0, 170.0, 265.0))) == pytest.approx(190.0)
+    # all around: spread close to 360
+    assert math.degrees(circular_spread(deg(*range(0, 360, 10)))) == pytest.approx(350.0)
+
+
+def test_spread_rejects_non_finite():
+    with pytest.raises(ReliabilityError):
+        circular_spread(np.array([0.0, np.nan]))
+
+
+# --- eq. 4: angle index -----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("a_deg,expected", [(0, 0.0), (45, 0.5), (90, 1.0), (170, 1.0)])
+def test_angle_index(a_deg, expected):
+    assert angle_index(math.radians(a_deg), P) == pytest.approx(expected)
+
+
+def test_angle_index_rejects_negative():
+    with pytest.raises(ReliabilityError):
+        angle_index(-0.1, P)
+
+
+# --- eqs. 6-10: Bayes update ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("r", [0.5, 0.6, 0.727, 0.9, 1.0 - 1e-9])
+def test_bayes_sequence_matches_closed_form(r):
+    p = 0.5
+    for k in range(1, 8):
+        p = bayes_update(p, r)
+        odds = (r / (1.0 - r)) ** k  # prior odds 1 multiplied by R / (1 - R) each step
+        assert p == pytest.approx(odds / (1.0 + odds), rel=1e-9)
+
+
+def test_bayes_half_is_neutral_and_one_is_certain():
+    assert bayes_update(0.3, 0.5) == pytest.approx(0.3)
+    assert bayes_update(0.3, 1.0) == pytest.approx(1.0)
+    assert bayes_update(0.5, 0.8) == pytest.approx(0.8)
+
+
+def test_bayes_rejects_bad_input():
+    for p, r in [(1.2, 0.5), (0.5, -0.1), (float("nan"), 0.5), (0.0, 1.0), (1.0, 0.0)]:
+        with pytest.raises(ReliabilityError):
+            bayes_update(p, r)
+
+
+# --- visibility -------------------------------------------------------------------------------
+
+
+def test_line_cells_exact_traversal():
+    rows, cols = line_cells(0.05, 0.05, 0.35, 0.25, GEOM)
+    cells = list(zip(rows.tolist(), cols.tolist(), strict=True))
+    r0, c0 = (int(v) for v in GEOM.world_to_cell(0.05, 0.05))
+    r1, c1 = (int(v) for v in GEOM.world_to_cell(0.35, 0.25))
+    assert cells[0] == (r0, c0) and cells[-1] == (r1, c1)
+    # 4-connected chain: every step changes exactly one index by one
+    for (ra, ca), (rb, cb) in zip(cells, cells[1:], strict=False):
+        assert abs(ra - rb) + abs(ca - cb) == 1
+
+
+def test_line_cells_through_a_corner_include_touching_cells():
+    rows, cols = line_cells(-0.15, -0.15, 0.15, 0.15, GEOM)  # passes the corner at (0, 0)
+    cells = set(zip(rows.tolist(), cols.tolist(), strict=True))
+    assert {(99, 99), (100, 100), (99, 100), (100, 99)} <= cells
+
+
+def test_line_of_sight_diagonal_wall_blocks():
+    g = free_grid()
+    for k in range(-20, 20):  # a diagonal (8-connected) wall x + y = 0
+        r, c = GEOM.world_to_cell(0.1 * k + 0.05, -0.1 * k - 0.05)
+        g[int(r), int(c)] = 100
+    assert not line_of_sight((-1.0, -1.0), (1.0, 1.0), g, GEOM)
+    assert line_of_sight((-1.0, -1.0), (-0.5, -1.5), g, GEOM)
+
+
+def test_observed_in_front_within_range():
+    assert is_observed((2.0, 0.0), (0.0, 0.0, 0.0), free_grid(), GEOM, P)
+    assert is_observed((0.0, 2.0), (0.0, 0.0, 0.0), free_grid(), GEOM, P)  # 90 deg: FOV edge
+
+
+def test_not_observed_behind_robot():
+    assert not is_observed((-2.0, 0.0), (0.0, 0.0, 0.0), free_grid(), GEOM, P)
+    assert not is_observed((-1.0, 1.0), (0.0, 0.0, 0.0), free_grid(), GEOM, P)
+    # heading matters: facing -x the node at -2 is in front
+    assert is_observed((-2.0, 0.0), (0.0, 0.0, math.pi), free_grid(), GEOM, P)
+
+
+def test_not_observed_out_of_range():
+    p = ReliabilityParams(range_max=3.0)
+    assert is_observed((2.9, 0.0), (0.0, 0.0, 0.0), free_grid(), GEOM, p)
+    assert not is_observed((3.1, 0.0), (0.0, 0.0, 0.0), free_grid(), GEOM, p)
+
+
+def test_range_measured_from_laser_offset():
+    p = ReliabilityParams(range_max=3.0, laser_offset=0.2)
+    assert is_observed((3.1, 0.0), (0.0, 0.0, 0.0), free_grid(), GEOM, p)
+    # a node beside the centre is behind the offset laser's 180 deg field of view
+    assert not is_observed((0.1, 1.0), (0.0, 0.0, 0.0), free_grid(), GEOM, p)
+
+
+def test_not_observed_behind_wall_unknown_does_not_block():
+    assert not is_observed((2.0, 0.0), (0.0, 0.0, 0.0), wall_grid(1.0), GEOM, P)
+    g = free_grid()
+    g[:, 105:115] = -1  # unknown band between robot and node
+    assert is_observed((2.0, 0.0), (0.0, 0.0, 0.0), g, GEOM, P)
+    g[:, 110] = 50  # uncertain (not above p_occ) does not block either
+    assert is_observed((2.0, 0.0), (0.0, 0.0, 0.0), g, GEOM, P)
+
+
+def test_own_cells_excluded():
+    g = free_grid()
+    r, c = GEOM.world_to_cell(2.0, 0.0)
+    g[int(r), int(c)] = 100  # the node's own cell is occupied (noisy map)
+    r, c = GEOM.world_to_cell(0.0, 0.0)
+    g[int(r), int(c)] = 100  # and the laser's cell
+    assert is_observed((2.0, 0.0), (0.0, 0.0, 0.0), g, GEOM, P)
+
+
+def test_observed_rejects_bad_input():
+    with pytest.raises(ReliabilityError):
+        is_observed((2.0, 0.0), (0.0, 0.0), free_grid(), GEOM, P)
+    with pytest.raises(ReliabilityError):
+        is_observed((2.0, 0.0), (0.0, 0.0, 0.0), np.zeros((10, 10), np.int8), GEOM, P)
+    with pytest.raises(ReliabilityError):
+        is_observed((float("inf"), 0.0), (0.0, 0.0, 0.0), free_grid(), GEOM, P)
+
+
+# --- the stateful core ------------------------------------------------------------------------
+
+
+def by_id(out: list[NodeReliability]) -> dict[int, NodeReliability]:
+    return {n.id: n for n in out}
+
+
+def test_first_observation_values():
+    core = ReliabilityCore(P)
+    out = core.update([(7, 2.0, 0.0)], [], (0.0, 0.0, 0.0), free_grid(), GEOM)
+    n = out[0]
+    assert n.visible and n.n_obs == 1
+    assert n.r_min == pytest.approx(2.0)
+    assert n.d == pytest.approx(4.0 / 5.5)
+    assert n.a == 0.0 and n.alpha_max == 0.0
+    assert n.p == pytest.approx(bayes_update(0.5, 4.0 / 5.5))
+
+
+def test_repeated_observation_follows_closed_form():
+    core = ReliabilityCore(P)
+    r = 4.0 / 5.5
+    for k in range(1, 6):
+        n = core.update([(1, 2.0, 0.0)], [], (0.0, 0.0, 0.0), free_grid(), GEOM)[0]
+        odds = (r / (1 - r)) ** k
+        assert n.p == pytest.approx(min(odds / (1 + odds), P.p_max))
+
+
+def test_never_observed_node_defaults():
+    core = ReliabilityCore(P)
+    n = core.update([(1, -2.0, 0.0)], [], (0.0, 0.0, 0.0), free_grid(), GEOM)[0]
+    assert not n.visible and n.n_obs == 0
+    assert n.p == P.p_init and n.d == 0.0 and n.a == 0.0 and math.isinf(n.r_min)
+    # and it encodes into a valid Reliability message (inf r_min allowed)
+    msg = decode(encode(Reliability(header=Header(), nodes=[n])), Reliability)
+    assert math.isinf(msg.nodes[0].r_min)
+
+
+@pytest.mark.parametrize(
+    "pose,grid",
+    [
+        ((0.0, 0.0, math.pi), free_grid()),  # behind the robot
+        ((-9.0, 0.0, 0.0), free_grid()),  # 11 m away: out of range
+        ((0.0, 0.0, 0.0), wall_grid(1.0)),  # behind a wall
+    ],
+)
+def test_no_update_when_not_observed(pose, grid):
+    core = ReliabilityCore(P)
+    core.update([(1, 2.0, 0.0)], [], (0.0, 0.0, 0.0), free_grid(), GEOM)
+    before = core.update([(1, 2.0, 0.0)], [], (0.0, 0.0, 0.0), free_grid(), GEOM)[0]
+    after = core.update([(1, 2.0, 0.0)], [], pose, grid, GEOM)[0]
+    assert not after.visible
+    assert (after.p, after.d, after.a, after.r_min, after.n_obs) == (
+        before.p, before.d, before.a, before.r_min, before.n_obs)
+
+
+def test_angle_index_grows_with_viewpoints_and_p_is_clamped():
+    core = ReliabilityCore(P)
+    node = (1, 0.0, 4.0)
+    # robot circles the node at 5 m (D = 0.5, neutral), facing it; bearings span 100 deg
+    for bdeg in range(-140, -39, 10):
+        b = math.radians(bdeg)
+        rx, ry = node[1] - 5.0 * math.cos(b), node[2] - 5.0 * math.sin(b)
+        n = core.update([node], [], (rx, ry, b), free_grid(), GEOM)[0]
+        assert n.visible
+    assert math.degrees(n.alpha_max) == pytest.approx(100.0, abs=0.6)
+    assert n.a == pytest.approx(1.0)
+    assert n.d == pytest.approx(0.5)
+    # A = 1 makes P certain; the ceiling keeps it below 1
+    assert n.p == pytest.approx(P.p_max)
+
+
+def test_bearings_stay_bounded():
+    core = ReliabilityCore(P)
+    rng = np.random.default_rng(1)
+    for _ in range(3000):
+        b = float(rng.uniform(-math.pi, math.pi))
+        core.update([(1, 0.0, 0.0)], [], (-3 * math.cos(b), -3 * math.sin(b), b), free_grid(), GEOM)
+    s = core.snapshot()["nodes"]["1"]
+    assert s["n_bearings"] <= 720
+    assert s["alpha_max_deg"] > 355.0
+
+
+def test_reset_on_movement():
+    core = ReliabilityCore(P)
+    for _ in range(5):
+        n = core.update([(1, 2.0, 0.0)], [], (0.0, 0.0, 0.0), free_grid(), GEOM)[0]
+    assert n.p > 0.9
+    # small drift below the tolerance keeps the history
+    n = core.update([(1, 2.0, 0.25)], [], (0.0, 0.0, math.pi), free_grid(), GEOM)[0]
+    assert n.p > 0.9 and n.n_obs == 5
+    # beyond the tolerance from the anchor (2, 0): belief resets, history restarts there
+    n = core.update([(1, 2.0, 0.35)], [], (0.0, 0.0, math.pi), free_grid(), GEOM)[0]
+    assert n.p == P.p_init and n.n_obs == 0 and math.isinf(n.r_min) and n.d == 0.0
+    assert core.snapshot()["nodes"]["1"]["anchor"] == [2.0, 0.35]
+    # observed in the same update as the reset: fresh history with one observation
+    n = core.update([(1, 2.0, 1.0)], [], (0.0, 0.0, 0.0), free_grid(), GEOM)[0]
+    assert n.n_obs == 1 and n.r_min == pytest.approx(math.hypot(2.0, 1.0))
+    assert n.p == pytest.approx(bayes_update(0.5, distance_index(n.r_min, P)))
+
+
+def test_gone_and_missing_ids_dropped():
+    core = ReliabilityCore(P)
+    nodes = [(1, 2.0, 0.0), (2, 2.0, 1.0), (3, 2.0, -1.0)]
+    for _ in range(3):
+        core.update(nodes, [], (0.0, 0.0, 0.0), free_grid(), GEOM)
+    out = core.update([(2, 2.0, 1.0)], [1], (0.0, 0.0, 0.0), free_grid(), GEOM)
+    assert [n.id for n in out] == [2]
+    assert set(core.snapshot()["nodes"]) == {"2"}
+    # an id that comes back starts from scratch
+    n = core.update([(1, 2.0, 0.0)], [], (0.0, 0.0, math.pi), free_grid(), GEOM)[0]
+    assert n.p == P.p_init and n.n_obs == 0
+
+
+def test_gone_id_also_present_restarts_history():
+    core = ReliabilityCore(P)
+    core.update([(1, 2.0, 0.0)], [], (0.0, 0.0, 0.0), free_grid(), GEOM)
+    n = core.update([(1, 2.0, 0.0)], [1], (0.0, 0.0, math.pi), free_grid(), GEOM)[0]
+    assert n.p == P.p_init and n.n_obs == 0
+
+
+def test_output_sorted_and_complete():
+    core = ReliabilityCore(P)
+    out = core.update([(9, 1.0, 0.0), (3, 1.0, 1.0), (5, -1.0, 0.0)], [], (0.0, 0.0, 0.0),
+                      free_grid(), GEOM)
+    assert [n.id for n in out] == [3, 5, 9]
+    assert by_id(out)[5].visible is False and by_id(out)[9].visible is True
+
+
+def test_visited_flag():
+    core = ReliabilityCore(P)
+    n = core.update([(1, 2.0, 0.0)], [], (0.0, 0.0, 0.0), free_grid(), GEOM)[0]
+    assert not n.visited
+    n = core.update([(1, 2.0, 0.0)], [], (1.6, 0.0, 0.0), free_grid(), GEOM)[0]
+    assert n.visited
+    # stays visited while the robot leaves, even when not observed
+    n = core.update([(1, 2.0, 0.0)], [], (-5.0, 0.0, math.pi), free_grid(), GEOM)[0]
+    assert n.visited and not n.visible
+    # reset with the history when the node moves
+    n = core.update([(1, 3.0, 0.0)], [], (-5.0, 0.0, math.pi), free_grid(), GEOM)[0]
+    assert not n.visited
+
+
+def test_snapshot_is_json():
+    core = ReliabilityCore(P)
+    core.update([(1, 2.0, 0.0), (2, -2.0, 0.0)], [], (0.0, 0.0, 0.0), free_grid(), GEOM)
+    snap = json.loads(json.dumps(core.snapshot(), allow_nan=False))
+    assert snap["end_nodes"] == 2 and snap["nodes"]["2"]["r_min"] is None
+
+
+def test_update_rejects_bad_input():
+    core = ReliabilityCore(P)
+    g = free_grid()
+    with pytest.raises(ReliabilityError):
+        core.update([(1, 2.0, 0.0), (1, 3.0, 0.0)], [], (0.0, 0.0, 0.0), g, GEOM)
+    with pytest.raises(ReliabilityError):
+        core.update([(1, 2.0)], [], (0.0, 0.0, 0.0), g, GEOM)
+    with pytest.raises(ReliabilityError):
+        core.update([(1.5, 2.0, 0.0)], [], (0.0, 0.0, 0.0), g, GEOM)
+    with pytest.raises(ReliabilityError):
+        core.update([(1, float("nan"), 0.0)], [], (0.0, 0.0, 0.0), g, GEOM)
+    with pytest.raises(ReliabilityError):
+        core.update([(1, 2.0, 0.0)], [], (0.0, 0.0, float("inf")), g, GEOM)
+    with pytest.raises(ReliabilityError):
+        core.update([(1, 2.0, 0.0)], [], (0.0, 0.0, 0.0), g.T[:10], GEOM)
+    with pytest.raises(ReliabilityError):
+        core.update([(1, 2.0, 0.0)], [], (0.0, 0.0, 0.0), g, GEOM, p_occ=1.5)
+    with pytest.raises(ReliabilityError):
+        ReliabilityCore("defaults")
