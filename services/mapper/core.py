@@ -1,0 +1,464 @@
+"""Mapper core: Bayesian (log-odds) occupancy grid built from 2-D laser scans (pure).
+
+DESIGN.md §4 "Mapping"; paper §2.1 ("The occupancy probability for each cell is then updated
+based on the Bayesian update formula"). No I/O, no clock, no zenoh: poses and scans come in as
+arguments.
+
+Model (inverse sensor model in log-odds form, Thrun et al. "Probabilistic Robotics" §9.2)::
+
+    l(cell) <- clamp(l(cell) + l_occ, l_min, l_max)    at the cell hit by a beam
+    l(cell) <- clamp(l(cell) + l_free, l_min, l_max)   at every other cell the beam crosses
+    p(cell)  = 1 / (1 + exp(-l(cell)))
+
+- Rays are traced with integer Bresenham from the laser's cell to the end point's cell.
+- A reading >= range_max (or +inf, REP-117 "no return") marks free cells only, up to range_max.
+- Readings < range_min are ignored.
+- **One update per cell per scan.** Near the laser, neighbouring beams cross the same cells; with
+  181 beams a cell next to the robot would otherwise get ~20x l_free from one scan, i.e. one scan
+  would count as twenty independent observations. So within one scan each cell receives at most
+  one update: hits are applied first and take precedence (a cell hit by one beam is not cleared by
+  a grazing neighbour beam in the same scan), then every other crossed cell gets l_free once.
+- The int8 occupancy (ROS values: -1 never touched, else round(100 p)) is kept current cell by
+  cell inside the numba kernel, so no whole-grid conversion ever happens per scan.
+
+The grid starts as an ``initial_size`` square centred on the first pose (cell boundaries on
+multiples of the resolution) and grows by ``grow_margin`` on a side a beam would leave, moving
+the origin by whole cells so existing cells keep their world position; it refuses (ScanError) to
+grow beyond ``max_size`` (protection against a bad pose).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from common.grid import GridGeometry
+from common.params import MapperParams
+
+__all__ = [
+    "ScanError",
+    "MapLoadError",
+    "MapperCore",
+    "beam_endpoints",
+    "grow_axis",
+    "logodds_to_int8",
+    "prob_to_logodds",
+]
+
+MAX_COORD = 1.0e6  # [m] poses beyond this are rejected (float precision, absurd input)
+_STAMP_LIMIT = 2**31 - 2  # scan stamps are int32; wrap (and clear) before overflowing
+
+
+class ScanError(ValueError):
+    """A scan or pose is inconsistent (no beams, NaN, negative range, absurd pose, ...)."""
+
+
+class MapLoadError(ValueError):
+    """A saved grid cannot be loaded (shape, values or resolution do not fit)."""
+
+
+# --- small pure helpers --------------------------------------------------------------------
+
+
+def logodds_to_int8(logodds: np.ndarray) -> np.ndarray:
+    """Log-odds -> ROS occupancy in percent, round(100 p) with p = 1/(1+exp(-l)); int8 0..100."""
+    p = 1.0 / (1.0 + np.exp(-np.asarray(logodds, dtype=np.float64)))
+    return np.floor(100.0 * p + 0.5).astype(np.int8)
+
+
+def prob_to_logodds(p: np.ndarray, l_min: float, l_max: float) -> np.ndarray:
+    """Probability -> log-odds log(p/(1-p)), clamped to [l_min, l_max] (p may be 0 or 1)."""
+    p = np.clip(np.asarray(p, dtype=np.float64), 1e-9, 1.0 - 1e-9)
+    return np.clip(np.log(p / (1.0 - p)), l_min, l_max)
+
+
+def beam_endpoints(
+    pose: tuple[float, float, float],
+    ranges: np.ndarray,
+    angle_min: float,
+    angle_increment: float,
+    range_min: float,
+    range_max: float,
+    laser_offset: float = 0.0,
+) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
+    """World end points of the usable beams of one scan.
+
+    Beam i points at ``theta + angle_min + i * angle_increment`` from the laser, which sits
+    ``laser_offset`` [m] ahead of the robot centre. Returns ``(lx, ly, ex, ey, hit)``: laser
+    position [m], end points [m] of the beams with range >= range_min (no-return beams end at
+    range_max), and ``hit`` (True where the beam ended on an obstacle). Raises ScanError on bad
+    input.
+    """
+    x, y, th = _check_pose(pose)
+    r = _check_scan(ranges, angle_min, angle_increment, range_min, range_max)
+    if not math.isfinite(laser_offset) or abs(laser_offset) > 10.0:
+        raise ScanError(f"laser_offset={laser_offset} is not a finite offset within 10 m")
+    lx = x + laser_offset * math.cos(th)
+    ly = y + laser_offset * math.sin(th)
+    idx = np.nonzero(r >= range_min)[0]
+    rr = r[idx]
+    hit = rr < range_max
+    rr = np.minimum(rr, range_max)
+    ang = th + angle_min + idx * angle_increment
+    ex = lx + rr * np.cos(ang)
+    ey = ly + rr * np.sin(ang)
+    return lx, ly, ex, ey, hit
+
+
+def _check_pose(pose) -> tuple[float, float, float]:
+    try:
+        x, y, th = (float(v) for v in pose)
+    except (TypeError, ValueError):
+        raise ScanError(f"pose must be (x, y, theta), got {pose!r}") from None
+    if not all(math.isfinite(v) for v in (x, y, th)):
+        raise ScanError(f"pose {(x, y, th)} is not finite")
+    if abs(x) > MAX_COORD or abs(y) > MAX_COORD or abs(th) > 1000.0:
+        raise ScanError(f"pose {(x, y, th)} is absurd (|x|,|y| <= {MAX_COORD:g} m)")
+    return x, y, th
+
+
+def _check_scan(ranges, angle_min, angle_increment, range_min, range_max) -> np.ndarray:
+    try:
+        r = np.asarray(ranges, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ScanError("ranges must be a 1-D sequence of numbers") from None
+    if r.ndim != 1 or r.size == 0:
+        raise ScanError(f"ranges must be a non-empty 1-D array (got shape {r.shape})")
+    for name, v in (("angle_min", angle_min), ("angle_increment", angle_increment),
+                    ("range_min", range_min), ("range_max", range_max)):
+        if not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(v):
+            raise ScanError(f"{name}={v!r} is not a finite number")
+    if not 0.0 <= range_min < range_max:
+        raise ScanError(f"need 0 <= range_min < range_max (got {range_min}, {range_max})")
+    if r.size > 1 and angle_increment == 0.0:
+        raise ScanError(f"angle_increment is zero with {r.size} beams")
+    if abs(angle_min) > 2 * math.pi or abs(angle_increment) * (r.size - 1) > 2 * math.pi + 1e-6:
+        raise ScanError(
+            f"{r.size} beams at {angle_increment} rad from {angle_min} rad span more than a turn"
+        )
+    if np.isnan(r).any():
+        raise ScanError(f"{int(np.isnan(r).sum())} ranges are NaN")
+    if (r < 0.0).any():
+        raise ScanError(f"{int((r < 0.0).sum())} ranges are negative (-inf included)")
+    return r
+
+
+# --- the numba kernel ----------------------------------------------------------------------
+
+
+@njit(cache=True, nogil=True)
+def _apply(logodds, occ, r, c, delta, l_min, l_max):  # pragma: no cover - compiled
+    v = logodds[r, c] + delta
+    if v < l_min:
+        v = l_min
+    elif v > l_max:
+        v = l_max
+    logodds[r, c] = v
+    occ[r, c] = np.int8(math.floor(100.0 / (1.0 + math.exp(-v)) + 0.5))
+
+
+@njit(cache=True, nogil=True)
+def _integrate_kernel(logodds, occ, stamp, scan_id, r0, c0, er, ec, hit,
+                      l_free, l_occ, l_min, l_max):  # pragma: no cover - compiled
+    """Apply one scan in place; return the touched window (row0, row1, col0, col1), half-open.
+
+    Bresenham from (r0, c0) to each (er[k], ec[k]); all indices must be inside the grid.
+    ``stamp[r, c] == scan_id`` marks a cell already updated in this scan.
+    """
+    h, w = logodds.shape
+    rmin, rmax, cmin, cmax = h, -1, w, -1
+    n = er.shape[0]
+    for k in range(n):  # pass 1: hits (take precedence within the scan)
+        if hit[k]:
+            r = er[k]
+            c = ec[k]
+            if stamp[r, c] != scan_id:
+                stamp[r, c] = scan_id
+                _apply(logodds, occ, r, c, l_occ, l_min, l_max)
+                rmin = min(rmin, r)
+                rmax = max(rmax, r)
+                cmin = min(cmin, c)
+                cmax = max(cmax, c)
+    for k in range(n):  # pass 2: free cells along each ray
+        r1 = er[k]
+        c1 = ec[k]
+        dr = abs(r1 - r0)
+        dc = abs(c1 - c0)
+        sr = 1 if r1 > r0 else -1
+        sc = 1 if c1 > c0 else -1
+        err = dc - dr
+        r = r0
+        c = c0
+        while True:
+            last = r == r1 and c == c1
+            if not (last and hit[k]) and stamp[r, c] != scan_id:
+                stamp[r, c] = scan_id
+                _apply(logodds, occ, r, c, l_free, l_min, l_max)
+                rmin = min(rmin, r)
+                rmax = max(rmax, r)
+                cmin = min(cmin, c)
+                cmax = max(cmax, c)
+            if last:
+                break
+            e2 = 2 * err
+            if e2 > -dr:
+                err -= dr
+                c += sc
+            if e2 < dc:
+                err += dc
+                r += sr
+    if rmax < 0:
+        return 0, 0, 0, 0
+    return rmin, rmax + 1, cmin, cmax + 1
+
+
+_WARMED = False
+
+
+def _warm_up() -> None:
+    """Compile (or load from numba's cache) the kernel once per process, with the real dtypes."""
+    global _WARMED
+    if _WARMED:
+        return
+    lo = np.zeros((4, 4), np.float32)
+    occ = np.full((4, 4), -1, np.int8)
+    st = np.zeros((4, 4), np.int32)
+    e = np.array([3, 0], np.int64)
+    _integrate_kernel(lo, occ, st, np.int64(1), np.int64(1), np.int64(1), e, e[::-1].copy(),
+                      np.array([True, False]), -0.4, 0.85, -4.0, 4.0)
+    _WARMED = True
+
+
+def grow_axis(lo: int, hi: int, n: int, margin: int, limit: int) -> tuple[int, int]:
+    """Cells to add below index 0 and above index n-1 so that lo..hi fit in an axis of n cells.
+
+    A side that is exceeded gets the overflow plus ``margin`` cells; if that would make the axis
+    longer than ``limit`` cells the margins are cut (shared between the sides); (-1, -1) if even
+    the bare overflow does not fit.
+    """
+    need_lo = max(0, -lo)
+    need_hi = max(0, hi - (n - 1))
+    if n + need_lo + need_hi > limit:
+        return -1, -1
+    add_lo = need_lo + margin if need_lo else 0
+    add_hi = need_hi + margin if need_hi else 0
+    excess = n + add_lo + add_hi - limit
+    if excess > 0:
+        cut_lo = min(add_lo - need_lo, (excess + 1) // 2)
+        cut_hi = min(add_hi - need_hi, excess - cut_lo)
+        cut_lo = min(add_lo - need_lo, excess - cut_hi)
+        add_lo -= cut_lo
+        add_hi -= cut_hi
+    return add_lo, add_hi
+
+
+# --- the core ------------------------------------------------------------------------------
+
+
+class MapperCore:
+    """Log-odds occupancy grid that grows as needed (DESIGN.md §4 "Mapping").
+
+    Cell (row i, col j) covers ``[origin + (j, i) * res, origin + (j+1, i+1) * res)``; row = y.
+    """
+
+    def __init__(self, params: MapperParams):
+        if not isinstance(params, MapperParams):
+            raise TypeError("params must be a common.params.MapperParams")
+        if params.initial_size > params.max_size:
+            raise ValueError(
+                f"mapper.initial_size={params.initial_size} exceeds max_size={params.max_size}"
+            )
+        self.params = params
+        self._res = float(params.resolution)  # [m/cell]
+        # origin = base + offset cells * res: integer offsets keep growth exactly cell-aligned
+        self._base_x = 0.0  # [m]
+        self._base_y = 0.0  # [m]
+        self._off_c = 0  # [cells]
+        self._off_r = 0  # [cells]
+        self._l = np.zeros((0, 0), np.float32)  # log-odds
+        self._occ = np.zeros((0, 0), np.int8)  # ROS int8 cache, -1 = never touched
+        self._stamp = np.zeros((0, 0), np.int32)  # last scan id that updated the cell
+        self._scan_id = 0
+        self.scans = 0  # scans integrated (including ones with no usable beam)
+        self.grown = 0  # times the grid grew
+        _warm_up()
+
+    # -- state ---------------------------------------------------------------------------------
+
+    @property
+    def ready(self) -> bool:
+        """True once a grid exists (after the first integrate, or from_occupancy)."""
+        return self._l.size > 0
+
+    @property
+    def geometry(self) -> GridGeometry:
+        self._need_grid()
+        h, w = self._l.shape
+        return GridGeometry(self._res, self._origin_x(), self._origin_y(), w, h)
+
+    def occupancy(self, copy: bool = False) -> np.ndarray:
+        """int8 (h, w): -1 unknown (never touched), else round(100 p).
+
+        Without ``copy`` this is a read-only live view that the next integrate() changes.
+        """
+        self._need_grid()
+        if copy:
+            return self._occ.copy()
+        v = self._occ.view()
+        v.flags.writeable = False
+        return v
+
+    def log_odds(self) -> np.ndarray:
+        """Read-only view of the float32 log-odds grid (for tests and diagnostics)."""
+        self._need_grid()
+        v = self._l.view()
+        v.flags.writeable = False
+        return v
+
+    def _need_grid(self) -> None:
+        if not self.ready:
+            raise RuntimeError("mapper has no grid yet: integrate a scan or use from_occupancy")
+
+    def _origin_x(self) -> float:
+        return self._base_x + self._off_c * self._res
+
+    def _origin_y(self) -> float:
+        return self._base_y + self._off_r * self._res
+
+    # -- loading -------------------------------------------------------------------------------
+
+    @classmethod
+    def from_occupancy(cls, grid_int8: np.ndarray, geom: GridGeometry,
+                       params: MapperParams) -> MapperCore:
+        """Continue mapping on a saved grid: log-odds = logit(value / 100), clamped; -1 unknown.
+
+        Values 0 and 100 (e.g. from a map_server file) come back as the clamp values
+        (round(100 p) at l_min / l_max, 2 / 98 with the defaults): classes are preserved.
+        """
+        g = np.asarray(grid_int8)
+        if g.ndim != 2 or g.shape != (geom.height, geom.width) or g.size == 0:
+            raise MapLoadError(
+                f"grid shape {g.shape} does not match geometry {geom.height}x{geom.width}"
+            )
+        if not np.issubdtype(g.dtype, np.integer):
+            raise MapLoadError(f"grid must be an integer array (got {g.dtype})")
+        if g.min() < -1 or g.max() > 100:
+            raise MapLoadError("grid values must be -1 (unknown) or 0..100")
+        if not math.isclose(geom.resolution, params.resolution, rel_tol=1e-9):
+            raise MapLoadError(
+                f"map resolution {geom.resolution} m differs from mapper.resolution "
+                f"{params.resolution} m"
+            )
+        if not (math.isfinite(geom.origin_x) and math.isfinite(geom.origin_y)):
+            raise MapLoadError("map origin is not finite")
+        if max(geom.width, geom.height) * geom.resolution > params.max_size + 1e-9:
+            raise MapLoadError(f"map is larger than mapper.max_size={params.max_size} m")
+        core = cls(params)
+        core._base_x = float(geom.origin_x)
+        core._base_y = float(geom.origin_y)
+        known = g >= 0
+        lo = np.zeros(g.shape, np.float32)
+        lo[known] = prob_to_logodds(g[known] / 100.0, params.l_min, params.l_max)
+        core._l = lo
+        core._occ = np.full(g.shape, -1, np.int8)
+        core._occ[known] = logodds_to_int8(lo[known])
+        core._stamp = np.zeros(g.shape, np.int32)
+        return core
+
+    # -- the update ----------------------------------------------------------------------------
+
+    def integrate(self, pose: tuple[float, float, float], ranges: np.ndarray, angle_min: float,
+                  angle_increment: float, range_min: float, range_max: float,
+                  laser_offset: float = 0.0) -> tuple[int, int, int, int]:
+        """Fuse one scan taken at ``pose`` (robot centre, map frame; laser ``laser_offset`` ahead).
+
+        Returns the changed window ``(row0, row1, col0, col1)`` (half-open) in the current grid.
+        If the grid was created or grew during this call, every index shifted, so the window is
+        the whole grid. ``(0, 0, 0, 0)`` if no cell changed. Raises ScanError (state unchanged)
+        on a bad scan or pose, or if the grid would have to grow beyond ``max_size``.
+        """
+        lx, ly, ex, ey, hit = beam_endpoints(pose, ranges, angle_min, angle_increment,
+                                             range_min, range_max, laser_offset)
+        if not math.isfinite(range_max) or range_max > self.params.max_size:
+            raise ScanError(f"range_max={range_max} exceeds mapper.max_size")
+        changed_shape = False
+        if not self.ready:
+            self._create(float(pose[0]), float(pose[1]))
+            changed_shape = True
+        res = self._res
+        xs = np.append(ex, lx)
+        ys = np.append(ey, ly)
+        cols = np.floor((xs - self._origin_x()) / res).astype(np.int64)
+        rows = np.floor((ys - self._origin_y()) / res).astype(np.int64)
+        h, w = self._l.shape
+        if rows.min() < 0 or cols.min() < 0 or rows.max() >= h or cols.max() >= w:
+            try:
+                dr, dc = self._grow(int(rows.min()), int(rows.max()), int(cols.min()),
+                                    int(cols.max()))
+            except ScanError:
+                if changed_shape:  # created in this call: leave the core as it was
+                    self._alloc((0, 0))
+                raise
+            rows += dr
+            cols += dc
+            changed_shape = True
+        self.scans += 1
+        self._scan_id += 1
+        if self._scan_id >= _STAMP_LIMIT:
+            self._stamp[:] = 0
+            self._scan_id = 1
+        window = _integrate_kernel(
+            self._l, self._occ, self._stamp, np.int64(self._scan_id),
+            np.int64(rows[-1]), np.int64(cols[-1]),
+            np.ascontiguousarray(rows[:-1]), np.ascontiguousarray(cols[:-1]),
+            np.ascontiguousarray(hit, dtype=np.bool_),
+            float(self.params.l_free), float(self.params.l_occ),
+            float(self.params.l_min), float(self.params.l_max),
+        )
+        if changed_shape:
+            h, w = self._l.shape
+            return 0, h, 0, w
+        return tuple(int(v) for v in window)
+
+    def _create(self, x: float, y: float) -> None:
+        """First grid: initial_size square centred on (x, y), cell edges on multiples of res."""
+        n = max(1, int(math.ceil(self.params.initial_size / self._res - 1e-9)))
+        self._base_x = 0.0
+        self._base_y = 0.0
+        self._off_c = int(math.floor(x / self._res)) - n // 2
+        self._off_r = int(math.floor(y / self._res)) - n // 2
+        self._alloc((n, n))
+
+    def _alloc(self, shape: tuple[int, int]) -> None:
+        self._l = np.zeros(shape, np.float32)
+        self._occ = np.full(shape, -1, np.int8)
+        self._stamp = np.zeros(shape, np.int32)
+
+    def _grow(self, rmin: int, rmax: int, cmin: int, cmax: int) -> tuple[int, int]:
+        """Grow so that rows rmin..rmax and cols cmin..cmax fit, plus grow_margin on each side
+        that was exceeded. Returns the (row, col) index shift. ScanError beyond max_size."""
+        h, w = self._l.shape
+        m = int(math.ceil(self.params.grow_margin / self._res - 1e-9))
+        limit = int(math.floor(self.params.max_size / self._res + 1e-9))
+        add_r0, add_r1 = grow_axis(rmin, rmax, h, m, limit)  # r0 side = small y
+        add_c0, add_c1 = grow_axis(cmin, cmax, w, m, limit)
+        if add_r0 < 0 or add_c0 < 0:
+            need_w = max(cmax, w - 1) - min(cmin, 0) + 1
+            need_h = max(rmax, h - 1) - min(rmin, 0) + 1
+            raise ScanError(
+                f"grid would grow to {need_w * self._res:.1f} x {need_h * self._res:.1f} m, "
+                f"beyond mapper.max_size={self.params.max_size} m (bad pose?)"
+            )
+        nh = h + add_r0 + add_r1
+        nw = w + add_c0 + add_c1
+        old_l, old_occ, old_st = self._l, self._occ, self._stamp
+        self._alloc((nh, nw))
+        self._l[add_r0:add_r0 + h, add_c0:add_c0 + w] = old_l
+        self._occ[add_r0:add_r0 + h, add_c0:add_c0 + w] = old_occ
+        self._stamp[add_r0:add_r0 + h, add_c0:add_c0 + w] = old_st
+        self._off_r -= add_r0
+        self._off_c -= add_c0
+        self.grown += 1
+        return add_r0, add_c0

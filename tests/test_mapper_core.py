@@ -1,0 +1,383 @@
+"""services.mapper.core: log-odds occupancy grid (DESIGN.md §4 "Mapping").
+
+Run ``python tests/test_mapper_core.py`` for the per-scan timing benchmark (prints figures).
+"""
+
+from __future__ import annotations
+
+import math
+
+import msgspec
+import numpy as np
+import pytest
+
+from common.grid import FREE, OCCUPIED, GridGeometry, classify
+from common.params import MapperParams
+from services.mapper.core import (
+    MapLoadError,
+    MapperCore,
+    ScanError,
+    beam_endpoints,
+    grow_axis,
+    logodds_to_int8,
+)
+
+INC = math.pi / 180.0  # [rad] 1 deg, 181 beams
+AMIN = -math.pi / 2
+
+
+def params(**kw) -> MapperParams:
+    return msgspec.structs.replace(MapperParams(), **kw)
+
+
+def room_ranges(pose, half_x=3.0, half_y=2.0, n=181, amin=AMIN, inc=INC, offset=0.0):
+    """Exact ranges from the laser to the walls of an axis-aligned room centred on (0, 0)."""
+    x, y, th = pose
+    lx, ly = x + offset * math.cos(th), y + offset * math.sin(th)
+    out = np.empty(n)
+    for i in range(n):
+        a = th + amin + i * inc
+        c, s = math.cos(a), math.sin(a)
+        tx = ((half_x if c > 0 else -half_x) - lx) / c if abs(c) > 1e-12 else math.inf
+        ty = ((half_y if s > 0 else -half_y) - ly) / s if abs(s) > 1e-12 else math.inf
+        out[i] = min(tx, ty)
+    return out
+
+
+def scan(core, pose, ranges, rmin=0.02, rmax=8.0, **kw):
+    return core.integrate(pose, np.asarray(ranges, float), AMIN, INC, rmin, rmax, **kw)
+
+
+# --- basics ---------------------------------------------------------------------------------
+
+
+def test_first_scan_centres_aligned_grid():
+    core = MapperCore(MapperParams())
+    assert not core.ready
+    with pytest.raises(RuntimeError):
+        _ = core.geometry
+    win = scan(core, (1.23, -4.56, 0.3), np.full(181, 3.0))
+    g = core.geometry
+    assert (g.width, g.height) == (200, 200) and g.resolution == 0.1
+    assert win == (0, 200, 0, 200)  # created in this call: the whole grid
+    # cell edges on multiples of the resolution, pose near the centre
+    assert abs(g.origin_x / 0.1 - round(g.origin_x / 0.1)) < 1e-9
+    assert abs(g.origin_y / 0.1 - round(g.origin_y / 0.1)) < 1e-9
+    r, c = g.world_to_cell(1.23, -4.56)
+    assert abs(int(r) - 100) <= 1 and abs(int(c) - 100) <= 1
+    occ = core.occupancy()
+    assert occ.dtype == np.int8 and occ.shape == (200, 200)
+    assert not occ.flags.writeable
+    assert core.occupancy(copy=True).flags.writeable
+
+
+def test_single_beam_free_then_hit():
+    p = MapperParams()
+    core = MapperCore(p)
+    pose = (0.05, 0.05, 0.0)  # centre of cell (100, 100) of the first grid
+    core.integrate(pose, np.array([1.0]), 0.0, 0.0, 0.02, 8.0)
+    g = core.geometry
+    r0, c0 = (int(v) for v in g.world_to_cell(0.05, 0.05))
+    lo = core.log_odds()
+    row = lo[r0, c0:c0 + 12]
+    assert np.allclose(row[:10], p.l_free)  # robot cell .. 0.95 m: free
+    assert row[10] == pytest.approx(p.l_occ)  # 1.05 m: the hit cell
+    assert row[11] == 0.0  # beyond the hit: untouched
+    occ = core.occupancy()
+    assert occ[r0, c0 + 11] == -1 and occ[r0 + 1, c0] == -1
+    assert occ[r0, c0 + 10] == round(100 / (1 + math.exp(-p.l_occ)))
+
+
+def test_max_range_marks_free_only_and_inf_is_no_return():
+    p = MapperParams()
+    for value in (8.0, 9.5, math.inf):
+        core = MapperCore(p)
+        core.integrate((0.05, 0.05, 0.0), np.array([value]), 0.0, 0.0, 0.02, 8.0)
+        lo = core.log_odds()
+        assert (lo > 0).sum() == 0
+        n_free = int((lo < 0).sum())
+        assert n_free == 81  # 0.05 .. 8.05 m: cells 0..80 along +x
+
+
+def test_short_readings_ignored():
+    core = MapperCore(MapperParams())
+    scan(core, (0, 0, 0), np.full(181, 2.0))
+    before = core.occupancy(copy=True)
+    win = scan(core, (0, 0, 0), np.full(181, 0.01), rmin=0.05)
+    assert win == (0, 0, 0, 0)
+    assert np.array_equal(before, core.occupancy())
+
+
+def test_each_cell_updated_at_most_once_per_scan():
+    p = MapperParams()
+    core = MapperCore(p)
+    scan(core, (0.0, 0.0, 0.0), room_ranges((0.0, 0.0, 0.0)))
+    values = np.unique(core.log_odds().astype(np.float64))
+    allowed = np.array([0.0, p.l_free, p.l_occ])
+    assert np.isclose(values[:, None], allowed[None, :], atol=1e-6).any(axis=1).all(), values
+    assert np.isclose(values, p.l_occ, atol=1e-6).any()
+
+
+def test_hits_take_precedence_over_crossing_beams_in_one_scan():
+    p = MapperParams()
+    core = MapperCore(p)
+    # two beams in (nearly) the same direction: one hits at 1.0 m, one passes to 3.0 m
+    core.integrate((0.05, 0.05, 0.0), np.array([1.0, 3.0]), 0.0, 1e-6, 0.02, 8.0)
+    g = core.geometry
+    r0, c0 = (int(v) for v in g.world_to_cell(0.05, 0.05))
+    lo = core.log_odds()
+    assert lo[r0, c0 + 10] == pytest.approx(p.l_occ)
+    assert lo[r0, c0 + 30] == pytest.approx(p.l_occ)
+    assert lo[r0, c0 + 20] == pytest.approx(p.l_free)
+
+
+def test_clamp_and_cells_change_back():
+    p = MapperParams()
+    core = MapperCore(p)
+    pose = (0.05, 0.05, 0.0)
+    for _ in range(20):
+        core.integrate(pose, np.array([1.0]), 0.0, 0.0, 0.02, 8.0)
+    lo = core.log_odds()
+    assert lo.max() == pytest.approx(p.l_max) and lo.min() == pytest.approx(p.l_min)
+    r0, c0 = (int(v) for v in core.geometry.world_to_cell(*pose[:2]))
+    assert classify(core.occupancy())[r0, c0 + 10] == OCCUPIED
+    # the obstacle goes away: the same cell is crossed by longer beams and becomes free
+    n = 0
+    while classify(core.occupancy())[r0, c0 + 10] != FREE:
+        core.integrate(pose, np.array([3.0]), 0.0, 0.0, 0.02, 8.0)
+        n += 1
+        assert n < 50
+    assert n == math.ceil((p.l_max - math.log(p.p_free / (1 - p.p_free))) / -p.l_free + 1e-9)
+
+
+def test_room_map_is_right():
+    core = MapperCore(MapperParams())
+    for k in range(12):
+        th = k * math.pi / 6
+        pose = (0.3 * math.cos(th), 0.2 * math.sin(th), th)
+        scan(core, pose, room_ranges(pose))
+    g = core.geometry
+    cls = classify(core.occupancy())
+    rows, cols = np.nonzero(cls == OCCUPIED)
+    x, y = g.cell_to_world(rows, cols)
+    # every occupied cell within one cell of a wall (x = +-3 or y = +-2)
+    dist = np.minimum(np.abs(np.abs(x) - 3.0), np.abs(np.abs(y) - 2.0))
+    assert len(rows) > 150 and dist.max() <= 0.1 + 1e-9
+    # the interior (0.3 m away from the walls) is known free
+    rr, cc = np.nonzero(np.ones_like(cls, bool))
+    xx, yy = g.cell_to_world(rr, cc)
+    inner = (np.abs(xx) < 2.7) & (np.abs(yy) < 1.7)
+    assert (cls[rr[inner], cc[inner]] == FREE).mean() > 0.99
+
+
+def test_laser_offset():
+    p = MapperParams()
+    core = MapperCore(p)
+    core.integrate((0.05, 0.05, math.pi / 2), np.array([1.0]), 0.0, 0.0, 0.02, 8.0,
+                   laser_offset=0.5)
+    lo = core.log_odds()
+    r, c = (int(v) for v in core.geometry.world_to_cell(0.05, 1.55))
+    assert lo[r, c] == pytest.approx(p.l_occ)
+    r0, c0 = (int(v) for v in core.geometry.world_to_cell(0.05, 0.05))
+    assert lo[r0, c0] == 0.0  # the robot centre is behind the laser: not on the beam
+
+
+# --- the int8 cache and the changed window ----------------------------------------------------
+
+
+def test_int8_cache_and_window_match_full_conversion():
+    rng = np.random.default_rng(3)
+    core = MapperCore(params(initial_size=6.0, grow_margin=2.0))
+    prev_occ, prev_geom = None, None
+    for _ in range(60):
+        pose = (rng.uniform(-6, 6), rng.uniform(-6, 6), rng.uniform(-3.2, 3.2))
+        r = np.where(rng.random(181) < 0.2, 8.0, rng.uniform(0.0, 7.0, 181))
+        win = scan(core, pose, r, rmin=0.1)
+        occ = core.occupancy()
+        lo = core.log_odds()
+        touched = occ >= 0
+        assert np.array_equal(occ[touched], logodds_to_int8(lo[touched]))
+        assert (lo[~touched] == 0).all()
+        if core.geometry == prev_geom:
+            r0, r1, c0, c1 = win
+            diff = occ != prev_occ
+            outside = diff.copy()
+            outside[r0:r1, c0:c1] = False
+            assert not outside.any()
+            assert diff.any()
+        else:
+            assert win == (0, occ.shape[0], 0, occ.shape[1])
+        prev_occ, prev_geom = occ.copy(), core.geometry
+    assert core.grown > 0
+
+
+def test_growth_keeps_cells_in_place_and_aligned():
+    p = params(initial_size=4.0, grow_margin=1.0)
+    core = MapperCore(p)
+    scan(core, (0.0, 0.0, 0.0), np.full(181, 1.5))
+    g0 = core.geometry
+    occ0 = core.occupancy(copy=True)
+    # facing -x, 5 m beams: must grow on the low-x side only
+    win = scan(core, (0.0, 0.0, math.pi), np.full(181, 5.0), rmax=6.0)
+    g1 = core.geometry
+    assert win == (0, g1.height, 0, g1.width)
+    shift_c = (g0.origin_x - g1.origin_x) / p.resolution
+    shift_r = (g0.origin_y - g1.origin_y) / p.resolution
+    assert abs(shift_c - round(shift_c)) < 1e-9 and abs(shift_r - round(shift_r)) < 1e-9
+    shift_c, shift_r = round(shift_c), round(shift_r)
+    assert shift_c >= 10 + 10 and g1.origin_x <= -5.0 - 1.0 + 1e-9  # beam end + margin
+    assert g1.width == g0.width + shift_c  # nothing added on the high-x side
+    # an old cell that the new scan did not touch keeps its value at the same world place
+    sub = core.occupancy()[shift_r:shift_r + g0.height, shift_c:shift_c + g0.width]
+    right = np.s_[:, g0.width // 2 + 2:]  # x > 0.2 m: behind the robot in the second scan
+    assert np.array_equal(sub[right], occ0[right])
+
+
+def test_grow_axis():
+    assert grow_axis(0, 9, 10, 5, 100) == (0, 0)
+    assert grow_axis(-3, 9, 10, 5, 100) == (8, 0)
+    assert grow_axis(0, 12, 10, 5, 100) == (0, 8)
+    assert grow_axis(-3, 12, 10, 5, 100) == (8, 8)
+    assert grow_axis(-3, 12, 10, 5, 20) == (5, 5)  # margins cut to fit the limit
+    assert grow_axis(-3, 12, 10, 5, 16) == (3, 3)
+    assert grow_axis(-3, 12, 10, 5, 15) == (-1, -1)  # the overflow alone does not fit
+
+
+def test_refuses_to_grow_beyond_max_size_state_unchanged():
+    core = MapperCore(params(initial_size=20.0, max_size=40.0))
+    scan(core, (0, 0, 0), np.full(181, 3.0))
+    g, occ = core.geometry, core.occupancy(copy=True)
+    with pytest.raises(ScanError, match="max_size"):
+        scan(core, (1000.0, 0.0, 0.0), np.full(181, 3.0))  # bad pose
+    assert core.geometry == g and np.array_equal(core.occupancy(), occ)
+    # a first scan that does not fit leaves the core empty
+    core = MapperCore(params(initial_size=10.0, max_size=12.0))
+    with pytest.raises(ScanError):
+        scan(core, (0, 0, 0), np.full(181, 8.0), rmax=9.0)
+    assert not core.ready
+
+
+# --- bad input ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(ranges=np.array([])), "non-empty"),
+        (dict(ranges=np.ones((2, 3))), "1-D"),
+        (dict(ranges=np.array([1.0, np.nan])), "NaN"),
+        (dict(ranges=np.array([1.0, -0.5])), "negative"),
+        (dict(ranges=np.array([1.0, -np.inf])), "negative"),
+        (dict(ranges="abc"), "numbers"),
+        (dict(angle_increment=0.0), "zero"),
+        (dict(angle_increment=0.1), "more than a turn"),
+        (dict(angle_min=float("nan")), "angle_min"),
+        (dict(range_min=5.0, range_max=4.0), "range_min < range_max"),
+        (dict(range_max=float("inf")), "range_max"),
+        (dict(pose=(0.0, float("nan"), 0.0)), "not finite"),
+        (dict(pose=(0.0, 0.0)), "pose"),
+        (dict(pose=(1e9, 0.0, 0.0)), "absurd"),
+        (dict(laser_offset=float("nan")), "laser_offset"),
+    ],
+)
+def test_bad_scans_raise_scan_error(kw, match):
+    args = dict(pose=(0.0, 0.0, 0.0), ranges=np.full(181, 2.0), angle_min=AMIN,
+                angle_increment=INC, range_min=0.02, range_max=8.0, laser_offset=0.0)
+    args.update(kw)
+    core = MapperCore(MapperParams())
+    with pytest.raises(ScanError, match=match) as exc:
+        core.integrate(**args)
+    assert isinstance(exc.value, ValueError) and "\n" not in str(exc.value)
+    assert not core.ready
+
+
+def test_beam_endpoints():
+    lx, ly, ex, ey, hit = beam_endpoints((1.0, 2.0, math.pi / 2), np.array([0.01, 1.0, 9.0]),
+                                         -0.5, 0.5, 0.05, 8.0, laser_offset=0.2)
+    assert (lx, ly) == pytest.approx((1.0, 2.2))
+    assert hit.tolist() == [True, False]  # first beam dropped (< range_min)
+    assert (ex[0], ey[0]) == pytest.approx((1.0, 3.2))
+    assert math.hypot(ex[1] - lx, ey[1] - ly) == pytest.approx(8.0)
+
+
+# --- reload ---------------------------------------------------------------------------------------
+
+
+def test_from_occupancy_round_trip():
+    p = MapperParams()
+    core = MapperCore(p)
+    for k in range(6):
+        pose = (0.1 * k, 0.0, k * 1.0)
+        scan(core, pose, room_ranges(pose))
+    occ, geom = core.occupancy(copy=True), core.geometry
+    again = MapperCore.from_occupancy(occ, geom, p)
+    assert again.geometry == geom
+    assert np.array_equal(again.occupancy(), occ)  # values stay in 2..98 with the defaults
+    # continue mapping on the reloaded core: same result as the original
+    scan(core, (0, 0, 0), room_ranges((0, 0, 0)))
+    scan(again, (0, 0, 0), room_ranges((0, 0, 0)))
+    assert np.array_equal(again.occupancy(), core.occupancy())
+    # a map_server style grid (0 / 100 / -1) keeps its classes
+    ms = np.array([[0, 100, -1, 50]], np.int8)
+    c2 = MapperCore.from_occupancy(ms, GridGeometry(0.1, 0.0, 0.0, 4, 1), p)
+    assert np.array_equal(classify(c2.occupancy()), classify(ms))
+    assert c2.occupancy()[0, 2] == -1 and c2.log_odds()[0, 2] == 0.0
+
+
+@pytest.mark.parametrize(
+    "grid, geom, match",
+    [
+        (np.zeros((2, 3), np.int8), GridGeometry(0.1, 0, 0, 2, 3), "shape"),
+        (np.full((2, 2), 101, np.int16), GridGeometry(0.1, 0, 0, 2, 2), "values"),
+        (np.zeros((2, 2), np.float32), GridGeometry(0.1, 0, 0, 2, 2), "integer"),
+        (np.zeros((2, 2), np.int8), GridGeometry(0.05, 0, 0, 2, 2), "resolution"),
+        (np.zeros((2, 2), np.int8), GridGeometry(0.1, float("nan"), 0, 2, 2), "origin"),
+    ],
+)
+def test_from_occupancy_rejects_bad_input(grid, geom, match):
+    with pytest.raises(MapLoadError, match=match):
+        MapperCore.from_occupancy(grid, geom, MapperParams())
+
+
+def test_bad_params():
+    with pytest.raises(ValueError, match="initial_size"):
+        MapperCore(params(initial_size=50.0, max_size=40.0))
+    with pytest.raises(TypeError):
+        MapperCore({"resolution": 0.1})
+
+
+# --- benchmark (not a test) ---------------------------------------------------------------------
+
+
+def benchmark(n: int = 500) -> None:
+    """Median time per 181-beam scan on a 1000x1000 grid, including the int8 cache."""
+    import time
+
+    p = MapperParams()
+    t0 = time.perf_counter()
+    core = MapperCore.from_occupancy(np.full((1000, 1000), -1, np.int8),
+                                     GridGeometry(0.1, -50.0, -50.0, 1000, 1000), p)
+    print(f"construct 1000x1000 (incl. numba warm-up) {1e3 * (time.perf_counter() - t0):.0f} ms")
+    rng = np.random.default_rng(0)
+    kinds = {
+        "office 0.5-4 m": lambda: rng.uniform(0.5, 4.0, 181),
+        "mixed, 30% no return": lambda: np.where(rng.random(181) < 0.3, 8.0,
+                                                 rng.uniform(0.5, 7.9, 181)),
+        "all max range 8 m": lambda: np.full(181, 8.0),
+    }
+    for name, gen in kinds.items():
+        ts = []
+        for _ in range(n):
+            pose = (rng.uniform(-30, 30), rng.uniform(-30, 30), rng.uniform(-3, 3))
+            r = gen()
+            t = time.perf_counter()
+            core.integrate(pose, r, AMIN, INC, 0.02, 8.0)
+            core.occupancy()
+            ts.append(time.perf_counter() - t)
+        ts = np.array(ts) * 1e3
+        print(f"{name:22s} median {np.median(ts):.3f} ms  p95 {np.percentile(ts, 95):.3f} ms"
+              f"  max {ts.max():.3f} ms  (n={n})")
+
+
+if __name__ == "__main__":
+    benchmark()
