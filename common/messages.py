@@ -64,10 +64,10 @@ class MessageError(ValueError):
 
 
 class Header(msgspec.Struct, kw_only=True):
-    seq: int = 0
-    stamp: float = 0.0  # [s]
-    frame: str = "map"
-    src_seq: int = -1  # scan sequence number this message derives from (-1: none)
+    seq: int
+    stamp: float  # [s]
+    frame: str
+    src_seq: int  # scan sequence number this message derives from (-1: none)
 
 
 class LaserScan(msgspec.Struct, kw_only=True):
@@ -101,8 +101,8 @@ class Pose(msgspec.Struct, kw_only=True):
 
 class Twist(msgspec.Struct, kw_only=True):
     header: Header
-    v: float = 0.0  # [m/s]
-    w: float = 0.0  # [rad/s]
+    v: float  # [m/s]
+    w: float  # [rad/s]
 
 
 class OccupancyGrid(msgspec.Struct, kw_only=True):

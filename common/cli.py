@@ -1,0 +1,188 @@
+"""``topoexplore`` — the one console command, with subcommands.
+
+    topoexplore run      explore a world with the whole stack, write a report and a picture
+    topoexplore up       start a launch profile under the supervisor (Ctrl-C stops everything)
+    topoexplore worlds   list the built-in worlds
+    topoexplore keys     inspect live keys: list | echo KEY | hz KEY | get SERVICE
+    topoexplore map      save the live map as a ROS map_server PGM + YAML pair
+    topoexplore render   make a PNG from a saved run directory or a running stack
+    topoexplore bench    benchmarks: stages | explore
+    topoexplore router   run a Zenoh router
+
+Every error in the command line, a file or a parameter prints one line and exits non-zero.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+
+
+def _err(text: str, code: int = 2) -> int:
+    print(f"topoexplore: {text}", file=sys.stderr)
+    return code
+
+
+def cmd_worlds(args: argparse.Namespace) -> int:
+    from sim.world import WorldError, builtin_worlds, load_world
+
+    if args.check:
+        try:
+            w = load_world(args.check)
+        except WorldError as exc:
+            return _err(str(exc))
+        print(f"{w.name}: {w.size[0]:g} m x {w.size[1]:g} m, {len(w.segments)} wall segments, "
+              f"{len(w.circles)} circles, start {tuple(round(v, 2) for v in w.robot_pose)}")
+        return 0
+    worlds = builtin_worlds()
+    width = max(len(n) for n in worlds)
+    for name, text in worlds.items():
+        print(f"{name:<{width}}  {text}")
+    return 0
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    from common.bus import BusError
+    from common.keys import Keys
+    from common.node import params_from_args
+    from common.params import ParamError
+    from services.supervisor.core import ProfileError, load_profile
+    from services.supervisor.service import Supervisor, profile_path
+
+    try:
+        profile = load_profile(profile_path(args.profile))
+        params = params_from_args(args)
+    except (ProfileError, ParamError) as exc:
+        return _err(str(exc))
+    overrides = list(args.set)
+    if args.lockstep:
+        overrides.append("sim.lockstep=true")
+    if args.world:
+        overrides.append(f'sim.world="{args.world}"')
+    keys = Keys(params.bus.namespace, params.bus.robot)
+    sup = Supervisor(profile, keys, params.bus.connect, params_file=args.params,
+                     overrides=overrides, zenoh_config=args.zenoh_config)
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    print(f"[supervisor] profile {profile.name}: {', '.join(s.name for s in profile.processes)} "
+          f"on {params.bus.connect} ({keys.prefix})", flush=True)
+    try:
+        ok = sup.start()
+        if ok:
+            print("[supervisor] all processes up; Ctrl-C to stop", flush=True)
+        sup.run_until(stop)
+    except BusError as exc:
+        return _err(str(exc))
+    finally:
+        print("[supervisor] stopping", flush=True)
+        sup.stop()
+        print(f"[supervisor] stopped ({sup.restarts} restarts)", flush=True)
+    return 0
+
+
+def cmd_map_save(args: argparse.Namespace) -> int:
+    from common.bus import Bus, BusError
+    from common.livestate import StateError, fetch_state, map_from_state
+    from common.mapio import MapIOError, write_map_server
+    from common.node import params_from_args
+    from common.params import ParamError
+
+    try:
+        params = params_from_args(args)
+        from common.keys import Keys
+
+        keys = Keys(params.bus.namespace, params.bus.robot)
+        with Bus.client(params.bus.connect, config_file=args.zenoh_config) as bus:
+            grid, geom = map_from_state(fetch_state(bus, keys, "mapper", args.timeout))
+        pgm, yml = write_map_server(args.output, grid, geom, params.mapper.p_free,
+                                    params.mapper.p_occ)
+    except (ParamError, BusError, StateError, MapIOError) as exc:
+        return _err(str(exc))
+    print(f"wrote {yml} and {pgm} ({geom.width}x{geom.height} cells at {geom.resolution} m)")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from common.node import add_bus_args, add_param_args
+
+    ap = argparse.ArgumentParser(prog="topoexplore", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="command", metavar="COMMAND")
+
+    from common import runner
+
+    runner.add_arguments(sub.add_parser("run", help="explore a world, write report + picture"))
+
+    up = sub.add_parser("up", help="start a launch profile under the supervisor")
+    up.add_argument("--profile", default="sim",
+                    help="profile name in deploy/profiles (sim, robot, sim-only, mapping) or a path")
+    up.add_argument("--world", default=None, help="world for the simulator")
+    up.add_argument("--lockstep", action="store_true", help="lockstep simulation")
+    add_bus_args(up)
+    add_param_args(up)
+
+    w = sub.add_parser("worlds", help="list the built-in worlds")
+    w.add_argument("--check", metavar="WORLD", help="load a world (name or file) and summarize it")
+
+    sub.add_parser("keys", help="inspect keys: list | echo KEY | hz KEY | get SERVICE",
+                   add_help=False)
+    sub.add_parser("router", help="run a Zenoh router", add_help=False)
+    sub.add_parser("render", help="PNG from a saved run directory or a running stack",
+                   add_help=False)
+    sub.add_parser("bench", help="benchmarks: stages | explore", add_help=False)
+
+    mp = sub.add_parser("map", help="map tools")
+    msub = mp.add_subparsers(dest="map_command", metavar="ACTION")
+    ms = msub.add_parser("save", help="save the live map as map_server PGM + YAML")
+    ms.add_argument("output", help="YAML path to write (the PGM goes beside it)")
+    ms.add_argument("--timeout", type=float, default=3.0)
+    add_bus_args(ms)
+    add_param_args(ms)
+    return ap
+
+
+# subcommands with their own full parsers: forward the remaining argv
+_FORWARD = {
+    "keys": "common.keytools",
+    "router": "common.router",
+    "render": "common.rendercmd",
+    "bench": "common.bench",
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if argv and argv[0] in _FORWARD:
+        import importlib
+
+        mod = importlib.import_module(_FORWARD[argv[0]])
+        try:
+            return int(mod.main(argv[1:]) or 0)
+        except KeyboardInterrupt:
+            return 130
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    try:
+        if args.command == "run":
+            from common import runner
+
+            return runner.run(args)
+        if args.command == "up":
+            return cmd_up(args)
+        if args.command == "worlds":
+            return cmd_worlds(args)
+        if args.command == "map" and args.map_command == "save":
+            return cmd_map_save(args)
+    except KeyboardInterrupt:
+        return 130
+    ap.print_help()
+    return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

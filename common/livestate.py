@@ -1,0 +1,52 @@
+"""Read service state from a running stack (state queryables) and turn it into typed values."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgpack
+import msgspec
+import numpy as np
+
+from common import messages as m
+from common.bus import Bus
+from common.grid import GridGeometry
+from common.keys import Keys
+
+
+class StateError(RuntimeError):
+    """No (valid) state reply from a service."""
+
+
+def fetch_state(bus: Bus, keys: Keys, service: str, timeout: float = 3.0) -> dict[str, Any]:
+    replies = bus.get(keys.state(service), timeout=timeout)
+    for _key, payload, err in replies:
+        if payload is not None:
+            try:
+                value = msgpack.unpackb(payload, raw=False)
+            except Exception as exc:
+                raise StateError(f"{service} state reply is not msgpack: {exc}") from None
+            if not isinstance(value, dict):
+                raise StateError(f"{service} state reply is not a map")
+            return value
+        if err:
+            raise StateError(f"{service} state query failed: {err}")
+    raise StateError(f"no reply from {keys.state(service)} within {timeout:g} s "
+                     f"(is the stack running on this endpoint and namespace?)")
+
+
+def as_message(value: Any, msg_type: type) -> Any:
+    """A message that came nested in a state reply (as a dict) -> validated struct."""
+    if value is None:
+        return None
+    try:
+        return m.decode(msgspec.msgpack.encode(value), msg_type)
+    except m.MessageError as exc:
+        raise StateError(str(exc)) from None
+
+
+def map_from_state(state: dict[str, Any]) -> tuple[np.ndarray, GridGeometry]:
+    grid = as_message(state.get("map"), m.OccupancyGrid)
+    if grid is None:
+        raise StateError("the mapper has no map yet")
+    return m.grid_to_array(grid).copy(), GridGeometry.of(grid)

@@ -1,0 +1,39 @@
+"""A Zenoh router process (there is no zenohd on PyPI: a Python session in router mode is one).
+
+``python -m common.router --listen tcp/127.0.0.1:7447`` (the supervisor starts it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+
+from common.bus import DEFAULT_ENDPOINT, Bus, BusError, init_logging
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="topoexplore router", description=__doc__)
+    ap.add_argument("--listen", default=DEFAULT_ENDPOINT, help="endpoint(s) to listen on")
+    ap.add_argument("--zenoh-config", default=None, help="Zenoh JSON5 config file (base)")
+    args = ap.parse_args(argv)
+    init_logging()
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        bus = Bus.router(args.listen, config_file=args.zenoh_config)
+    except BusError as exc:
+        print(f"topoexplore router: {exc}", file=sys.stderr)
+        return 2
+    print(f"router listening on {args.listen}", flush=True)
+    try:
+        stop.wait()
+    finally:
+        bus.close()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

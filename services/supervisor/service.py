@@ -1,0 +1,245 @@
+"""Supervisor: starts the router and the processes of a launch profile, watches them, restarts.
+
+- starts a Zenoh router on the bus endpoint when the profile asks for one;
+- starts every process (module processes get the shared bus and parameter options);
+- waits until each one's liveliness token appears (``<ns>/<robot>/alive/<name>``);
+- forwards their logs, each line prefixed with ``[name]``;
+- restarts a process that dies (exponential backoff, restart count), and kills one whose token
+  stayed gone while it still runs (frozen);
+- on stop (Ctrl-C / SIGTERM): SIGTERM to every child's process group, SIGKILL after a grace
+  period, router last; children also get SIGTERM from the kernel if the supervisor itself dies
+  (PR_SET_PDEATHSIG), so no orphans are left.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from common.bus import Bus
+from common.keys import Keys
+from services.supervisor.core import ProcSpec, ProcState, Profile, RestartPolicy
+
+log = logging.getLogger("topoexplore.supervisor")
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+PROFILE_DIR = REPO_ROOT / "deploy" / "profiles"
+
+
+def _pdeathsig() -> None:  # runs in the child between fork and exec
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+def profile_path(name_or_path: str) -> Path:
+    p = Path(name_or_path)
+    if p.suffix == ".toml" or p.exists():
+        return p
+    return PROFILE_DIR / f"{name_or_path}.toml"
+
+
+class Supervisor:
+    def __init__(self, profile: Profile, keys: Keys, endpoint: str,
+                 params_file: str | None = None, overrides: list[str] | None = None,
+                 zenoh_config: str | None = None, sink: Callable[[str], None] | None = None,
+                 policy: RestartPolicy | None = None, lost_grace: float = 12.0):
+        self.profile = profile
+        self.keys = keys
+        self.endpoint = endpoint
+        self.params_file = params_file
+        self.overrides = list(overrides or [])
+        self.zenoh_config = zenoh_config
+        self.sink = sink or (lambda line: print(line, flush=True))
+        self.policy = policy or RestartPolicy()
+        self.lost_grace = lost_grace
+        self.states = {s.name: ProcState(spec=s) for s in profile.processes}
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.router: subprocess.Popen | None = None
+        self.bus: Bus | None = None
+        self.stopping = False
+        self._lost_since: dict[str, float] = {}
+        self._lock = threading.RLock()
+        self._threads: list[threading.Thread] = []
+
+    # -- processes ------------------------------------------------------------------------
+    def command(self, spec: ProcSpec) -> list[str]:
+        if spec.cmd:
+            return list(spec.cmd)
+        cmd = [sys.executable, "-u", "-m", spec.module, "--connect", self.endpoint,
+               "--namespace", self.keys.namespace, "--robot", self.keys.robot]
+        if self.params_file:
+            cmd += ["--params", self.params_file]
+        if self.zenoh_config:
+            cmd += ["--zenoh-config", self.zenoh_config]
+        for o in self.overrides:
+            cmd += ["--set", o]
+        return cmd + list(spec.args)
+
+    def _spawn(self, name: str, cmd: list[str]) -> subprocess.Popen:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT), env.get("PYTHONPATH")]))
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                stdin=subprocess.DEVNULL, env=env, start_new_session=True,
+                                preexec_fn=_pdeathsig, text=True, errors="replace", bufsize=1)
+        t = threading.Thread(target=self._forward, args=(name, proc), daemon=True)
+        t.start()
+        self._threads.append(t)
+        return proc
+
+    def _forward(self, name: str, proc: subprocess.Popen) -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            self.sink(f"[{name}] {line.rstrip()}")
+
+    def start_router(self) -> None:
+        """Start the router process (idempotent)."""
+        if not self.profile.router or (self.router is not None and self.router.poll() is None):
+            return
+        cmd = [sys.executable, "-u", "-m", "common.router", "--listen", self.endpoint]
+        if self.zenoh_config:
+            cmd += ["--zenoh-config", self.zenoh_config]
+        self.router = self._spawn("router", cmd)
+
+    def start_process(self, name: str, now: float) -> None:
+        st = self.states[name]
+        proc = self._spawn(name, self.command(st.spec))
+        self.procs[name] = proc
+        st.on_start(now, proc.pid)
+        self._lost_since.pop(name, None)
+
+    def _on_token(self, key: str, alive: bool) -> None:
+        name = key.rsplit("/", 1)[-1]
+        with self._lock:
+            st = self.states.get(name)
+            if st is None:
+                return
+            st.alive = alive
+            if alive:
+                self._lost_since.pop(name, None)
+                self.sink(f"[supervisor] {name} is up (pid {st.pid})")
+            elif not self.stopping:
+                self._lost_since[name] = time.monotonic()
+                self.sink(f"[supervisor] {name}: liveliness token gone")
+
+    # -- lifecycle ------------------------------------------------------------------------
+    def start(self, ready_timeout: float | None = None) -> bool:
+        """Start router + every process; wait for their tokens. True when all are up."""
+        self.start_router()
+        self.bus = Bus.client(self.endpoint, name="supervisor", config_file=self.zenoh_config,
+                              wait_for_router=True)
+        self.bus.watch_liveliness(self.keys.alive_all(), self._on_token)
+        self.bus.declare_token(self.keys.alive("supervisor"))
+        self.bus.queryable(self.keys.state("supervisor"), lambda _p: self.table())
+        now = time.monotonic()
+        with self._lock:
+            for name in self.states:
+                self.start_process(name, now)
+        return self.wait_ready(ready_timeout)
+
+    def wait_ready(self, timeout: float | None = None) -> bool:
+        specs = [s for s in self.profile.processes if s.liveliness]
+        limit = timeout if timeout is not None else max((s.ready_timeout for s in specs),
+                                                        default=0.0)
+        deadline = time.monotonic() + limit
+        while time.monotonic() < deadline:
+            self.poll()
+            with self._lock:
+                if all(self.states[s.name].alive for s in specs):
+                    return True
+            time.sleep(0.05)
+        missing = [s.name for s in specs if not self.states[s.name].alive]
+        self.sink(f"[supervisor] not up after {limit:.0f} s: {', '.join(missing)}")
+        return False
+
+    def poll(self) -> None:
+        """Reap exited children, (re)start due ones, kill frozen ones. Call regularly."""
+        now = time.monotonic()
+        with self._lock:
+            for name, st in self.states.items():
+                proc = self.procs.get(name)
+                if proc is not None and st.pid is not None:
+                    code = proc.poll()
+                    if code is not None:
+                        self.sink(f"[supervisor] {st.on_exit(now, code, self.policy, self.stopping)}")
+                if st.pid is None and st.next_start is not None and now >= st.next_start \
+                        and not self.stopping:
+                    self.start_process(name, now)
+                lost = self._lost_since.get(name)
+                if lost is not None and st.pid is not None and now - lost > self.lost_grace:
+                    self.sink(f"[supervisor] {name}: token gone for {now - lost:.0f} s while "
+                              f"running; killing it")
+                    self._lost_since.pop(name, None)
+                    self._kill(self.procs[name], signal.SIGKILL)
+            if self.router is not None and self.router.poll() is not None and not self.stopping:
+                self.sink(f"[supervisor] router exited ({self.router.returncode}); restarting")
+                self.start_router()
+
+    def run_until(self, stop: threading.Event, period: float = 0.1) -> None:
+        while not stop.is_set():
+            self.poll()
+            stop.wait(period)
+
+    @staticmethod
+    def _kill(proc: subprocess.Popen, sig: int) -> None:
+        try:
+            os.killpg(proc.pid, sig)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+    def stop(self, grace: float = 5.0) -> None:
+        with self._lock:
+            self.stopping = True
+            for st in self.states.values():
+                st.next_start = None
+        procs = list(self.procs.values())
+        for p in reversed(procs):
+            if p.poll() is None:
+                self._kill(p, signal.SIGTERM)
+        deadline = time.monotonic() + grace
+        for p in procs:
+            try:
+                p.wait(timeout=max(0.01, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self._kill(p, signal.SIGKILL)
+                p.wait(timeout=5)
+        self.poll()
+        if self.bus is not None:
+            self.bus.close()
+        if self.router is not None and self.router.poll() is None:
+            self._kill(self.router, signal.SIGTERM)
+            try:
+                self.router.wait(timeout=grace)
+            except subprocess.TimeoutExpired:
+                self._kill(self.router, signal.SIGKILL)
+                self.router.wait(timeout=5)
+        for t in self._threads:
+            t.join(timeout=1.0)
+
+    def table(self) -> dict:
+        with self._lock:
+            return {
+                "service": "supervisor",
+                "profile": self.profile.name,
+                "endpoint": self.endpoint,
+                "processes": {
+                    n: {"pid": s.pid, "alive": s.alive, "restarts": s.restarts,
+                        "last_exit": s.last_exit, "given_up": s.given_up}
+                    for n, s in self.states.items()
+                },
+            }
+
+    @property
+    def restarts(self) -> int:
+        with self._lock:
+            return sum(s.restarts for s in self.states.values())

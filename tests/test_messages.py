@@ -1,0 +1,125 @@
+"""Codec round trip of every message, plain-msgpack readability, strict validation."""
+
+from __future__ import annotations
+
+import math
+
+import msgpack
+import msgspec
+import numpy as np
+import pytest
+
+from common import messages as m
+
+
+def hdr(**kw) -> m.Header:
+    return m.Header(seq=kw.get("seq", 3), stamp=kw.get("stamp", 1.5), frame="map",
+                    src_seq=kw.get("src_seq", 2))
+
+
+def samples() -> list:
+    grid = np.full((3, 4), -1, dtype=np.int8)
+    grid[1, 2] = 100
+    grid[0, 0] = 0
+    return [
+        m.LaserScan(header=hdr(), angle_min=-math.pi / 2, angle_increment=math.pi / 180,
+                    range_min=0.02, range_max=8.0, ranges=[1.0] * 181),
+        m.Odometry(header=hdr(), pose=m.Pose2D(x=1.0, y=-2.0, theta=0.5), v=0.2, w=-0.1),
+        m.Pose(header=hdr(), pose=m.Pose2D(x=1.0, y=2.0, theta=3.0)),
+        m.Twist(header=hdr(), v=0.2, w=0.3),
+        m.OccupancyGrid(header=hdr(), resolution=0.1, width=4, height=3,
+                        origin=m.Pose2D(x=-1.0, y=-2.0, theta=0.0),
+                        data=m.array_to_grid_bytes(grid)),
+        m.TopoGraph(header=hdr(), nodes=[m.TopoNode(id=1, kind="end", x=0.0, y=0.0),
+                                         m.TopoNode(id=2, kind="branch", x=1.0, y=0.0)],
+                    edges=[m.TopoEdge(a=1, b=2, points=[[0.0, 0.0], [1.0, 0.0]], length=1.0,
+                                      clearance=0.4)], gone=[7]),
+        m.Reliability(header=hdr(), nodes=[m.NodeReliability(
+            id=1, x=0.0, y=0.0, p=0.6, d=0.8, a=0.1, r_min=1.5, alpha_max=0.2, visible=True,
+            n_obs=3)]),
+        m.Path(header=hdr(), waypoints=[[0.0, 0.0], [1.0, 1.0]], target_id=4, target_x=1.0,
+               target_y=1.0, strategy="reliability", plan_id=2),
+        m.ExploreStatus(header=hdr(), state="exploring", reason="target 4", target_id=4,
+                        target_p=0.5, candidates=2, end_nodes=3, reliable=1, blacklisted=[9]),
+        m.SimStatus(header=hdr(), world="paper-room", mode="lockstep", sim_time=1.0, steps=50,
+                    collisions=0, path_length=0.2, real_time_factor=20.0),
+    ]
+
+
+@pytest.mark.parametrize("msg", samples(), ids=lambda s: type(s).__name__)
+def test_round_trip(msg):
+    raw = m.encode(msg)
+    assert m.decode(raw, type(msg)) == msg
+
+
+@pytest.mark.parametrize("msg", samples(), ids=lambda s: type(s).__name__)
+def test_plain_msgpack_client_reads_every_message(msg):
+    plain = msgpack.unpackb(m.encode(msg), raw=False)
+    assert isinstance(plain, dict)
+    assert plain == msgspec.to_builtins(msg, enc_hook=None) | {
+        k: v for k, v in plain.items() if isinstance(v, bytes)}
+    assert plain["header"]["seq"] == 3 and plain["header"]["src_seq"] == 2
+
+
+def test_every_type_covered():
+    assert {type(s) for s in samples()} == set(m.MESSAGE_TYPES.values())
+
+
+def test_grid_array_round_trip():
+    a = np.arange(-1, 99, dtype=np.int8).reshape(10, 10)
+    g = samples()[4]
+    g = msgspec.structs.replace(g, width=10, height=10, data=m.array_to_grid_bytes(a))
+    assert np.array_equal(m.grid_to_array(m.decode(m.encode(g), m.OccupancyGrid)), a)
+
+
+def _mut(msg, **changes):
+    return msgspec.structs.replace(msg, **changes)
+
+
+S = {type(s).__name__: s for s in samples()}
+NAN, INF = float("nan"), float("inf")
+
+BAD = [
+    ("not msgpack", b"\xc1\xc1garbage", m.LaserScan),
+    ("empty payload", b"", m.Odometry),
+    ("wrong root type", msgpack.packb([1, 2, 3]), m.Twist),
+    ("missing header fields", msgpack.packb({"header": {}, "v": 0.0, "w": 0.0}), m.Twist),
+    ("missing field", msgpack.packb({"header": {"seq": 0, "stamp": 0.0, "frame": "map",
+                                                "src_seq": 0}, "v": 0.0}), m.Twist),
+    ("string for float", msgpack.packb({"header": {}, "v": "fast", "w": 0.0}), m.Twist),
+    ("nan velocity", m.encode(_mut(S["Twist"], v=NAN)), m.Twist),
+    ("inf pose", m.encode(_mut(S["Odometry"], pose=m.Pose2D(x=INF, y=0, theta=0))), m.Odometry),
+    ("nan range", m.encode(_mut(S["LaserScan"], ranges=[1.0, NAN, 2.0])), m.LaserScan),
+    ("negative range", m.encode(_mut(S["LaserScan"], ranges=[1.0, -1.0])), m.LaserScan),
+    ("no ranges", m.encode(_mut(S["LaserScan"], ranges=[])), m.LaserScan),
+    ("too many beams", m.encode(_mut(S["LaserScan"], ranges=[1.0] * 20000)), m.LaserScan),
+    ("range_max < min", m.encode(_mut(S["LaserScan"], range_max=0.01)), m.LaserScan),
+    ("grid data short", m.encode(_mut(S["OccupancyGrid"], data=b"\x00" * 5)), m.OccupancyGrid),
+    ("grid absurd size", m.encode(_mut(S["OccupancyGrid"], width=100000, height=100000)),
+     m.OccupancyGrid),
+    ("grid bad value", m.encode(_mut(S["OccupancyGrid"], data=bytes([120] * 12))),
+     m.OccupancyGrid),
+    ("zero resolution", m.encode(_mut(S["OccupancyGrid"], resolution=0.0)), m.OccupancyGrid),
+    ("node kind", m.encode(_mut(S["TopoGraph"], nodes=[m.TopoNode(id=1, kind="x", x=0, y=0)],
+                                edges=[])), m.TopoGraph),
+    ("edge to unknown node", m.encode(_mut(S["TopoGraph"], edges=[m.TopoEdge(
+        a=1, b=99, points=[], length=1.0, clearance=0.1)])), m.TopoGraph),
+    ("duplicate node id", m.encode(_mut(S["TopoGraph"], nodes=[
+        m.TopoNode(id=1, kind="end", x=0, y=0)] * 2, edges=[])), m.TopoGraph),
+    ("3d point", m.encode(_mut(S["TopoGraph"], edges=[m.TopoEdge(
+        a=1, b=2, points=[[0.0, 0.0, 1.0]], length=1.0, clearance=0.1)])), m.TopoGraph),
+    ("p above 1", m.encode(_mut(S["Reliability"], nodes=[msgspec.structs.replace(
+        S["Reliability"].nodes[0], p=1.5)])), m.Reliability),
+    ("nan waypoint", m.encode(_mut(S["Path"], waypoints=[[0.0, NAN]])), m.Path),
+    ("bad state", m.encode(_mut(S["ExploreStatus"], state="lost")), m.ExploreStatus),
+    ("negative stamp", m.encode(_mut(S["Twist"], header=hdr(stamp=-1.0))), m.Twist),
+    ("bad mode", m.encode(_mut(S["SimStatus"], mode="fast")), m.SimStatus),
+]
+
+
+@pytest.mark.parametrize("name,raw,t", BAD, ids=[b[0] for b in BAD])
+def test_validation_rejects_with_one_error_type(name, raw, t):
+    with pytest.raises(m.MessageError) as exc:
+        m.decode(raw, t)
+    text = str(exc.value)
+    assert "\n" not in text and t.__name__ in text

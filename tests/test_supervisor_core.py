@@ -1,0 +1,77 @@
+"""Launch profiles and the restart policy (pure)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from services.supervisor.core import (
+    ProcState,
+    ProcSpec,
+    ProfileError,
+    RestartPolicy,
+    load_profile,
+    parse_profile,
+)
+
+PROFILES = Path(__file__).resolve().parents[1] / "deploy" / "profiles"
+
+
+def test_shipped_profiles_load():
+    names = {p.stem for p in PROFILES.glob("*.toml")}
+    assert {"sim", "robot", "sim-only", "mapping"} <= names
+    sim = load_profile(PROFILES / "sim.toml")
+    assert [p.name for p in sim.processes] == [
+        "mapper", "topology", "reliability", "planner", "controller", "sim"]
+    robot = load_profile(PROFILES / "robot.toml")
+    assert "sim" not in [p.name for p in robot.processes]
+
+
+@pytest.mark.parametrize("data", [
+    {},
+    {"process": [{"name": "a"}]},
+    {"process": [{"name": "a", "module": "x", "cmd": ["y"]}]},
+    {"process": [{"name": "a", "module": "x"}, {"name": "a", "module": "y"}]},
+    {"process": [{"name": "a b", "module": "x"}]},
+    {"process": [{"name": "a", "module": "x", "ready_timeout": -1}]},
+    {"process": [{"name": "a", "module": "x", "bogus": 1}]},
+    {"router": "yes", "process": [{"name": "a", "module": "x"}]},
+])
+def test_bad_profiles(data):
+    with pytest.raises(ProfileError):
+        parse_profile(data)
+
+
+def test_backoff_grows_and_caps():
+    pol = RestartPolicy(base=0.5, cap=4.0)
+    assert [pol.delay(n) for n in range(5)] == [0.5, 1.0, 2.0, 4.0, 4.0]
+
+
+def test_restart_decisions():
+    pol = RestartPolicy(base=1.0, cap=8.0, stable_after=30.0, max_restarts=3)
+    st = ProcState(spec=ProcSpec(name="a", module="x"))
+    st.on_start(0.0, 100)
+    st.on_exit(1.0, -9, pol, stopping=False)
+    assert st.restarts == 1 and st.next_start == 2.0
+    st.on_start(2.0, 101)
+    st.on_exit(3.0, 1, pol, stopping=False)
+    assert st.restarts == 2 and st.next_start == 5.0  # backoff doubled
+    st.on_start(5.0, 102)
+    st.on_exit(100.0, 1, pol, stopping=False)  # ran long: backoff resets
+    assert st.next_start == 101.0
+    st.on_start(101.0, 103)
+    text = st.on_exit(102.0, 1, pol, stopping=False)
+    assert st.given_up and st.next_start is None and "gave up" in text
+
+
+def test_no_restart_when_stopping_or_disabled():
+    pol = RestartPolicy()
+    st = ProcState(spec=ProcSpec(name="a", module="x"))
+    st.on_start(0.0, 1)
+    st.on_exit(1.0, 0, pol, stopping=True)
+    assert st.next_start is None and st.restarts == 0
+    st2 = ProcState(spec=ProcSpec(name="b", cmd=("true",), restart=False))
+    st2.on_start(0.0, 2)
+    st2.on_exit(1.0, 0, pol, stopping=False)
+    assert st2.next_start is None
