@@ -1,0 +1,245 @@
+"""Simulator core: pymunk differential-drive robot, 2D laser, odometry, watchdog (DESIGN §5).
+
+Pure: no clock reads, no I/O. Time advances only by :meth:`SimCore.step` (one physics step of
+``1 / params.physics_hz`` seconds); randomness comes from the ``rng`` passed in, so the same
+world, parameters, seed and command sequence give identical scans and poses.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pymunk
+
+from common.params import SimParams
+from sim.world import World
+
+__all__ = ["SimError", "SimCore", "box_vertices", "beam_angles"]
+
+WALL_TYPE = 1  # pymunk collision types
+ROBOT_TYPE = 2
+ROBOT_CATEGORY = 0b10  # pymunk shape-filter category of the robot (the laser ignores it)
+ROBOT_MASS = 10.0  # [kg] only matters against pushing; walls are static
+COLLISION_SLOP = 0.002  # [m] allowed overlap before pymunk pushes shapes apart (default 0.1)
+
+
+class SimError(ValueError):
+    """Bad argument to the simulator core."""
+
+
+def box_vertices(center, size, angle: float) -> list[tuple[float, float]]:
+    """Corners [m] of a rectangle (centre, (w, h), angle [rad]), counter-clockwise."""
+    cx, cy = center
+    hx, hy = size[0] / 2, size[1] / 2
+    ca, sa = math.cos(angle), math.sin(angle)
+    return [(cx + ca * u - sa * v, cy + sa * u + ca * v)
+            for u, v in ((-hx, -hy), (hx, -hy), (hx, hy), (-hx, hy))]
+
+
+def beam_angles(beams: int, fov: float) -> tuple[float, float]:
+    """(angle_min, angle_increment) [rad] of a scan of ``beams`` beams centred on the heading."""
+    return -fov / 2.0, fov / (beams - 1)
+
+
+class SimCore:
+    """One robot in one static world.
+
+    Robot: pymunk dynamic circle (radius ``params.robot_radius``, infinite moment). Each step
+    the body velocity is set from the latest command in the body frame (differential drive),
+    so the contact solver really stops it at walls. Contacts with static shapes are counted:
+    going from touching nothing to touching something is one collision.
+    """
+
+    def __init__(self, world: World, params: SimParams, rng: np.random.Generator):
+        if not isinstance(world, World):
+            raise SimError(f"world must be a sim.world.World (got {type(world).__name__})")
+        if not isinstance(params, SimParams):
+            raise SimError(f"params must be SimParams (got {type(params).__name__})")
+        if not isinstance(rng, np.random.Generator):
+            raise SimError(f"rng must be a numpy Generator (got {type(rng).__name__})")
+        self.world = world
+        self.params = params
+        self._rng = rng
+        self._odom_rng = np.random.default_rng(rng.integers(0, 2**63 - 1))
+        self._dt = 1.0 / params.physics_hz  # [s]
+        self._steps = 0
+
+        space = pymunk.Space()
+        space.gravity = (0.0, 0.0)
+        sb = space.static_body
+        shapes: list[pymunk.Shape] = []
+        for a, b in world.segments:
+            shapes.append(pymunk.Segment(sb, a, b, world.wall_thickness))
+        for c, r in world.circles:
+            shapes.append(pymunk.Circle(sb, r, offset=c))
+        for c, s, ang in world.boxes:
+            shapes.append(pymunk.Poly(sb, box_vertices(c, s, ang)))
+        for sh in shapes:
+            sh.collision_type = WALL_TYPE
+            sh.friction = 0.5
+            sh.elasticity = 0.0
+        space.add(*shapes)
+
+        x, y, th = world.robot_pose
+        r = params.robot_radius
+        body = pymunk.Body(ROBOT_MASS, math.inf)
+        body.position = (x, y)
+        body.angle = th
+        robot = pymunk.Circle(body, r)
+        robot.collision_type = ROBOT_TYPE
+        robot.friction = 0.5
+        robot.elasticity = 0.0
+        robot.filter = pymunk.ShapeFilter(categories=ROBOT_CATEGORY)
+        # Drive: pymunk integrates positions *before* it solves velocities, so setting
+        # body.velocity before space.step() would move the robot into walls unchecked. Instead
+        # the command is imposed in the velocity phase (velocity_func); the contact solver then
+        # corrects it and the next position update uses the corrected velocity, so walls
+        # really stop the robot. Consequence: one physics step of actuation lag.
+        body.velocity_func = self._drive
+        space.add(body, robot)
+        space.collision_slop = COLLISION_SLOP
+        space.on_collision(ROBOT_TYPE, WALL_TYPE, begin=self._on_begin, separate=self._on_separate)
+        self._space = space
+        self._body = body
+        self._laser_filter = pymunk.ShapeFilter(
+            mask=pymunk.ShapeFilter.ALL_MASKS() ^ ROBOT_CATEGORY)
+
+        self.angle_min, self.angle_increment = beam_angles(params.beams, params.fov)  # [rad]
+        self._beam_rel = self.angle_min + self.angle_increment * np.arange(params.beams)
+
+        self._cmd = (0.0, 0.0)  # [m/s, rad/s] active command
+        self._cmd_time = 0.0  # [s] sim time of the latest command()
+        self._meas = (0.0, 0.0)  # [m/s, rad/s] measured velocity after the last step
+        self._odom = (float(x), float(y), float(th))
+        self._touching = 0
+        self.collisions = 0
+        self.path_length = 0.0  # [m]
+        self.watchdog_stops = 0
+
+    # ---------------------------------------------------------------- contacts
+    def _drive(self, body, gravity, damping, dt) -> None:
+        """pymunk velocity_func: differential drive, velocity along the current heading."""
+        v, w = self._cmd
+        th = body.angle
+        body.velocity = (v * math.cos(th), v * math.sin(th))
+        body.angular_velocity = w  # a circle turning in place cannot hit anything
+
+    def _on_begin(self, arbiter, space, data) -> None:
+        if self._touching == 0:
+            self.collisions += 1
+        self._touching += 1
+
+    def _on_separate(self, arbiter, space, data) -> None:
+        self._touching = max(self._touching - 1, 0)
+
+    # ---------------------------------------------------------------- state
+    @property
+    def time(self) -> float:
+        """[s] sim time."""
+        return self._steps * self._dt
+
+    @property
+    def in_contact(self) -> bool:
+        """The robot touches a static shape now."""
+        return self._touching > 0
+
+    def truth_pose(self) -> tuple[float, float, float]:
+        """Ground-truth pose (x [m], y [m], theta [rad] in (-pi, pi])."""
+        b = self._body
+        return (float(b.position.x), float(b.position.y), _wrap(float(b.angle)))
+
+    def odom_pose(self) -> tuple[float, float, float]:
+        """Odometry pose in the map frame: the truth unless ``params.odom_drift`` > 0."""
+        if self.params.odom_drift <= 0.0:
+            return self.truth_pose()
+        x, y, th = self._odom
+        return (x, y, _wrap(th))
+
+    def velocity(self) -> tuple[float, float]:
+        """Measured (v [m/s] along the heading, w [rad/s]) after the last step."""
+        return self._meas
+
+    # ---------------------------------------------------------------- control
+    def command(self, v: float, w: float) -> None:
+        """Set the latest cmd_vel (clipped to v_limit / w_limit) and reset the watchdog."""
+        try:
+            v, w = float(v), float(w)
+        except (TypeError, ValueError):
+            raise SimError(f"command needs two numbers (got {v!r}, {w!r})") from None
+        if not (math.isfinite(v) and math.isfinite(w)):
+            raise SimError(f"command must be finite (got v={v}, w={w})")
+        p = self.params
+        self._cmd = (min(max(v, -p.v_limit), p.v_limit), min(max(w, -p.w_limit), p.w_limit))
+        self._cmd_time = self.time
+
+    def step(self) -> None:
+        """Advance one physics step of 1 / physics_hz seconds."""
+        if self.time - self._cmd_time >= self.params.watchdog - 1e-9 and self._cmd != (0.0, 0.0):
+            self._cmd = (0.0, 0.0)
+            self.watchdog_stops += 1
+        b = self._body
+        x0, y0 = b.position
+        th0 = b.angle
+        self._space.step(self._dt)
+        self._steps += 1
+        x1, y1 = b.position
+        th1 = b.angle
+        dx, dy = x1 - x0, y1 - y0
+        ds = math.hypot(dx, dy)
+        self.path_length += ds
+        vel = b.velocity
+        self._meas = (vel.x * math.cos(th1) + vel.y * math.sin(th1), float(b.angular_velocity))
+        if self.params.odom_drift > 0.0:
+            self._integrate_odom(dx * math.cos(th0) + dy * math.sin(th0), th1 - th0)
+
+    def _integrate_odom(self, ds: float, dth: float) -> None:
+        """Odometry with random-walk drift: variance per step = drift^2 * |travel| (so the
+        position error has sigma ~ drift [m] after 1 m, the heading error ~ drift [rad])."""
+        k = self.params.odom_drift
+        travel = abs(ds) + abs(dth) * self.params.robot_radius
+        if travel > 0.0:
+            e_s, e_t = self._odom_rng.normal(0.0, k * math.sqrt(travel), 2)
+            ds, dth = ds + e_s, dth + e_t
+        x, y, th = self._odom
+        mid = th + dth / 2
+        self._odom = (x + ds * math.cos(mid), y + ds * math.sin(mid), th + dth)
+
+    # ---------------------------------------------------------------- laser
+    def scan(self) -> np.ndarray:
+        """Laser ranges [m] (float64, params.beams long) from angle_min by angle_increment.
+
+        Beams start at the laser (robot centre + laser_offset ahead), Gaussian noise of sigma
+        range_noise on returns, no return -> range_max exactly, clipped to [range_min,
+        range_max].
+        """
+        p = self.params
+        b = self._body
+        x, y = b.position
+        th = b.angle
+        ox = x + p.laser_offset * math.cos(th)
+        oy = y + p.laser_offset * math.sin(th)
+        rmax = p.range_max
+        ang = th + self._beam_rel
+        ex = (ox + rmax * np.cos(ang)).tolist()
+        ey = (oy + rmax * np.sin(ang)).tolist()
+        query = self._space.segment_query_first
+        flt = self._laser_filter
+        origin = (ox, oy)
+        alpha = np.ones(p.beams)
+        for i in range(p.beams):
+            info = query(origin, (ex[i], ey[i]), 0.0, flt)
+            if info is not None:
+                alpha[i] = info.alpha
+        noise = self._rng.normal(0.0, p.range_noise, p.beams) if p.range_noise > 0 else 0.0
+        hit = alpha < 1.0
+        ranges = np.where(hit, alpha * rmax + noise, rmax)
+        return np.clip(ranges, p.range_min, rmax)
+
+
+def _wrap(a: float) -> float:
+    """Angle to (-pi, pi]."""
+    a = math.fmod(a + math.pi, 2 * math.pi)
+    if a <= 0:
+        a += 2 * math.pi
+    return a - math.pi

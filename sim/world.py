@@ -1,0 +1,585 @@
+"""Simulator worlds: the TOML world format, ROS map_server import, truth rasterization.
+
+Pure except for reading world files (TOML, map YAML, map image). DESIGN.md §5 describes the
+format; a world is a set of static solid shapes in a rectangle ``origin .. origin + size``:
+
+- ``segments``: wall pieces, pymunk segment shapes of radius ``wall_thickness`` (so a wall is
+  ``2 * wall_thickness`` thick),
+- ``circles``: (centre, radius) desk and chair legs,
+- ``boxes``: (centre, size, angle) solid rectangles (furniture; map pixels are merged into
+  axis-aligned boxes).
+
+World TOML (all lengths in metres, angles in radians)::
+
+    name = "my-world"
+    description = "one line"            # optional
+    size = [10.0, 8.0]                  # [m] world spans [0, w] x [0, h]
+    wall_thickness = 0.05               # optional [m] segment *radius* (default 0.05)
+    [robot]
+    pose = [1.0, 1.0, 0.0]              # optional for map worlds (picked automatically)
+    [[walls]]
+    points = [[0, 0], [10, 0], [10, 8], [0, 8]]
+    closed = true
+    [[boxes]]
+    center = [5, 4]
+    size = [1.0, 0.5]
+    angle = 0.3                         # optional
+    [[circles]]
+    center = [2, 2]
+    radius = 0.04
+
+or, instead of ``size``, ``map = "file.yaml"`` (relative to the TOML file): a ROS map_server
+map (image + YAML with resolution, origin, negate, occupied_thresh, free_thresh); every pixel
+that is not free is solid, the world frame is the map frame. Extra walls/boxes/circles may be
+added on top of a map.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from common.mapio import MapIOError, read_map_server
+
+__all__ = [
+    "WorldError",
+    "World",
+    "ROBOT_RADIUS",
+    "START_CLEARANCE",
+    "WORLDS_DIR",
+    "builtin_worlds",
+    "load_world",
+    "parse_world",
+    "rasterize",
+    "truth_free_reachable",
+    "clearance",
+    "pick_start_pose",
+    "solid_to_boxes",
+]
+
+ROBOT_RADIUS = 0.2  # [m] robot size used to validate start poses (paper: Pioneer 2DX)
+START_CLEARANCE = 0.5  # [m] wanted distance from an automatically picked start to any solid
+DEFAULT_WALL_RADIUS = 0.05  # [m] segment radius -> walls 0.1 m thick
+PICK_RESOLUTION = 0.05  # [m] raster used to pick start poses
+WORLDS_DIR = Path(__file__).resolve().parent / "worlds"
+_EPS = 1e-6  # [cells] tolerance for float cell boundaries
+
+Point = tuple[float, float]
+
+
+class WorldError(ValueError):
+    """A world file or world definition is invalid (one-line message naming the file)."""
+
+
+@dataclass
+class World:
+    name: str
+    size: tuple[float, float]  # [m] (width along x, height along y)
+    robot_pose: tuple[float, float, float]  # [m, m, rad]
+    segments: list[tuple[Point, Point]] = field(default_factory=list)  # walls [m]
+    circles: list[tuple[Point, float]] = field(default_factory=list)  # (centre, radius) [m]
+    boxes: list[tuple[Point, Point, float]] = field(default_factory=list)  # (centre, size, angle)
+    wall_thickness: float = DEFAULT_WALL_RADIUS  # [m] radius of segment shapes (half thickness)
+    source: str = ""  # file path or "builtin:<name>"
+    origin: Point = (0.0, 0.0)  # [m] lower-left corner of the world rectangle
+    description: str = ""
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """(xmin, xmax, ymin, ymax) [m]."""
+        ox, oy = self.origin
+        return ox, ox + self.size[0], oy, oy + self.size[1]
+
+    @property
+    def shape_count(self) -> int:
+        return len(self.segments) + len(self.circles) + len(self.boxes)
+
+
+# --------------------------------------------------------------------------------------------
+# built-in worlds and loading
+
+
+def builtin_worlds() -> dict[str, str]:
+    """Built-in world name -> one-line description (from the TOML files in sim/worlds/)."""
+    out: dict[str, str] = {}
+    for p in sorted(WORLDS_DIR.glob("*.toml")):
+        try:
+            data = tomllib.loads(p.read_text())
+        except (OSError, tomllib.TOMLDecodeError):
+            continue
+        out[p.stem] = str(data.get("description", "")).splitlines()[0] if data.get(
+            "description") else ""
+    return out
+
+
+def load_world(name_or_path: str) -> World:
+    """Load a built-in world by name, a world ``.toml`` file or a map_server ``.yaml`` file.
+
+    Raises :class:`WorldError` (one line) for unknown names and any problem in the files.
+    """
+    if not isinstance(name_or_path, (str, Path)):
+        raise WorldError(f"world must be a name or a path (got {type(name_or_path).__name__})")
+    text = str(name_or_path)
+    builtin = WORLDS_DIR / f"{text}.toml"
+    if "/" not in text and not text.endswith((".toml", ".yaml", ".yml")) and builtin.is_file():
+        world = _load_toml(builtin)
+        world.source = f"builtin:{text}"
+        return world
+    path = Path(text)
+    if path.suffix == ".toml":
+        return _load_toml(path)
+    if path.suffix in (".yaml", ".yml"):
+        return _load_map_world(path, path.stem, extra={}, pose=None)
+    names = ", ".join(builtin_worlds())
+    raise WorldError(f"unknown world {text!r}: not a builtin ({names}) nor a .toml/.yaml file")
+
+
+def _load_toml(path: Path) -> World:
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise WorldError(f"{path}: world file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise WorldError(f"{path}: cannot read world file: {_one_line(exc)}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise WorldError(f"{path}: not valid TOML: {_one_line(exc)}") from None
+    return parse_world(data, str(path), base_dir=path.parent)
+
+
+_TOP_KEYS = {"name", "description", "size", "wall_thickness", "robot", "walls", "boxes",
+             "circles", "map"}
+
+
+def parse_world(data: dict, source: str, base_dir: Path | None = None) -> World:
+    """Build a :class:`World` from a parsed TOML document (see module docstring)."""
+    where = source or "<world>"
+    if not isinstance(data, dict):
+        raise WorldError(f"{where}: world must be a table")
+    unknown = sorted(set(data) - _TOP_KEYS)
+    if unknown:
+        raise WorldError(f"{where}: unknown key(s) {', '.join(unknown)}")
+    name = data.get("name", Path(source).stem if source else "world")
+    if not isinstance(name, str) or not name:
+        raise WorldError(f"{where}: name must be a non-empty string")
+    description = data.get("description", "")
+    if not isinstance(description, str):
+        raise WorldError(f"{where}: description must be a string")
+    wall_r = _number(data.get("wall_thickness", DEFAULT_WALL_RADIUS), where, "wall_thickness")
+    if wall_r <= 0:
+        raise WorldError(f"{where}: wall_thickness must be > 0 (got {wall_r})")
+
+    pose = None
+    robot = data.get("robot", {})
+    if not isinstance(robot, dict):
+        raise WorldError(f"{where}: [robot] must be a table")
+    bad = sorted(set(robot) - {"pose"})
+    if bad:
+        raise WorldError(f"{where}: unknown key(s) in [robot]: {', '.join(bad)}")
+    if "pose" in robot:
+        pose = tuple(_numbers(robot["pose"], 3, where, "robot.pose"))
+
+    extra = {
+        "segments": _parse_walls(data.get("walls", []), where),
+        "boxes": _parse_boxes(data.get("boxes", []), where),
+        "circles": _parse_circles(data.get("circles", []), where),
+        "wall_thickness": wall_r,
+        "description": description,
+    }
+    if "map" in data:
+        if "size" in data:
+            raise WorldError(f"{where}: give either size or map, not both (map sets the size)")
+        if not isinstance(data["map"], str) or not data["map"]:
+            raise WorldError(f"{where}: map must be a file name")
+        map_path = Path(data["map"])
+        if not map_path.is_absolute():
+            map_path = (base_dir or Path(".")) / map_path
+        world = _load_map_world(map_path, name, extra=extra, pose=pose)
+        world.source = source
+        return world
+
+    if "size" not in data:
+        raise WorldError(f"{where}: missing size = [w, h] (or map = \"file.yaml\")")
+    w, h = _numbers(data["size"], 2, where, "size")
+    if w <= 0 or h <= 0:
+        raise WorldError(f"{where}: size must be positive (got [{w}, {h}])")
+    if pose is None:
+        raise WorldError(f"{where}: missing [robot] pose = [x, y, theta]")
+    world = World(name=name, size=(w, h), robot_pose=pose, source=source, **extra)
+    _check_world(world, where)
+    return world
+
+
+def _parse_walls(items, where: str) -> list[tuple[Point, Point]]:
+    segs: list[tuple[Point, Point]] = []
+    for k, item in enumerate(_tables(items, where, "walls")):
+        _keys(item, {"points", "closed"}, where, f"walls[{k}]")
+        pts = item.get("points")
+        if not isinstance(pts, list) or len(pts) < 2:
+            raise WorldError(f"{where}: walls[{k}].points must be a list of >= 2 [x, y] points")
+        p = [tuple(_numbers(q, 2, where, f"walls[{k}].points")) for q in pts]
+        closed = item.get("closed", False)
+        if not isinstance(closed, bool):
+            raise WorldError(f"{where}: walls[{k}].closed must be true or false")
+        if closed:
+            if len(p) < 3:
+                raise WorldError(f"{where}: walls[{k}] closed needs >= 3 points")
+            p.append(p[0])
+        for a, b in zip(p[:-1], p[1:], strict=True):
+            if a == b:
+                raise WorldError(f"{where}: walls[{k}] has a zero-length piece at {a}")
+            segs.append((a, b))
+    return segs
+
+
+def _parse_boxes(items, where: str) -> list[tuple[Point, Point, float]]:
+    out = []
+    for k, item in enumerate(_tables(items, where, "boxes")):
+        _keys(item, {"center", "size", "angle"}, where, f"boxes[{k}]")
+        for req in ("center", "size"):
+            if req not in item:
+                raise WorldError(f"{where}: boxes[{k}] is missing {req}")
+        c = tuple(_numbers(item["center"], 2, where, f"boxes[{k}].center"))
+        s = tuple(_numbers(item["size"], 2, where, f"boxes[{k}].size"))
+        if s[0] <= 0 or s[1] <= 0:
+            raise WorldError(f"{where}: boxes[{k}].size must be positive (got {list(s)})")
+        a = _number(item.get("angle", 0.0), where, f"boxes[{k}].angle")
+        out.append((c, s, a))
+    return out
+
+
+def _parse_circles(items, where: str) -> list[tuple[Point, float]]:
+    out = []
+    for k, item in enumerate(_tables(items, where, "circles")):
+        _keys(item, {"center", "radius"}, where, f"circles[{k}]")
+        for req in ("center", "radius"):
+            if req not in item:
+                raise WorldError(f"{where}: circles[{k}] is missing {req}")
+        c = tuple(_numbers(item["center"], 2, where, f"circles[{k}].center"))
+        r = _number(item["radius"], where, f"circles[{k}].radius")
+        if r <= 0:
+            raise WorldError(f"{where}: circles[{k}].radius must be positive (got {r})")
+        out.append((c, r))
+    return out
+
+
+def _tables(items, where: str, what: str) -> list[dict]:
+    if not isinstance(items, list) or not all(isinstance(i, dict) for i in items):
+        raise WorldError(f"{where}: {what} must be an array of tables ([[{what}]])")
+    return items
+
+
+def _keys(item: dict, allowed: set[str], where: str, what: str) -> None:
+    bad = sorted(set(item) - allowed)
+    if bad:
+        raise WorldError(f"{where}: unknown key(s) in {what}: {', '.join(bad)}")
+
+
+def _number(v, where: str, what: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise WorldError(f"{where}: {what} must be a finite number (got {v!r})")
+    return float(v)
+
+
+def _numbers(v, n: int, where: str, what: str) -> list[float]:
+    if not isinstance(v, list) or len(v) != n:
+        raise WorldError(f"{where}: {what} must be a list of {n} numbers (got {v!r})")
+    return [_number(x, where, what) for x in v]
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())
+
+
+def _check_world(world: World, where: str) -> None:
+    """Geometry inside the world rectangle; robot inside and not overlapping any solid."""
+    xmin, xmax, ymin, ymax = world.extent
+    tol = 1e-9
+
+    def inside(p: Point) -> bool:
+        return xmin - tol <= p[0] <= xmax + tol and ymin - tol <= p[1] <= ymax + tol
+
+    for k, (a, b) in enumerate(world.segments):
+        for p in (a, b):
+            if not inside(p):
+                raise WorldError(f"{where}: wall piece {k} point {list(p)} is outside the world")
+    for k, (c, _r) in enumerate(world.circles):
+        if not inside(c):
+            raise WorldError(f"{where}: circle {k} centre {list(c)} is outside the world")
+    for k, (c, _s, _a) in enumerate(world.boxes):
+        if not inside(c):
+            raise WorldError(f"{where}: box {k} centre {list(c)} is outside the world")
+    x, y, _t = world.robot_pose
+    if not (xmin + ROBOT_RADIUS <= x <= xmax - ROBOT_RADIUS
+            and ymin + ROBOT_RADIUS <= y <= ymax - ROBOT_RADIUS):
+        raise WorldError(f"{where}: robot pose ({x}, {y}) is outside the world")
+    c = clearance(world, x, y)
+    if c < ROBOT_RADIUS:
+        raise WorldError(f"{where}: robot at ({x}, {y}) is inside or touching a wall "
+                         f"(clearance {c:.2f} m < radius {ROBOT_RADIUS} m)")
+
+
+# --------------------------------------------------------------------------------------------
+# ROS map_server import
+
+def _load_map_world(yaml_path: Path, name: str, extra: dict, pose) -> World:
+    """A world from a ROS map_server map (read by common.mapio, nav2 semantics)."""
+    where = str(yaml_path)
+    try:
+        grid, geom = read_map_server(yaml_path)
+    except MapIOError as exc:
+        raise WorldError(f"{where}: {_one_line(exc)}") from None
+    solid = map_grid_to_solid(grid)
+    if solid.all():
+        raise WorldError(f"{where}: map has no free pixel")
+    res = geom.resolution
+    ox, oy = float(geom.origin_x), float(geom.origin_y)
+    world = World(
+        name=name,
+        size=(geom.width * res, geom.height * res),
+        robot_pose=(0.0, 0.0, 0.0),
+        source=where,
+        origin=(ox, oy),
+        **extra,
+    )
+    world.boxes = solid_to_boxes(solid, res, (ox, oy)) + world.boxes
+    if pose is None:
+        world.robot_pose = pick_start_pose(world)
+        if clearance(world, world.robot_pose[0], world.robot_pose[1]) < ROBOT_RADIUS:
+            raise WorldError(f"{where}: no free place for the robot in the map")
+    else:
+        world.robot_pose = tuple(pose)
+    _check_world(world, where)
+    return world
+
+
+def map_grid_to_solid(grid: np.ndarray) -> np.ndarray:
+    """int8 map grid (row 0 = min y) -> bool solid mask: every cell that is not free (0).
+
+    The one-cell border is made solid so the free space is always bounded.
+    """
+    solid = np.asarray(grid) != 0
+    solid[0, :] = solid[-1, :] = True
+    solid[:, 0] = solid[:, -1] = True
+    return solid
+
+
+def solid_to_boxes(solid: np.ndarray, res: float, origin: Point) -> list[tuple[Point, Point, float]]:
+    """Solid cells (row 0 = min y) -> axis-aligned boxes: horizontal runs merged upwards.
+
+    Every solid pixel is covered exactly once, so rasterizing the boxes at ``res`` (with the
+    same origin) gives back the mask.
+    """
+    h, w = solid.shape
+    ox, oy = origin
+    boxes: list[tuple[Point, Point, float]] = []
+    active: dict[tuple[int, int], int] = {}  # (c0, c1) -> first row
+
+    def close(c0: int, c1: int, r0: int, r1: int) -> None:
+        # rows r0..r1-1 -> y from oy + r0 * res to oy + r1 * res
+        x0, x1 = ox + c0 * res, ox + c1 * res
+        y0, y1 = oy + r0 * res, oy + r1 * res
+        boxes.append((((x0 + x1) / 2, (y0 + y1) / 2), (x1 - x0, y1 - y0), 0.0))
+
+    for r in range(h + 1):
+        runs: set[tuple[int, int]] = set()
+        if r < h:
+            row = solid[r].astype(np.int8)
+            d = np.diff(np.concatenate(([0], row, [0])))
+            starts = np.flatnonzero(d == 1)
+            ends = np.flatnonzero(d == -1)
+            runs = set(zip(starts.tolist(), ends.tolist(), strict=True))
+        for key in list(active):
+            if key not in runs:
+                close(key[0], key[1], active.pop(key), r)
+        for key in runs:
+            active.setdefault(key, r)
+    return boxes
+
+
+# --------------------------------------------------------------------------------------------
+# geometry: clearance, rasterization, start pose
+
+
+def clearance(world: World, x: float, y: float) -> float:
+    """Distance [m] from (x, y) to the nearest solid surface (<= 0 inside a solid)."""
+    best = math.inf
+    if world.segments:
+        s = np.asarray(world.segments, dtype=np.float64)  # (n, 2, 2)
+        d = _point_segment_distance(x, y, s[:, 0, 0], s[:, 0, 1], s[:, 1, 0], s[:, 1, 1])
+        best = min(best, float(d.min()) - world.wall_thickness)
+    if world.circles:
+        c = np.array([[cx, cy, r] for (cx, cy), r in world.circles])
+        best = min(best, float((np.hypot(c[:, 0] - x, c[:, 1] - y) - c[:, 2]).min()))
+    if world.boxes:
+        b = np.array([[cx, cy, sx, sy, a] for (cx, cy), (sx, sy), a in world.boxes])
+        ca, sa = np.cos(b[:, 4]), np.sin(b[:, 4])
+        dx, dy = x - b[:, 0], y - b[:, 1]
+        u = np.abs(ca * dx + sa * dy) - b[:, 2] / 2
+        v = np.abs(-sa * dx + ca * dy) - b[:, 3] / 2
+        outside = np.hypot(np.maximum(u, 0), np.maximum(v, 0))
+        inside = np.minimum(np.maximum(u, v), 0)
+        best = min(best, float((outside + inside).min()))
+    return best
+
+
+def _point_segment_distance(px, py, ax, ay, bx, by):
+    """Euclidean distance from points to segments (numpy broadcasting)."""
+    dx, dy = bx - ax, by - ay
+    L2 = dx * dx + dy * dy
+    t = np.clip(((px - ax) * dx + (py - ay) * dy) / np.where(L2 > 0, L2, 1.0), 0.0, 1.0)
+    return np.hypot(px - (ax + t * dx), py - (ay + t * dy))
+
+
+def _grid_shape(world: World, resolution: float) -> tuple[int, int]:
+    w = int(math.ceil(world.size[0] / resolution - _EPS))
+    h = int(math.ceil(world.size[1] / resolution - _EPS))
+    return max(h, 1), max(w, 1)
+
+
+def rasterize(world: World, resolution: float) -> tuple[np.ndarray, float, float]:
+    """Truth occupancy: bool (h, w), True = solid, and the origin (x, y) [m] of cell (0, 0).
+
+    A cell is solid when its square overlaps a solid shape with positive area (walls with
+    their thickness, legs, boxes), so thin legs and diagonal walls are never lost and solid
+    curves stay 4-connected (8-connected free space cannot leak through a wall).
+    Row i, column j covers x in origin_x + [j, j+1] * resolution (as common/grid.py).
+    """
+    if not (isinstance(resolution, (int, float)) and math.isfinite(resolution)
+            and resolution > 0):
+        raise WorldError(f"rasterize: resolution must be a positive number (got {resolution!r})")
+    res = float(resolution)
+    h, w = _grid_shape(world, res)
+    ox, oy = world.origin
+    solid = np.zeros((h, w), dtype=bool)
+
+    def window(x0: float, x1: float, y0: float, y1: float):
+        """Index ranges of cells whose open squares can overlap [x0, x1] x [y0, y1]."""
+        c0 = max(int(math.floor((x0 - ox) / res + _EPS)), 0)
+        c1 = min(int(math.ceil((x1 - ox) / res - _EPS)), w)
+        r0 = max(int(math.floor((y0 - oy) / res + _EPS)), 0)
+        r1 = min(int(math.ceil((y1 - oy) / res - _EPS)), h)
+        if c0 >= c1 or r0 >= r1:
+            return None
+        cx = ox + (np.arange(c0, c1) + 0.5) * res
+        cy = oy + (np.arange(r0, r1) + 0.5) * res
+        return r0, r1, c0, c1, cx[None, :], cy[:, None]
+
+    half = res / 2
+    r = world.wall_thickness
+    for (ax, ay), (bx, by) in world.segments:
+        win = window(min(ax, bx) - r, max(ax, bx) + r, min(ay, by) - r, max(ay, by) + r)
+        if win is None:
+            continue
+        r0, r1, c0, c1, cx, cy = win
+        d = _square_segment_distance(cx, cy, half, ax, ay, bx, by)
+        solid[r0:r1, c0:c1] |= d < r - 1e-12
+    for (px, py), rad in world.circles:
+        win = window(px - rad, px + rad, py - rad, py + rad)
+        if win is None:
+            continue
+        r0, r1, c0, c1, cx, cy = win
+        dx = np.maximum(np.abs(cx - px) - half, 0.0)
+        dy = np.maximum(np.abs(cy - py) - half, 0.0)
+        solid[r0:r1, c0:c1] |= dx * dx + dy * dy < rad * rad - 1e-12
+    for (px, py), (sx, sy), ang in world.boxes:
+        ca, sa = math.cos(ang), math.sin(ang)
+        ex = abs(ca) * sx / 2 + abs(sa) * sy / 2  # half extents of the bounding box
+        ey = abs(sa) * sx / 2 + abs(ca) * sy / 2
+        win = window(px - ex, px + ex, py - ey, py + ey)
+        if win is None:
+            continue
+        r0, r1, c0, c1, cx, cy = win
+        if abs(sa) < 1e-12 or abs(ca) < 1e-12:  # axis aligned: the window is exact
+            solid[r0:r1, c0:c1] = True
+            continue
+        # separating axis test, strict (positive-area) overlap; axes x, y, box u, box v
+        tol = 1e-9
+        ok = np.ones((r1 - r0, c1 - c0), dtype=bool)
+        ok &= np.abs(cx - px) < ex + half - tol
+        ok &= np.abs(cy - py) < ey + half - tol
+        proj_sq = half * (abs(ca) + abs(sa))  # half extent of a cell projected on u or v
+        ok &= np.abs(ca * (cx - px) + sa * (cy - py)) < sx / 2 + proj_sq - tol
+        ok &= np.abs(-sa * (cx - px) + ca * (cy - py)) < sy / 2 + proj_sq - tol
+        solid[r0:r1, c0:c1] |= ok
+    return solid, float(ox), float(oy)
+
+
+def _square_segment_distance(cx, cy, half, ax, ay, bx, by):
+    """Distance between axis-aligned squares (centres cx, cy, half side) and a segment."""
+    # endpoints to squares
+    d = np.minimum(
+        np.hypot(np.maximum(np.abs(cx - ax) - half, 0), np.maximum(np.abs(cy - ay) - half, 0)),
+        np.hypot(np.maximum(np.abs(cx - bx) - half, 0), np.maximum(np.abs(cy - by) - half, 0)),
+    )
+    # square corners to the segment
+    for sx in (-half, half):
+        for sy in (-half, half):
+            d = np.minimum(d, _point_segment_distance(cx + sx, cy + sy, ax, ay, bx, by))
+    # intersection (separating axis test): overlap on x, y and the segment normal -> 0
+    nx, ny = -(by - ay), bx - ax
+    n = math.hypot(nx, ny)
+    inter = ((np.minimum(ax, bx) <= cx + half) & (np.maximum(ax, bx) >= cx - half)
+             & (np.minimum(ay, by) <= cy + half) & (np.maximum(ay, by) >= cy - half))
+    if n > 0:
+        nx, ny = nx / n, ny / n
+        inter &= np.abs(nx * (cx - ax) + ny * (cy - ay)) <= half * (abs(nx) + abs(ny))
+    return np.where(inter, 0.0, d)
+
+
+def _components8(free: np.ndarray) -> np.ndarray:
+    n, labels = cv2.connectedComponents(free.astype(np.uint8), connectivity=8)
+    return labels
+
+
+def truth_free_reachable(world: World, resolution: float) -> tuple[np.ndarray, float, float]:
+    """Free cells 8-connected to the robot's start cell: bool (h, w) and origin (x, y) [m].
+
+    This is the set coverage is measured on (DESIGN §6). If the start cell itself is solid
+    (robot close to a wall on a coarse grid), the nearest free cell within the robot radius
+    is used.
+    """
+    solid, ox, oy = rasterize(world, resolution)
+    free = ~solid
+    labels = _components8(free)
+    x, y, _ = world.robot_pose
+    row = int(math.floor((y - oy) / resolution))
+    col = int(math.floor((x - ox) / resolution))
+    h, w = solid.shape
+    start = None
+    if 0 <= row < h and 0 <= col < w and free[row, col]:
+        start = (row, col)
+    else:
+        rr, cc = np.nonzero(free)
+        if rr.size:
+            d = np.hypot(ox + (cc + 0.5) * resolution - x, oy + (rr + 0.5) * resolution - y)
+            k = int(np.argmin(d))
+            if d[k] <= ROBOT_RADIUS + resolution:
+                start = (int(rr[k]), int(cc[k]))
+    if start is None:
+        raise WorldError(f"{world.source or world.name}: robot start is not in free space")
+    return labels == labels[start], ox, oy
+
+
+def pick_start_pose(world: World, resolution: float = PICK_RESOLUTION) -> tuple[float, float, float]:
+    """Deterministic start pose: the free cell with the largest clearance in the largest
+    8-connected free region (ties: lowest row, then column), heading 0."""
+    solid, ox, oy = rasterize(world, resolution)
+    free = (~solid).astype(np.uint8)
+    if not free.any():
+        raise WorldError(f"{world.source or world.name}: no free space for the robot")
+    labels = _components8(free.astype(bool))
+    counts = np.bincount(labels[free.astype(bool)])
+    biggest = int(np.argmax(counts))
+    # distance to the nearest solid cell centre, minus half a cell (conservative) [m]
+    dist = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * resolution
+    dist[labels != biggest] = -1.0
+    k = int(np.argmax(dist))
+    row, col = divmod(k, free.shape[1])
+    x = ox + (col + 0.5) * resolution
+    y = oy + (row + 0.5) * resolution
+    return (round(x, 6), round(y, 6), 0.0)
