@@ -1,0 +1,1 @@
+"""Controller service: pure-pursuit path following with a laser safety stop."""

@@ -1,0 +1,394 @@
+"""Controller core: pure pursuit path following with a laser safety stop (pure, no I/O).
+
+DESIGN.md §4 "Controller": pure pursuit on the planned path with v <= v_max (paper §4: the
+Pioneer 2DX moved at most 200 mm/s), rotate in place when the heading error is large, slow down
+near obstacles, hard stop when the front sector of the latest scan is closer than a safety
+distance, stop on an empty plan. Additionally: progress along the path is tracked so the
+lookahead point never goes back, and a stuck robot backs up and turns toward the path.
+
+Modes: "idle" (no path), "done" (exploration over), "arrived" (end of path reached), "rotate"
+(turning in place), "track" (pure pursuit), "slow" (pure pursuit, slowed by an obstacle ahead),
+"blocked" (obstacle within the safety distance: v = 0, rotation allowed), "recovery" (backing
+up, then turning toward the path).
+
+Frames: pose (x [m], y [m], theta [rad]) in the map frame; scan angles in the robot frame with
+the laser at the robot centre (x forward, y left, counter-clockwise).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from common.params import ControllerParams
+
+__all__ = [
+    "ControllerError",
+    "MODES",
+    "wrap_angle",
+    "clean_path",
+    "path_arclength",
+    "point_at",
+    "project_on_path",
+    "lookahead_point",
+    "pure_pursuit",
+    "front_distance",
+    "rear_blocked",
+    "obstacle_scale",
+    "ControllerCore",
+]
+
+MODES = ("idle", "done", "rotate", "track", "slow", "blocked", "recovery", "arrived")
+_SAMPLE_STEP = 0.02  # [m] path sampling step of the lookahead search
+
+
+class ControllerError(ValueError):
+    """Bad input to the controller."""
+
+
+def _finite(name: str, value) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ControllerError(f"{name} must be a number (got {value!r})") from None
+    if not math.isfinite(v):
+        raise ControllerError(f"{name} must be finite (got {v})")
+    return v
+
+
+def wrap_angle(a: float) -> float:
+    """Angle [rad] -> (-pi, pi]."""
+    return math.atan2(math.sin(a), math.cos(a))
+
+
+# --- path geometry --------------------------------------------------------------------------
+
+
+def clean_path(waypoints) -> np.ndarray:
+    """(n, 2) float array [m] without consecutive duplicates; raises on bad shape/values."""
+    try:
+        w = np.asarray(waypoints, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ControllerError("waypoints must be an (n, 2) array of numbers") from None
+    if w.size == 0:
+        return np.zeros((0, 2))
+    if w.ndim != 2 or w.shape[1] != 2:
+        raise ControllerError(f"waypoints must have shape (n, 2) (got {w.shape})")
+    if not np.all(np.isfinite(w)):
+        raise ControllerError("waypoints must be finite")
+    if len(w) > 1:
+        keep = np.ones(len(w), dtype=bool)
+        keep[1:] = np.hypot(*(w[1:] - w[:-1]).T) > 1e-6
+        w = w[keep]
+    return w
+
+
+def _as_waypoints(waypoints) -> np.ndarray:
+    """Validated (n, 2) float copy of the waypoints as given (duplicates kept)."""
+    try:
+        w = np.array(waypoints, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ControllerError("waypoints must be an (n, 2) array of numbers") from None
+    if w.size == 0:
+        return np.zeros((0, 2))
+    clean_path(w)  # raises on bad shape or values
+    return w
+
+
+def path_arclength(path: np.ndarray) -> np.ndarray:
+    """Cumulative arc length [m] at each waypoint (0 at the first)."""
+    if len(path) < 2:
+        return np.zeros(len(path))
+    return np.concatenate([[0.0], np.cumsum(np.hypot(*(path[1:] - path[:-1]).T))])
+
+
+def point_at(path: np.ndarray, cum: np.ndarray, s) -> np.ndarray:
+    """Point(s) [m] at arc length s [m] along the path (clamped to the ends); shape (..., 2)."""
+    s = np.asarray(s, dtype=np.float64)
+    if len(path) == 1:
+        return np.broadcast_to(path[0], s.shape + (2,)).copy()
+    i = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(path) - 2)
+    seg = cum[i + 1] - cum[i]
+    t = np.clip((s - cum[i]) / seg, 0.0, 1.0)[..., None]
+    return path[i] + t * (path[i + 1] - path[i])
+
+
+def project_on_path(path: np.ndarray, cum: np.ndarray, x: float, y: float, s_lo: float,
+                    s_hi: float) -> tuple[float, float]:
+    """Closest point of the path piece with arc length in [s_lo, s_hi] to (x, y).
+
+    Returns (s [m], distance [m]); the earliest one on ties.
+    """
+    if len(path) == 1:
+        return 0.0, float(math.hypot(path[0, 0] - x, path[0, 1] - y))
+    total = float(cum[-1])
+    s_lo = min(max(s_lo, 0.0), total)
+    s_hi = min(max(s_hi, s_lo), total)
+    i0 = max(int(np.searchsorted(cum, s_lo, side="right")) - 1, 0)
+    i1 = min(int(np.searchsorted(cum, s_hi, side="left")), len(path) - 1)
+    i1 = max(i1, i0 + 1)
+    a, b = path[i0:i1], path[i0 + 1:i1 + 1]
+    ab = b - a
+    seg = cum[i0 + 1:i1 + 1] - cum[i0:i1]
+    t = np.clip(((x - a[:, 0]) * ab[:, 0] + (y - a[:, 1]) * ab[:, 1]) / (seg * seg), 0.0, 1.0)
+    s = np.clip(cum[i0:i1] + t * seg, s_lo, s_hi)
+    pts = point_at(path, cum, s)
+    d = np.hypot(pts[:, 0] - x, pts[:, 1] - y)
+    k = int(np.argmin(d))
+    return float(s[k]), float(d[k])
+
+
+def lookahead_point(path: np.ndarray, cum: np.ndarray, x: float, y: float, s: float,
+                    lookahead: float, window: float) -> tuple[np.ndarray, float]:
+    """Pure pursuit goal point: the first path point from arc length s on that is at least
+    ``lookahead`` [m] from the robot (searched up to s + window + lookahead); the end of the
+    path when every point is closer. Returns (point, its arc length)."""
+    total = float(cum[-1]) if len(cum) else 0.0
+    hi = min(s + window + lookahead, total)
+    ss = np.append(np.arange(s, hi, _SAMPLE_STEP), hi)
+    pts = point_at(path, cum, ss)
+    far = np.hypot(pts[:, 0] - x, pts[:, 1] - y) >= lookahead
+    k = int(np.argmax(far)) if np.any(far) else len(ss) - 1
+    return pts[k], float(ss[k])
+
+
+def pure_pursuit(pose: tuple[float, float, float], target) -> tuple[float, float, float]:
+    """Heading error alpha [rad], distance L [m] and curvature kappa = 2 sin(alpha) / L [1/m]
+    of the circular arc from the pose to the target (Coulter 1992)."""
+    x, y, th = pose
+    dx, dy = float(target[0]) - x, float(target[1]) - y
+    dist = math.hypot(dx, dy)
+    if dist < 1e-9:
+        return 0.0, 0.0, 0.0
+    alpha = wrap_angle(math.atan2(dy, dx) - th)
+    return alpha, dist, 2.0 * math.sin(alpha) / dist
+
+
+# --- scan geometry --------------------------------------------------------------------------
+
+
+def _scan_xy(scan) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Valid returns of (ranges, angle_min, angle_increment): (r, angle, x, y) robot frame."""
+    ranges, angle_min, inc = scan
+    r = np.asarray(ranges, dtype=np.float64).ravel()
+    a = _finite("scan angle_min", angle_min) + _finite("scan angle_increment", inc) * np.arange(
+        r.size)
+    ok = np.isfinite(r) & (r > 0.0)
+    r, a = r[ok], a[ok]
+    return r, a, r * np.cos(a), r * np.sin(a)
+
+
+def front_distance(scan, params: ControllerParams) -> float:
+    """Range [m] of the nearest return in the front sector, inf if none.
+
+    Front sector: |angle| <= front_half_angle and lateral offset |y| <= robot_radius +
+    lateral_margin (a return beside the robot's swept corridor is not in the way).
+    """
+    if scan is None:
+        return math.inf
+    r, a, _, y = _scan_xy(scan)
+    a = np.arctan2(np.sin(a), np.cos(a))
+    m = (np.abs(a) <= params.front_half_angle) & (
+        np.abs(y) <= params.robot_radius + params.lateral_margin)
+    return float(np.min(r[m])) if np.any(m) else math.inf
+
+
+def rear_blocked(scan, params: ControllerParams) -> bool:
+    """True if a return lies behind the robot centre in its swept corridor within the backing
+    distance (recovery_speed * recovery_time + robot_radius + lateral_margin). A forward-only
+    180 deg laser never sees behind, so the rear then counts as not known to be blocked."""
+    if scan is None:
+        return False
+    _, _, x, y = _scan_xy(scan)
+    reach = params.robot_radius + params.lateral_margin + params.recovery_speed * params.recovery_time
+    m = (x < -1e-9) & (-x <= reach) & (np.abs(y) <= params.robot_radius + params.lateral_margin)
+    return bool(np.any(m))
+
+
+def obstacle_scale(d_front: float, params: ControllerParams) -> float:
+    """Speed factor for the nearest front return d_front [m]: 1 beyond slow_distance, falling
+    linearly to slow_min_scale at safety_distance (and 0 below it: hard stop)."""
+    if d_front < params.safety_distance:
+        return 0.0
+    span = params.slow_distance - params.safety_distance
+    if span <= 0.0 or d_front >= params.slow_distance:
+        return 1.0
+    f = (d_front - params.safety_distance) / span
+    return params.slow_min_scale + (1.0 - params.slow_min_scale) * f
+
+
+# --- the stateful core ----------------------------------------------------------------------
+
+
+class ControllerCore:
+    """Path follower state: current path and progress, rotate/recovery phases, stuck timer."""
+
+    def __init__(self, params: ControllerParams):
+        if not isinstance(params, ControllerParams):
+            raise ControllerError(f"params must be ControllerParams (got {type(params).__name__})")
+        self.params = params
+        self.plan_id: int | None = None
+        self.path = np.zeros((0, 2))
+        self._raw = np.zeros((0, 2))
+        self.cum = np.zeros(0)
+        self.s = 0.0  # [m] progress along the path (never decreases for one path)
+        self.arrived = False
+        self.mode = "idle"
+        self.cmd = (0.0, 0.0)
+        self._t_last = -math.inf
+        self._rotating = False
+        self._rot_dir = 0.0
+        self._ref: tuple[float, float, float, float] | None = None  # t, x, y, theta of progress
+        self._recovery: str | None = None  # None | "backup" | "turn"
+        self._rec_start = 0.0  # [s]
+        self.recoveries = 0
+        self.front = math.inf  # [m]
+        self.target: tuple[float, float] | None = None
+        self.heading_error = 0.0  # [rad]
+
+    # -- helpers --
+
+    def _set_path(self, plan_id: int, raw: np.ndarray) -> None:
+        self.plan_id = plan_id
+        self._raw = raw
+        self.path = clean_path(raw)
+        self.cum = path_arclength(self.path)
+        self.s = 0.0
+        self.arrived = False
+        self._rotating = False
+        self._ref = None
+
+    def _out(self, v: float, w: float, mode: str, moving: bool, t: float, pose) -> tuple:
+        if not moving:
+            self._ref = None
+            self._recovery = None
+            self._rotating = False
+        elif self._ref is None:
+            self._ref = (t, pose[0], pose[1], pose[2])
+        self.mode = mode
+        self.cmd = (float(v), float(w))
+        return float(v), float(w), mode
+
+    def _turn_w(self, alpha: float) -> float:
+        p = self.params
+        return float(np.clip(p.heading_gain * alpha, -p.w_max, p.w_max))
+
+    # -- public --
+
+    def update(self, t: float, pose: tuple[float, float, float], waypoints, plan_id: int,
+               done: bool, scan) -> tuple[float, float, str]:
+        """One control step at time t [s]. Returns (v [m/s], w [rad/s], mode).
+
+        waypoints: (n, 2) path [m] (empty = stop); plan_id changes when a new path arrives
+        (a changed waypoint list with the same id also counts as new); done: exploration over;
+        scan: (ranges [m], angle_min [rad], angle_increment [rad]) of the latest scan in the
+        robot frame, or None.
+        """
+        p = self.params
+        t = _finite("t", t)
+        try:
+            if len(pose) != 3:
+                raise ControllerError(f"pose must have 3 values (x, y, theta), got {len(pose)}")
+        except TypeError:
+            raise ControllerError(f"pose must be (x, y, theta) (got {pose!r})") from None
+        pose = (_finite("pose.x", pose[0]), _finite("pose.y", pose[1]),
+                _finite("pose.theta", pose[2]))
+        if isinstance(plan_id, bool) or not isinstance(plan_id, (int, np.integer)):
+            raise ControllerError(f"plan_id must be an int (got {plan_id!r})")
+        if scan is not None:
+            try:
+                if len(scan) != 3:
+                    raise ControllerError("scan must be (ranges, angle_min, angle_increment)")
+            except TypeError:
+                raise ControllerError("scan must be (ranges, angle_min, angle_increment)") from None
+        raw = _as_waypoints(waypoints)
+        if t < self._t_last:  # clock went back (sim restart): forget timers
+            self._ref = None
+            self._recovery = None
+        self._t_last = t
+        self.front = front_distance(scan, p)
+
+        if int(plan_id) != self.plan_id or raw.shape != self._raw.shape or not np.array_equal(
+                raw, self._raw):
+            self._set_path(int(plan_id), raw)
+        if bool(done):
+            return self._out(0.0, 0.0, "done", False, t, pose)
+        if len(self.path) == 0:
+            return self._out(0.0, 0.0, "idle", False, t, pose)
+        if self.arrived:
+            return self._out(0.0, 0.0, "arrived", False, t, pose)
+
+        x, y, th = pose
+        total = float(self.cum[-1])
+        s_proj, _ = project_on_path(self.path, self.cum, x, y, self.s, self.s + p.search_window)
+        self.s = max(self.s, s_proj)
+        end = self.path[-1]
+        if math.hypot(end[0] - x, end[1] - y) <= p.goal_tolerance and total - self.s <= (
+                p.search_window):
+            self.arrived = True
+            return self._out(0.0, 0.0, "arrived", False, t, pose)
+
+        target, _ = lookahead_point(self.path, self.cum, x, y, self.s, p.lookahead,
+                                    p.search_window)
+        self.target = (float(target[0]), float(target[1]))
+        alpha, dist, kappa = pure_pursuit(pose, target)
+        self.heading_error = alpha
+
+        # stuck detection: commanded motion but no progress for stuck_time
+        if self._ref is not None and self._recovery is None:
+            t0, x0, y0, th0 = self._ref
+            if (math.hypot(x - x0, y - y0) > p.stuck_distance
+                    or abs(wrap_angle(th - th0)) > p.stuck_angle):
+                self._ref = (t, x, y, th)
+            elif t - t0 >= p.stuck_time:
+                self.recoveries += 1
+                self._recovery = "turn" if rear_blocked(scan, p) else "backup"
+                self._rec_start = t
+        if self._recovery == "backup":
+            if t - self._rec_start < p.recovery_time:
+                return self._out(-p.recovery_speed, 0.0, "recovery", True, t, pose)
+            self._recovery = "turn"
+            self._rec_start = t
+        if self._recovery == "turn":
+            if abs(alpha) > 0.5 * p.rotate_angle and t - self._rec_start < p.recovery_time:
+                return self._out(0.0, self._turn_w(alpha), "recovery", True, t, pose)
+            self._recovery = None
+            self._ref = (t, x, y, th)
+
+        # rotate in place when the heading error is large (with hysteresis)
+        if abs(alpha) > p.rotate_angle or (self._rotating and abs(alpha) > 0.5 * p.rotate_angle):
+            if not self._rotating or abs(alpha) < math.pi - 0.3:
+                self._rot_dir = 1.0 if alpha >= 0.0 else -1.0
+            self._rotating = True
+            w = self._rot_dir * max(abs(self._turn_w(alpha)), 0.5 * p.w_max)
+            return self._out(0.0, w, "rotate", True, t, pose)
+        self._rotating = False
+
+        scale = obstacle_scale(self.front, p)
+        if scale <= 0.0:
+            return self._out(0.0, self._turn_w(alpha), "blocked", True, t, pose)
+        v = p.v_max * scale
+        if abs(kappa) * v > p.w_max:
+            v = p.w_max / abs(kappa)
+        w = float(np.clip(v * kappa, -p.w_max, p.w_max))
+        return self._out(v, w, "slow" if scale < 1.0 else "track", True, t, pose)
+
+    def snapshot(self) -> dict:
+        """JSON-able controller state."""
+        total = float(self.cum[-1]) if len(self.cum) else 0.0
+        return {
+            "mode": self.mode,
+            "v": self.cmd[0],
+            "w": self.cmd[1],
+            "plan_id": self.plan_id,
+            "waypoints": int(len(self.path)),
+            "path_length": total,
+            "progress": self.s,
+            "arrived": self.arrived,
+            "target": list(self.target) if self.target is not None else None,
+            "heading_error": self.heading_error,
+            "front": self.front if math.isfinite(self.front) else None,
+            "recovery": self._recovery,
+            "recoveries": self.recoveries,
+        }

@@ -1,0 +1,335 @@
+"""Unit tests for the controller core (DESIGN.md §4 "Controller")."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from common.params import ControllerParams, Params, load_params
+from services.controller.core import (
+    MODES,
+    ControllerCore,
+    ControllerError,
+    clean_path,
+    front_distance,
+    lookahead_point,
+    obstacle_scale,
+    path_arclength,
+    point_at,
+    project_on_path,
+    rear_blocked,
+)
+
+P = ControllerParams()
+STRAIGHT = np.array([[0.0, 0.0], [5.0, 0.0]])
+L_PATH = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0]])
+
+
+def free_scan(rng: float = 8.0):
+    """181 beams, -90..90 deg, all returning rng [m]."""
+    return (np.full(181, rng), -math.pi / 2, math.radians(1.0))
+
+
+def scan_with(points_xy: list[tuple[float, float]], rng: float = 8.0):
+    """Free scan with returns at the given robot-frame points (nearest beam per point)."""
+    ranges, amin, inc = free_scan(rng)
+    for x, y in points_xy:
+        k = int(round((math.atan2(y, x) - amin) / inc))
+        ranges[k] = min(ranges[k], math.hypot(x, y))
+    return ranges, amin, inc
+
+
+def simulate(core: ControllerCore, path, pose, steps: int, dt: float = 0.2, scan=None,
+             plan_id: int = 1, t0: float = 0.0):
+    """Closed loop with an ideal unicycle (exact arc integration); returns poses, modes."""
+    x, y, th = pose
+    poses, modes = [], []
+    for k in range(steps):
+        v, w, mode = core.update(t0 + k * dt, (x, y, th), path, plan_id, False,
+                                 scan if scan is not None else free_scan())
+        assert abs(v) <= P.v_max + 1e-12 and abs(w) <= P.w_max + 1e-12
+        assert mode in MODES
+        modes.append(mode)
+        if abs(w) < 1e-9:
+            x, y = x + v * dt * math.cos(th), y + v * dt * math.sin(th)
+        else:
+            x += v / w * (math.sin(th + w * dt) - math.sin(th))
+            y -= v / w * (math.cos(th + w * dt) - math.cos(th))
+        th += w * dt
+        poses.append((x, y, th))
+        if mode == "arrived":
+            break
+    return poses, modes
+
+
+# --- geometry helpers -------------------------------------------------------------------------
+
+
+def test_path_helpers():
+    path = clean_path([[0, 0], [0, 0], [1, 0], [1, 1]])
+    assert path.shape == (3, 2)
+    cum = path_arclength(path)
+    assert cum.tolist() == [0.0, 1.0, 2.0]
+    assert point_at(path, cum, 1.5).tolist() == [1.0, 0.5]
+    assert point_at(path, cum, 9.0).tolist() == [1.0, 1.0]
+    s, d = project_on_path(path, cum, 0.4, -0.3, 0.0, 10.0)
+    assert s == pytest.approx(0.4) and d == pytest.approx(0.3)
+    # never goes back: projection limited to s >= s_lo
+    s, _ = project_on_path(path, cum, 0.2, 0.0, 0.5, 10.0)
+    assert s == pytest.approx(0.5)
+
+
+def test_projection_window_ignores_later_parts_of_a_loop():
+    # U-shaped path whose end comes back close to the start
+    path = clean_path([[0, 0], [3, 0], [3, 1], [0, 1]])
+    cum = path_arclength(path)
+    s, _ = project_on_path(path, cum, 0.1, 0.6, 0.0, 1.5)  # nearer to the last leg
+    assert s < 1.5
+
+
+def test_lookahead_point_off_path_goes_back_to_path():
+    path = STRAIGHT
+    cum = path_arclength(path)
+    pt, _ = lookahead_point(path, cum, 1.0, 0.2, 1.0, 0.4, 1.5)
+    assert pt[0] == pytest.approx(1.0 + math.sqrt(0.4**2 - 0.2**2), abs=0.03)
+    pt, _ = lookahead_point(path, cum, 1.0, 2.0, 1.0, 0.4, 1.5)  # far off: nearest path point
+    assert pt.tolist() == [1.0, 0.0]
+
+
+def test_front_distance_sector_and_lateral_offset():
+    assert front_distance(None, P) == math.inf
+    assert front_distance(free_scan(), P) == pytest.approx(8.0)
+    assert front_distance(scan_with([(0.5, 0.0)]), P) == pytest.approx(0.5)
+    # inside the angular sector but beside the robot's corridor (lateral 0.3 > 0.25): ignored
+    assert front_distance(scan_with([(0.6, 0.3)]), P) == pytest.approx(8.0)
+    # outside the angular sector
+    assert front_distance(scan_with([(0.2, 0.2)]), P) == pytest.approx(8.0)
+    # zero / non-finite ranges are not returns
+    r, a, i = free_scan()
+    r[90] = 0.0
+    r[91] = np.nan
+    assert front_distance((r, a, i), P) == pytest.approx(8.0)
+
+
+def test_obstacle_scale():
+    assert obstacle_scale(math.inf, P) == 1.0
+    assert obstacle_scale(P.slow_distance, P) == 1.0
+    assert obstacle_scale(P.safety_distance, P) == pytest.approx(P.slow_min_scale)
+    mid = 0.5 * (P.safety_distance + P.slow_distance)
+    assert obstacle_scale(mid, P) == pytest.approx(0.5 * (1 + P.slow_min_scale))
+    assert obstacle_scale(P.safety_distance - 0.01, P) == 0.0
+
+
+def test_rear_blocked_needs_returns_behind():
+    assert not rear_blocked(free_scan(), P)  # a forward 180 deg laser never sees behind
+    wide = (np.array([0.3, 8.0, 8.0]), math.pi, -math.pi / 2)  # beam at 180 deg: 0.3 m behind
+    assert rear_blocked(wide, P)
+
+
+# --- behaviour --------------------------------------------------------------------------------
+
+
+def test_straight_path_full_speed():
+    core = ControllerCore(P)
+    v, w, mode = core.update(0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False, free_scan())
+    assert mode == "track"
+    assert v == pytest.approx(P.v_max)
+    assert abs(w) < 1e-9
+
+
+def test_path_behind_rotates_in_place():
+    core = ControllerCore(P)
+    v, w, mode = core.update(0.0, (0.0, 0.0, math.pi), STRAIGHT, 1, False, free_scan())
+    assert mode == "rotate" and v == 0.0 and abs(w) > 0.0
+    # path to the left: turn counter-clockwise
+    core = ControllerCore(P)
+    v, w, mode = core.update(0.0, (0.0, 0.0, 0.0), [[0, 0], [0, 3]], 1, False, free_scan())
+    assert mode == "rotate" and v == 0.0 and w > 0.0
+
+
+def test_rotation_direction_does_not_chatter_at_pi():
+    core = ControllerCore(P)
+    path = [[0.0, 0.0], [-3.0, 0.0]]
+    _, w1, _ = core.update(0.0, (0.0, 0.0, 0.01), path, 1, False, free_scan())
+    _, w2, m2 = core.update(0.2, (0.0, 0.0, -0.01), path, 1, False, free_scan())
+    assert m2 == "rotate" and math.copysign(1, w1) == math.copysign(1, w2)
+
+
+def test_obstacle_in_front_blocks():
+    core = ControllerCore(P)
+    v, w, mode = core.update(0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False, scan_with([(0.25, 0.0)]))
+    assert mode == "blocked" and v == 0.0
+
+
+def test_obstacle_near_slows_down():
+    core = ControllerCore(P)
+    v, _, mode = core.update(0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False, scan_with([(0.45, 0.0)]))
+    assert mode == "slow"
+    assert 0.0 < v < P.v_max
+    assert v == pytest.approx(P.v_max * obstacle_scale(0.45, P))
+
+
+def test_obstacle_beside_corridor_does_not_slow():
+    core = ControllerCore(P)
+    v, _, mode = core.update(0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False,
+                             scan_with([(0.4, 0.35), (0.4, -0.35)]))
+    assert mode == "track" and v == pytest.approx(P.v_max)
+
+
+def test_empty_path_and_done_stop():
+    core = ControllerCore(P)
+    assert core.update(0.0, (0.0, 0.0, 0.0), np.zeros((0, 2)), 1, False, free_scan()) == (
+        0.0, 0.0, "idle")
+    assert core.update(0.2, (0.0, 0.0, 0.0), [], 2, False, None) == (0.0, 0.0, "idle")
+    assert core.update(0.4, (0.0, 0.0, 0.0), STRAIGHT, 3, True, free_scan()) == (
+        0.0, 0.0, "done")
+
+
+def test_follows_l_shaped_path_to_the_end():
+    core = ControllerCore(P)
+    poses, modes = simulate(core, L_PATH, (0.0, 0.0, 0.0), steps=600)
+    assert modes[-1] == "arrived"
+    x, y, _ = poses[-1]
+    assert math.hypot(x - 2.0, y - 2.0) <= P.goal_tolerance
+    # stays near the path: every pose within 0.25 m of one of the two legs
+    for px, py, _ in poses:
+        d = min(math.hypot(px - min(max(px, 0.0), 2.0), py),
+                math.hypot(px - 2.0, py - min(max(py, 0.0), 2.0)))
+        assert d < 0.25
+    assert "track" in modes
+    # latched: keeps reporting arrived with zero command
+    assert core.update(999.0, poses[-1], L_PATH, 1, False, free_scan()) == (0.0, 0.0, "arrived")
+    # speed limit respected: at least the straight-line distance at v_max; and no dawdling
+    assert len(modes) * 0.2 >= (math.hypot(2.0, 2.0) - P.goal_tolerance) / P.v_max
+    assert len(modes) * 0.2 <= 1.5 * 4.0 / P.v_max
+
+
+def test_starting_sideways_turns_then_follows():
+    core = ControllerCore(P)
+    poses, modes = simulate(core, L_PATH, (0.0, 0.0, -math.pi / 2), steps=600)
+    assert modes[0] == "rotate" and modes[-1] == "arrived"
+
+
+def test_new_plan_resets_progress_and_arrival():
+    core = ControllerCore(P)
+    poses, modes = simulate(core, STRAIGHT[:, :] * [0.4, 1.0], (0.0, 0.0, 0.0), steps=200)
+    assert modes[-1] == "arrived"
+    v, _, mode = core.update(100.0, poses[-1], [[2.0, 0.0], [5.0, 0.0]], 2, False, free_scan())
+    assert mode == "track" and v > 0.0
+    assert core.snapshot()["plan_id"] == 2
+
+
+def test_progress_never_goes_back():
+    core = ControllerCore(P)
+    core.update(0.0, (3.0, 0.0, 0.0), STRAIGHT, 1, False, free_scan())
+    s1 = core.snapshot()["progress"]
+    core.update(0.2, (1.0, 0.0, 0.0), STRAIGHT, 1, False, free_scan())  # pushed back
+    assert core.snapshot()["progress"] >= s1
+
+
+def test_stuck_triggers_recovery_backup_then_turn():
+    core = ControllerCore(P)
+    pose = (0.0, 0.0, 0.0)
+    t, dt = 0.0, 0.2
+    mode = ""
+    while t < P.stuck_time - 1e-9:  # commanding forward, but the robot does not move
+        v, w, mode = core.update(t, pose, STRAIGHT, 1, False, free_scan())
+        assert mode == "track"
+        t += dt
+    v, w, mode = core.update(t, pose, STRAIGHT, 1, False, free_scan())
+    assert mode == "recovery" and v == pytest.approx(-P.recovery_speed) and w == 0.0
+    # backs up for recovery_time, then resumes (heading already toward the path)
+    t_end = t + P.recovery_time
+    while t < t_end - 1e-9:
+        v, _, mode = core.update(t, pose, STRAIGHT, 1, False, free_scan())
+        assert mode == "recovery" and v < 0.0
+        t += dt
+    v, _, mode = core.update(t + dt, pose, STRAIGHT, 1, False, free_scan())
+    assert mode == "track" and v > 0.0
+    assert core.snapshot()["recoveries"] == 1
+
+
+def test_blocked_for_long_triggers_recovery():
+    core = ControllerCore(P)
+    scan = scan_with([(0.25, 0.0)])
+    modes = [core.update(k * 0.2, (0.0, 0.0, 0.0), STRAIGHT, 1, False, scan)[2]
+             for k in range(int(P.stuck_time / 0.2) + 2)]
+    assert modes[0] == "blocked" and modes[-1] == "recovery"
+
+
+def test_recovery_skips_backup_when_rear_is_blocked():
+    core = ControllerCore(P)
+    wide_free = (np.full(361, 8.0), -math.pi, math.radians(1.0))
+    r = wide_free[0].copy()
+    r[0] = 0.3  # return straight behind
+    blocked_rear = (r, -math.pi, math.radians(1.0))
+    path = [[0.0, 0.0], [0.0, 3.0]]  # to the left: needs turning
+    pose = (0.0, 0.0, 0.0)
+    # stand still while "rotating" (wedged): no progress -> recovery, which may not back up
+    out = [core.update(k * 0.2, pose, path, 1, False, blocked_rear)
+           for k in range(int(P.stuck_time / 0.2) + 2)]
+    assert out[-1][2] == "recovery"
+    assert out[-1][0] == 0.0 and out[-1][1] > 0.0
+
+
+def test_moving_robot_is_not_stuck():
+    core = ControllerCore(P)
+    _, modes = simulate(core, [[0.0, 0.0], [20.0, 0.0]], (0.0, 0.0, 0.0), steps=150)
+    assert "recovery" not in modes
+
+
+def test_clock_going_back_resets_timers():
+    core = ControllerCore(P)
+    for k in range(10):
+        core.update(100.0 + k * 0.2, (0.0, 0.0, 0.0), STRAIGHT, 1, False, free_scan())
+    _, _, mode = core.update(0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False, free_scan())
+    assert mode == "track"
+
+
+def test_deterministic():
+    a, b = ControllerCore(P), ControllerCore(P)
+    pa, ma = simulate(a, L_PATH, (0.1, -0.1, 0.3), steps=400)
+    pb, mb = simulate(b, L_PATH, (0.1, -0.1, 0.3), steps=400)
+    assert pa == pb and ma == mb
+
+
+def test_single_waypoint_path():
+    core = ControllerCore(P)
+    poses, modes = simulate(core, [[1.0, 0.5]], (0.0, 0.0, 0.0), steps=200)
+    assert modes[-1] == "arrived"
+
+
+def test_snapshot_is_json():
+    core = ControllerCore(P)
+    core.update(0.0, (0.0, 0.0, 0.0), L_PATH, 1, False, free_scan())
+    snap = json.loads(json.dumps(core.snapshot(), allow_nan=False))
+    assert snap["mode"] == "track" and snap["plan_id"] == 1
+
+
+def test_bad_input_raises():
+    core = ControllerCore(P)
+    with pytest.raises(ControllerError):
+        core.update(float("nan"), (0.0, 0.0, 0.0), STRAIGHT, 1, False, None)
+    with pytest.raises(ControllerError):
+        core.update(0.0, (0.0, 0.0), STRAIGHT, 1, False, None)
+    with pytest.raises(ControllerError):
+        core.update(0.0, (0.0, 0.0, 0.0), [[0.0, 0.0, 1.0]], 1, False, None)
+    with pytest.raises(ControllerError):
+        core.update(0.0, (0.0, 0.0, 0.0), [[0.0, np.inf]], 1, False, None)
+    with pytest.raises(ControllerError):
+        core.update(0.0, (0.0, 0.0, 0.0), STRAIGHT, "one", False, None)
+    with pytest.raises(ControllerError):
+        core.update(0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False, (np.ones(3), 0.0))
+    with pytest.raises(ValueError):
+        ControllerCore(Params())
+
+
+def test_params_validation():
+    with pytest.raises(ValueError):
+        load_params(overrides=["controller.slow_distance=0.1"])
+    with pytest.raises(ValueError):
+        load_params(overrides=["controller.slow_min_scale=0"])
+    assert load_params().controller == ControllerParams()
