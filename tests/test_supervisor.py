@@ -1,0 +1,72 @@
+"""Supervisor with real processes: a killed child comes back with its liveliness token,
+and Ctrl-C on `topoexplore up` leaves no process behind."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+from common.bus import Bus
+from common.keys import Keys
+from services.supervisor.core import ProcSpec, Profile, RestartPolicy
+from services.supervisor.service import Supervisor
+from tests.conftest import pid_alive
+
+
+def wait_for(pred, timeout: float, period: float = 0.05) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(period)
+    return False
+
+
+def test_killed_child_comes_back(endpoint, namespace):
+    profile = Profile(name="t", description="", router=True, processes=(
+        ProcSpec(name="mapper", module="services.mapper.service"),
+        ProcSpec(name="reliability", module="services.reliability.service"),
+    ))
+    keys = Keys(namespace, "robot1")
+    lines: list[str] = []
+    sup = Supervisor(profile, keys, endpoint, sink=lines.append,
+                     policy=RestartPolicy(base=0.2, cap=1.0))
+    try:
+        assert sup.start(ready_timeout=60), "\n".join(lines)
+        with Bus.client(endpoint) as bus:
+            assert keys.alive("mapper") in bus.alive(keys.alive_all())
+            old = sup.states["mapper"].pid
+            os.kill(old, signal.SIGKILL)
+            assert wait_for(lambda: (sup.poll() or True) and sup.states["mapper"].restarts == 1,
+                            20), "\n".join(lines)
+            assert wait_for(lambda: (sup.poll() or True) and sup.states["mapper"].alive, 60)
+            assert sup.states["mapper"].pid != old
+            assert keys.alive("mapper") in bus.alive(keys.alive_all())
+        assert any("restart #1" in line for line in lines)
+        assert sup.table()["processes"]["mapper"]["restarts"] == 1
+    finally:
+        sup.stop()
+    for st in sup.states.values():
+        assert st.pid is None
+    assert sup.router is not None and sup.router.poll() is not None
+
+
+def test_ctrl_c_leaves_no_process_behind(procs, endpoint, namespace, tmp_path):
+    up = procs.python("-m", "common.cli", "up", "--profile", "mapping", "--connect", endpoint,
+                      "--namespace", namespace)
+    keys = Keys(namespace, "robot1")
+    time.sleep(0.5)
+    with Bus.client(endpoint, wait_for_router=True) as bus:
+        want = {keys.alive(s) for s in ("mapper", "topology", "sim", "supervisor")}
+        assert wait_for(lambda: want <= set(bus.alive(keys.alive_all())), 60)
+        from common.livestate import fetch_state
+
+        table = fetch_state(bus, keys, "supervisor")
+    pids = [p["pid"] for p in table["processes"].values()]
+    assert all(pid_alive(p) for p in pids)
+    up.send_signal(signal.SIGINT)
+    out, _ = up.communicate(timeout=30)
+    assert up.returncode == 0, out
+    assert "stopped" in out
+    assert wait_for(lambda: not any(pid_alive(p) for p in pids), 10)
