@@ -40,6 +40,11 @@ class _P(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
 
 
 class SimParams(_P):
+    world: str = "paper-room"  # built-in world name or path to a world TOML / map_server YAML
+    lockstep_wait_for: list[str] = msgspec.field(
+        default_factory=lambda: ["mapper", "topology", "reliability", "planner", "controller"])
+    lockstep_wait: float = 60.0  # [s] wall time to wait for those services before the first scan
+    status_hz: float = 2.0  # [Hz] sim/status rate in real-time mode (every scan in lockstep)
     physics_hz: float = 50.0  # [Hz] physics steps
     scan_hz: float = 5.0  # [Hz] laser rate (paper: about 5 Hz)
     odom_hz: float = 20.0  # [Hz]
@@ -82,7 +87,12 @@ class TopologyParams(_P):
     id_gate: float = 0.5  # [m] node identity gate
     corner_nodes: bool = True
     corner_min_deviation: float = 0.2  # [m] ignore corners closer than this to the chord
-    skeleton_method: str = "zhang"  # see docs/topology.md
+    skeleton_method: str = "zhang"  # zhang | skimage | lee; see docs/topology.md
+    spur_clearance_factor: float = 1.6  # spur threshold = clip(f * clearance at branch, ...)
+    spur_max_length: float = 1.0  # [m] ... spur_length, spur_max_length) (docs/topology.md)
+    spur_rounds: int = 3  # prune / re-trace rounds per update
+    entry_radius: float = 0.5  # [m] robot cell not free: use the nearest free cell this close
+    incremental: bool = True  # re-thin only the window that changed (checked at its seam)
 
 
 class ReliabilityParams(_P):
@@ -215,6 +225,12 @@ def _validate(p: Params) -> None:
     pos("topology", "id_gate", t.id_gate)
     if t.spur_length < 0 or t.fill_holes < 0 or t.min_free_area < 0 or t.open_cells < 0:
         raise ParamError("topology: sizes must be >= 0")
+    if (t.spur_clearance_factor < 0 or t.spur_max_length < 0 or t.spur_rounds < 0
+            or t.entry_radius < 0 or t.corner_min_deviation < 0):
+        raise ParamError("topology: spur/entry/corner sizes must be >= 0")
+    if t.skeleton_method not in ("zhang", "skimage", "lee"):
+        raise ParamError(f"topology.skeleton_method must be zhang, skimage or lee "
+                         f"(got {t.skeleton_method!r})")
     r = p.reliability
     if not (0 < r.r_near < r.r_far):
         raise ParamError("reliability: need 0 < r_near < r_far")
