@@ -253,7 +253,8 @@ def test_never_observed_node_defaults():
     assert not n.visible and n.n_obs == 0
     assert n.p == P.p_init and n.d == 0.0 and n.a == 0.0 and math.isinf(n.r_min)
     # and it encodes into a valid Reliability message (inf r_min allowed)
-    msg = decode(encode(Reliability(header=Header(), nodes=[n])), Reliability)
+    header = Header(seq=0, stamp=0.0, frame="map", src_seq=-1)
+    msg = decode(encode(Reliability(header=header, nodes=[n])), Reliability)
     assert math.isinf(msg.nodes[0].r_min)
 
 
