@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 
 from services.supervisor.core import (
-    ProcState,
     ProcSpec,
+    ProcState,
     ProfileError,
     RestartPolicy,
     load_profile,

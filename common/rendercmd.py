@@ -1,0 +1,113 @@
+"""``topoexplore render``: a PNG of grid + topological map, from a saved run or a live stack.
+
+    topoexplore render runs/paper-room                 # -> runs/paper-room/render.png
+    topoexplore render runs/paper-room -o fig.png
+    topoexplore render --live -o now.png [--connect tcp/127.0.0.1:7447] [--namespace ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from common import messages as m
+from common.livestate import StateError, as_message
+
+
+def _err(text: str) -> int:
+    print(f"topoexplore render: {text}", file=sys.stderr)
+    return 2
+
+
+def load_run(run_dir: Path):
+    """(grid, geom, topo, rel, trail) from a directory written by `topoexplore run`."""
+    from common.mapio import read_map_server
+
+    grid, geom = read_map_server(run_dir / "map.yaml")
+    topo = rel = None
+    tj = run_dir / "topology.json"
+    if tj.exists():
+        try:
+            doc = json.loads(tj.read_text())
+        except (OSError, ValueError) as exc:
+            raise StateError(f"{tj}: not valid JSON ({exc})") from None
+        if not isinstance(doc, dict):
+            raise StateError(f"{tj}: expected an object with 'topo' and 'reliability'")
+        topo = as_message(doc.get("topo"), m.TopoGraph)
+        rel = as_message(doc.get("reliability"), m.Reliability)
+    trail = []
+    tc = run_dir / "trail.csv"
+    if tc.exists():
+        for i, line in enumerate(tc.read_text().splitlines()[1:], start=2):
+            try:
+                x, y, s = line.split(",")
+                trail.append((float(x), float(y), int(s)))
+            except ValueError:
+                raise StateError(f"{tc}:{i}: expected x,y,segment") from None
+    return grid, geom, topo, rel, trail
+
+
+def load_live(args: argparse.Namespace):
+    from common.bus import Bus
+    from common.keys import Keys
+    from common.livestate import fetch_state, map_from_state
+    from common.node import params_from_args
+
+    params = params_from_args(args)
+    keys = Keys(params.bus.namespace, params.bus.robot)
+    with Bus.client(params.bus.connect, config_file=args.zenoh_config) as bus:
+        grid, geom = map_from_state(fetch_state(bus, keys, "mapper", args.timeout))
+        topo = rel = None
+        try:
+            topo = as_message(fetch_state(bus, keys, "topology", args.timeout).get("topo"),
+                              m.TopoGraph)
+            rel = as_message(fetch_state(bus, keys, "reliability", args.timeout).get("last"),
+                             m.Reliability)
+        except StateError:
+            pass
+    return grid, geom, topo, rel, []
+
+
+def main(argv: list[str] | None = None) -> int:
+    from common.bus import BusError
+    from common.mapio import MapIOError, write_png
+    from common.node import add_bus_args, add_param_args
+    from common.params import ParamError
+    from common.render import render
+
+    ap = argparse.ArgumentParser(prog="topoexplore render", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("run_dir", nargs="?", help="directory written by `topoexplore run`")
+    ap.add_argument("-o", "--output", help="PNG to write (default RUN_DIR/render.png)")
+    ap.add_argument("--live", action="store_true", help="render the running stack's state")
+    ap.add_argument("--timeout", type=float, default=3.0)
+    ap.add_argument("--title", default=None)
+    add_bus_args(ap)
+    add_param_args(ap)
+    args = ap.parse_args(argv)
+    if bool(args.run_dir) == bool(args.live):
+        return _err("give a run directory or --live (one of them)")
+    out = Path(args.output) if args.output else (
+        Path(args.run_dir) / "render.png" if args.run_dir else Path("render.png"))
+    try:
+        if args.live:
+            grid, geom, topo, rel, trail = load_live(args)
+        else:
+            run_dir = Path(args.run_dir)
+            if not (run_dir / "map.yaml").exists():
+                return _err(f"{run_dir} has no map.yaml (not a run directory?)")
+            grid, geom, topo, rel, trail = load_run(run_dir)
+        title = args.title if args.title is not None else (
+            "live" if args.live else Path(args.run_dir).name)
+        img = render(grid, geom, topo=topo, rel=rel, trail=trail or None, title=title)
+        write_png(out, img)
+    except (StateError, MapIOError, BusError, ParamError) as exc:
+        return _err(str(exc))
+    print(f"wrote {out} ({img.shape[1]}x{img.shape[0]} px)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
