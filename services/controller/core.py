@@ -201,7 +201,8 @@ def rear_blocked(scan, params: ControllerParams) -> bool:
     if scan is None:
         return False
     _, _, x, y = _scan_xy(scan)
-    reach = params.robot_radius + params.lateral_margin + params.recovery_speed * params.recovery_time
+    reach = (params.robot_radius + params.lateral_margin
+             + params.recovery_speed * params.recovery_time)  # [m]
     m = (x < -1e-9) & (-x <= reach) & (np.abs(y) <= params.robot_radius + params.lateral_margin)
     return bool(np.any(m))
 

@@ -165,7 +165,8 @@ def bayes_update(p: float, r: float) -> float:
     num = r * p
     den = num + (1.0 - r) * (1.0 - p)
     if den <= 0.0:
-        raise ReliabilityError(f"bayes_update undefined for p={p}, r={r} (certain prior vs evidence)")
+        raise ReliabilityError(f"bayes_update undefined for p={p}, r={r} (certain prior, "
+                               "certain opposite evidence)")
     return num / den
 
 
@@ -316,7 +317,8 @@ class ReliabilityCore:
 
     def __init__(self, params: ReliabilityParams):
         if not isinstance(params, ReliabilityParams):
-            raise ReliabilityError(f"params must be ReliabilityParams (got {type(params).__name__})")
+            raise ReliabilityError(
+                f"params must be ReliabilityParams (got {type(params).__name__})")
         self.params = params
         self._nbins = max(1, int(math.ceil(TWO_PI / params.bearing_bin - 1e-9)))
         self._bin_width = TWO_PI / self._nbins  # [rad]
