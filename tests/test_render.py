@@ -30,7 +30,7 @@ from common.render import (
     render,
 )
 
-H = m.Header()
+H = m.Header(seq=0, stamp=0.0, frame="map", src_seq=-1)
 
 
 def grid_and_geom(w=60, h=40):
