@@ -68,13 +68,12 @@ class MapperService:
             data=m.array_to_grid_bytes(self.core.occupancy()))
 
     def state(self) -> dict:
-        g = self.core.geometry
-        return {
-            "skipped_scans": dict(self.skipped),
-            "grid": {"width": g.width, "height": g.height, "resolution": g.resolution,
-                     "origin": [g.origin_x, g.origin_y]},
-            "map": self.last_map,
-        }
+        out: dict = {"skipped_scans": dict(self.skipped), "map": self.last_map, "grid": None}
+        if self.last_map is not None:
+            g = self.last_map
+            out["grid"] = {"width": g.width, "height": g.height, "resolution": g.resolution,
+                           "origin": [g.origin.x, g.origin.y]}
+        return out
 
 
 def main(argv: list[str] | None = None) -> int:
