@@ -105,12 +105,13 @@ def bench_hop(n: int = 200) -> dict[str, dict]:
             lat: list[float] = []
             done = threading.Event()
             with Bus.client(ep, wait_for_router=True) as bus:
-                def cb(msg, key, lat=lat):
+                count = n if kind == "scan" else max(20, n // 4)
+
+                def cb(msg, key, lat=lat, count=count, done=done):
                     lat.append(time.monotonic() - msg.header.stamp)
                     if len(lat) >= count:
                         done.set()
 
-                count = n if kind == "scan" else max(20, n // 4)
                 bus.subscribe("bench/hop", t, cb)
                 procs.python("-c", _PUBLISHER, ep, "bench/hop", kind.split("_")[0], str(count),
                              str(rate))
