@@ -344,6 +344,10 @@ def test_bad_params():
         MapperCore(params(initial_size=50.0, max_size=40.0))
     with pytest.raises(TypeError):
         MapperCore({"resolution": 0.1})
+    for bad in (dict(grow_margin=-1.0), dict(resolution=0.0), dict(l_free=0.4),
+                dict(l_max=float("nan")), dict(resolution=0.001)):
+        with pytest.raises(ValueError, match="mapper"):
+            MapperCore(params(**bad))
 
 
 # --- benchmark (not a test) ---------------------------------------------------------------------

@@ -43,6 +43,7 @@ __all__ = [
     "MapperCore",
     "beam_endpoints",
     "grow_axis",
+    "check_params",
     "logodds_to_int8",
     "prob_to_logodds",
 ]
@@ -254,6 +255,24 @@ def grow_axis(lo: int, hi: int, n: int, margin: int, limit: int) -> tuple[int, i
     return add_lo, add_hi
 
 
+def check_params(p: MapperParams) -> None:
+    """The core's own guard (it may be built from unvalidated params): the kernel writes without
+    bounds checks, so sizes and log-odds must be sane. Raises ValueError with one line."""
+    vals = {k: getattr(p, k) for k in ("resolution", "l_occ", "l_free", "l_min", "l_max",
+                                       "initial_size", "grow_margin", "max_size")}
+    bad = [k for k, v in vals.items() if not (isinstance(v, (int, float)) and math.isfinite(v))]
+    if bad:
+        raise ValueError(f"mapper params not finite numbers: {', '.join(bad)}")
+    if not (p.resolution > 0 and p.initial_size > 0 and p.max_size > 0 and p.grow_margin >= 0):
+        raise ValueError("mapper: need resolution, initial_size, max_size > 0, grow_margin >= 0")
+    if p.initial_size > p.max_size:
+        raise ValueError(f"mapper.initial_size={p.initial_size} exceeds max_size={p.max_size}")
+    if not (p.l_min < 0 < p.l_max and p.l_free < 0 < p.l_occ):
+        raise ValueError("mapper: need l_min < 0 < l_max and l_free < 0 < l_occ")
+    if p.max_size / p.resolution > 50_000:
+        raise ValueError("mapper: max_size / resolution exceeds 50000 cells per side")
+
+
 # --- the core ------------------------------------------------------------------------------
 
 
@@ -266,10 +285,7 @@ class MapperCore:
     def __init__(self, params: MapperParams):
         if not isinstance(params, MapperParams):
             raise TypeError("params must be a common.params.MapperParams")
-        if params.initial_size > params.max_size:
-            raise ValueError(
-                f"mapper.initial_size={params.initial_size} exceeds max_size={params.max_size}"
-            )
+        check_params(params)
         self.params = params
         self._res = float(params.resolution)  # [m/cell]
         # origin = base + offset cells * res: integer offsets keep growth exactly cell-aligned
