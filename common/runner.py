@@ -171,8 +171,7 @@ class Truth:
         if grid is None:
             return 0.0
         return float(map_accuracy(m.grid_to_array(grid), GridGeometry.of(grid), self.occ,
-                                  self.origin, self.resolution, p.mapper.p_free, p.mapper.p_occ,
-                                  truth_free=self.free, truth_free_origin=self.free_origin))
+                                  self.origin, self.resolution, p.mapper.p_free, p.mapper.p_occ))
 
 
 def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_reason: str,

@@ -44,7 +44,7 @@ def _pdeathsig() -> None:  # runs in the child between fork and exec
 
 def profile_path(name_or_path: str) -> Path:
     p = Path(name_or_path)
-    if p.suffix == ".toml" or p.exists():
+    if p.suffix == ".toml" or "/" in name_or_path:
         return p
     return PROFILE_DIR / f"{name_or_path}.toml"
 

@@ -1,0 +1,64 @@
+"""End to end, all processes, lockstep: `topoexplore run` explores each world to the end.
+
+Runs are cached per session (one run per world/strategy/seed/repeat), so the comparison and
+determinism tests reuse them.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from functools import cache
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import REPO, free_port
+
+OUT = Path(os.environ.get("TOPOEXPLORE_TEST_OUT", "/tmp/topoexplore-e2e-%d" % os.getpid()))
+DETERMINISTIC = ["finished", "stop_reason", "sim_time_s", "path_length_m", "coverage",
+                 "map_accuracy", "collisions", "end_nodes_seen", "end_nodes_visited",
+                 "end_nodes_accepted_remote", "targets", "scans"]
+
+
+@cache
+def explore(world: str, strategy: str = "reliability", seed: int = 0, repeat: int = 0) -> dict:
+    out = OUT / f"{world}-{strategy}-{seed}-{repeat}"
+    cmd = [sys.executable, "-m", "common.cli", "run", "--world", world, "--strategy", strategy,
+           "--seed", str(seed), "--lockstep", "--quiet", "--out", str(out),
+           "--connect", f"tcp/127.0.0.1:{free_port()}", "--namespace", f"e2e{os.getpid()}",
+           "--max-sim-time", "1500"]
+    r = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600,
+                       env=dict(os.environ, PYTHONPATH=str(REPO)))
+    report = json.loads((out / "report.json").read_text())
+    report["_exit"] = r.returncode
+    report["_stderr"] = r.stderr[-2000:]
+    report["_out"] = str(out)
+    return report
+
+
+@pytest.mark.parametrize("world", ["paper-room", "dead-end", "junction", "office"])
+def test_explores_world_to_the_end(world):
+    r = explore(world)
+    assert r["_exit"] == 0 and r["finished"], r["_stderr"]
+    assert r["coverage"] >= 0.95, r
+    assert r["collisions"] == 0, r
+    assert r["restarts"] == 0 and r["bad_messages"] == 0
+    out = Path(r["_out"])
+    for name in ("report.json", "final.png", "map.pgm", "map.yaml", "topology.json"):
+        assert (out / name).stat().st_size > 0, name
+
+
+def test_same_seed_gives_same_report():
+    a, b = explore("paper-room"), explore("paper-room", repeat=1)
+    assert {k: a[k] for k in DETERMINISTIC} == {k: b[k] for k in DETERMINISTIC}
+
+
+def test_reliability_accepts_remotely_and_travels_less_than_all_end_nodes():
+    rel = explore("paper-room", "reliability")
+    allend = explore("paper-room", "all-end-nodes")
+    assert allend["finished"], allend["_stderr"]
+    assert rel["end_nodes_accepted_remote"] >= 1, rel
+    assert rel["path_length_m"] < allend["path_length_m"], (rel, allend)
