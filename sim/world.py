@@ -198,7 +198,10 @@ def parse_world(data: dict, source: str, base_dir: Path | None = None) -> World:
         map_path = Path(data["map"])
         if not map_path.is_absolute():
             map_path = (base_dir or Path(".")) / map_path
-        world = _load_map_world(map_path, name, extra=extra, pose=pose)
+        try:
+            world = _load_map_world(map_path, name, extra=extra, pose=pose)
+        except WorldError as exc:
+            raise WorldError(f"{where}: map {exc}") from None
         world.source = source
         return world
 
