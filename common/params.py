@@ -128,6 +128,12 @@ class PlannerParams(_P):
     potential_scale: float = 3.0  # explore_lite default
     gain_scale: float = 1.0  # explore_lite default
     status_hz: float = 1.0  # [Hz]
+    tie_tolerance: float = 0.5  # [m] path costs this close tie -> prefer the target ahead
+    target_move: float = 0.3  # [m] target moved this far from where the path was built -> new path
+    arrival_timeout: float = 5.0  # [s] within goal_tolerance of a still-open target -> blacklist
+    waypoint_spacing: float = 0.25  # [m] path polylines thinned to about this spacing
+    path_tolerance: float = 0.4  # [m] a remaining waypoint this far off the skeleton -> new path
+    frontier_match_radius: float = 1.0  # [m] frontier group this close to the goal stays target
 
 
 class ControllerParams(_P):
@@ -218,6 +224,10 @@ def _validate(p: Params) -> None:
     pos("mapper", "max_size", mp.max_size)
     if not (mp.l_min < 0 < mp.l_max and mp.l_free < 0 < mp.l_occ):
         raise ParamError("mapper: need l_min < 0 < l_max and l_free < 0 < l_occ")
+    if mp.grow_margin < 0:
+        raise ParamError("mapper.grow_margin must be >= 0")
+    if mp.initial_size > mp.max_size:
+        raise ParamError("mapper: initial_size must not exceed max_size")
     if not (0 < mp.p_free < 0.5 < mp.p_occ < 1):
         raise ParamError("mapper: need 0 < p_free < 0.5 < p_occ < 1")
     t = p.topology
@@ -245,10 +255,18 @@ def _validate(p: Params) -> None:
     if not 0 < pl.p_reliable < 1:
         raise ParamError("planner.p_reliable must be in (0, 1)")
     for name in ("robot_radius", "visit_radius", "goal_tolerance", "progress_timeout",
-                 "progress_distance", "replan_period", "status_hz"):
+                 "progress_distance", "replan_period", "status_hz", "blacklist_radius",
+                 "target_move", "arrival_timeout", "waypoint_spacing", "path_tolerance",
+                 "frontier_match_radius", "potential_scale"):
         pos("planner", name, getattr(pl, name))
     if pl.max_attempts < 1:
         raise ParamError("planner.max_attempts must be >= 1")
+    if not 0 < pl.switch_ratio <= 1:
+        raise ParamError("planner.switch_ratio must be in (0, 1]")
+    for name in ("clearance_margin", "tie_tolerance", "min_frontier_size", "gain_scale"):
+        v = getattr(pl, name)
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+            raise ParamError(f"planner.{name} must be a finite number >= 0 (got {v!r})")
     c = p.controller
     for name in ("v_max", "w_max", "lookahead", "rotate_angle", "goal_tolerance",
                  "safety_distance", "front_half_angle", "robot_radius", "stuck_time",

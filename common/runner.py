@@ -246,7 +246,8 @@ def write_outputs(out: Path, report: dict, mon: Monitor, truth: Truth, p: Params
     write_map_server(out / "map.yaml", grid, geom, p.mapper.p_free, p.mapper.p_occ)
     img = render(grid, geom, topo=mon.topo, rel=mon.rel, robot_pose=mon.pose, trail=mon.trail,
                  target_id=mon.plan.target_id if mon.plan else -1, title=title,
-                 p_free=p.mapper.p_free, p_occ=p.mapper.p_occ)
+                 p_free=p.mapper.p_free, p_occ=p.mapper.p_occ, p_reliable=p.planner.p_reliable,
+                 robot_radius=p.sim.robot_radius, crop=True)
     write_png(out / "final.png", img)
 
 

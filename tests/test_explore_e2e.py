@@ -17,7 +17,7 @@ import pytest
 
 from tests.conftest import REPO, free_port
 
-OUT = Path(os.environ.get("TOPOEXPLORE_TEST_OUT", "/tmp/topoexplore-e2e-%d" % os.getpid()))
+OUT = Path(os.environ.get("TOPOEXPLORE_TEST_OUT", f"/tmp/topoexplore-e2e-{os.getpid()}"))
 DETERMINISTIC = ["finished", "stop_reason", "sim_time_s", "path_length_m", "coverage",
                  "map_accuracy", "collisions", "end_nodes_seen", "end_nodes_visited",
                  "end_nodes_accepted_remote", "targets", "scans"]

@@ -8,11 +8,10 @@ from __future__ import annotations
 
 import logging
 
-from services.topology.core import TopologyCore
-
 from common import messages as m
 from common.grid import GridGeometry
 from common.node import Node, OdomBuffer, run_service
+from services.topology.core import TopologyCore
 
 log = logging.getLogger("topoexplore.topology")
 
