@@ -1,0 +1,343 @@
+"""Topological-graph search for the planner (pure: no I/O, no clock, no bus).
+
+Paper §3.2: the next target end node is the one with the least A* path cost over the
+topological map, and the robot travels along the topological edges to it. DESIGN.md §4
+"Planner" adds: only edges with clearance >= robot radius + margin are traversable, and the
+robot joins the skeleton at an *entry point* = the nearest point of any traversable edge
+polyline that it can reach in a straight line through known free cells.
+
+The search is A* with a zero heuristic (= Dijkstra) from the entry point to *every* node at
+once: the target choice needs the exact path cost of every candidate, and one single-source
+search returns exactly what one A* run per candidate would (A* with the Euclidean heuristic is
+:func:`astar_cost`, kept for single-goal queries and for the tests that cross-check both).
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from common import messages as m
+from common.grid import GridGeometry
+
+ENTRY = -1  # pseudo node id of the entry point in predecessor chains
+
+
+class GraphInputError(ValueError):
+    """A topological graph or a query on it is unusable."""
+
+
+@dataclass(frozen=True)
+class Edge:
+    """One traversable topological edge with its polyline oriented from node a to node b."""
+
+    idx: int
+    a: int
+    b: int
+    pts: np.ndarray  # (n, 2) polyline [m], n >= 2, pts[0] at node a, pts[-1] at node b
+    cum: np.ndarray  # (n,) cumulative arc length along pts [m]
+    clearance: float  # [m]
+
+    @property
+    def length(self) -> float:
+        return float(self.cum[-1])
+
+
+@dataclass
+class TopoIndex:
+    """Search structure built from one TopoGraph message."""
+
+    nodes: dict[int, tuple[str, float, float]]  # id -> (kind, x [m], y [m])
+    edges: list[Edge]  # traversable edges (clearance high enough), indexed by Edge.idx
+    narrow: list[Edge]  # edges too narrow for the robot (kept for reporting)
+    adj: dict[int, list[tuple[int, float, int, bool]]] = field(default_factory=dict)
+    # adj[u] = [(v, cost [m], edge idx, forward = traversed a->b), ...]
+
+    def end_ids(self) -> list[int]:
+        return [i for i, (k, _, _) in self.nodes.items() if k == "end"]
+
+    def all_points(self) -> np.ndarray:
+        """All traversable polyline points stacked, (n, 2) [m] (empty (0, 2) if none)."""
+        if not self.edges:
+            return np.zeros((0, 2))
+        return np.concatenate([e.pts for e in self.edges])
+
+
+@dataclass(frozen=True)
+class Entry:
+    """Where the robot joins the skeleton: point on edge `edge` between pts[seg] and pts[seg+1]."""
+
+    edge: Edge
+    seg: int
+    x: float  # [m]
+    y: float  # [m]
+    arc: float  # [m] arc length from node a to the entry point along the edge
+    dist: float  # [m] straight-line robot -> entry
+    line_of_sight: bool  # False: fallback to the nearest point (no free straight line found)
+
+
+def polyline_lengths(pts: np.ndarray) -> np.ndarray:
+    """Cumulative arc length [m] of a (n, 2) polyline, starting at 0."""
+    if len(pts) < 2:
+        return np.zeros(len(pts))
+    seg = np.hypot(np.diff(pts[:, 0]), np.diff(pts[:, 1]))
+    return np.concatenate([[0.0], np.cumsum(seg)])
+
+
+def _edge_polyline(e: m.TopoEdge, pa: tuple[float, float], pb: tuple[float, float]) -> np.ndarray:
+    """Edge polyline oriented a -> b and anchored at both node positions."""
+    pts = np.asarray(e.points, dtype=np.float64).reshape(-1, 2) if e.points else np.zeros((0, 2))
+    a = np.asarray(pa, dtype=np.float64)
+    b = np.asarray(pb, dtype=np.float64)
+    if len(pts) >= 2:
+        # tolerate a polyline given b -> a (orientation is part of the contract, but cheap to fix)
+        keep = np.hypot(*(pts[0] - a)) + np.hypot(*(pts[-1] - b))
+        flip = np.hypot(*(pts[0] - b)) + np.hypot(*(pts[-1] - a))
+        if flip < keep:
+            pts = pts[::-1]
+    if len(pts) == 0 or np.hypot(*(pts[0] - a)) > 1e-6:
+        pts = np.vstack([a, pts])
+    if np.hypot(*(pts[-1] - b)) > 1e-6:
+        pts = np.vstack([pts, b])
+    if len(pts) < 2:  # a == b and no points: degenerate
+        pts = np.vstack([a, b])
+    return pts
+
+
+def build_index(topo: m.TopoGraph, min_clearance: float) -> TopoIndex:
+    """TopoGraph -> TopoIndex. Edges with clearance < min_clearance [m] are not traversable.
+
+    Self-loops are dropped (never on a shortest path). Raises GraphInputError if an edge refers
+    to a node that is not in the graph.
+    """
+    if not math.isfinite(min_clearance) or min_clearance < 0:
+        raise GraphInputError(f"min_clearance must be finite and >= 0 (got {min_clearance})")
+    nodes = {n.id: (n.kind, float(n.x), float(n.y)) for n in topo.nodes}
+    edges: list[Edge] = []
+    narrow: list[Edge] = []
+    adj: dict[int, list[tuple[int, float, int, bool]]] = {i: [] for i in nodes}
+    for e in topo.edges:
+        if e.a not in nodes or e.b not in nodes:
+            raise GraphInputError(f"edge {e.a}-{e.b} refers to a node that is not in the graph")
+        if e.a == e.b:
+            continue
+        pts = _edge_polyline(e, nodes[e.a][1:], nodes[e.b][1:])
+        cum = polyline_lengths(pts)
+        ok = e.clearance + 1e-9 >= min_clearance
+        edge = Edge(len(edges) if ok else len(narrow), e.a, e.b, pts, cum, float(e.clearance))
+        if not ok:
+            narrow.append(edge)
+            continue
+        edges.append(edge)
+        adj[e.a].append((e.b, edge.length, edge.idx, True))
+        adj[e.b].append((e.a, edge.length, edge.idx, False))
+    return TopoIndex(nodes, edges, narrow, adj)
+
+
+# --- line of sight on the grid ---------------------------------------------------------------
+
+
+def line_of_sight(free: np.ndarray, geom: GridGeometry, x0: float, y0: float, x1: float,
+                  y1: float, skip_radius: float = 0.0) -> bool:
+    """True if every grid cell on the segment (x0,y0)-(x1,y1) [m] is known free.
+
+    Samples every third of a cell. Samples within `skip_radius` [m] of (x0, y0) are ignored:
+    the robot stands there, and its own cells may still be unknown or noisy. Cells outside the
+    grid count as not free.
+    """
+    length = math.hypot(x1 - x0, y1 - y0)
+    n = max(2, int(math.ceil(length / (geom.resolution / 3.0))) + 1)
+    s = np.linspace(0.0, 1.0, n)
+    xs = x0 + s * (x1 - x0)
+    ys = y0 + s * (y1 - y0)
+    keep = s * length > skip_radius
+    if not np.any(keep):
+        return True
+    rows, cols = geom.world_to_cell(xs[keep], ys[keep])
+    inside = geom.inside(rows, cols)
+    if not np.all(inside):
+        return False
+    return bool(np.all(free[rows, cols]))
+
+
+# --- entry point -----------------------------------------------------------------------------
+
+
+def find_entry(index: TopoIndex, x: float, y: float,
+               visible: Callable[[float, float, float, float], bool] | None = None,
+               max_checks: int = 64) -> Entry | None:
+    """Entry point for a robot at (x, y) [m]: the nearest point of any traversable edge with a
+    free straight line from the robot (`visible(x0, y0, x1, y1)`); if none of the `max_checks`
+    nearest segments is visible, the nearest point overall (line_of_sight=False).
+    None if the index has no traversable edge.
+    """
+    if not index.edges:
+        return None
+    p0 = np.concatenate([e.pts[:-1] for e in index.edges])
+    p1 = np.concatenate([e.pts[1:] for e in index.edges])
+    eid = np.concatenate([np.full(len(e.pts) - 1, e.idx) for e in index.edges])
+    seg = np.concatenate([np.arange(len(e.pts) - 1) for e in index.edges])
+    d = p1 - p0
+    dd = np.einsum("ij,ij->i", d, d)
+    q = np.array([x, y])
+    t = np.where(dd > 0, np.einsum("ij,ij->i", q - p0, d) / np.where(dd > 0, dd, 1.0), 0.0)
+    t = np.clip(t, 0.0, 1.0)
+    near = p0 + t[:, None] * d
+    dist = np.hypot(near[:, 0] - x, near[:, 1] - y)
+    order = np.argsort(dist, kind="stable")
+
+    def make(k: int, los: bool) -> Entry:
+        e = index.edges[int(eid[k])]
+        i = int(seg[k])
+        arc = float(e.cum[i] + t[k] * (e.cum[i + 1] - e.cum[i]))
+        return Entry(e, i, float(near[k, 0]), float(near[k, 1]), arc, float(dist[k]), los)
+
+    if visible is None:
+        return make(int(order[0]), True)
+    for k in order[:max_checks]:
+        if visible(x, y, float(near[k, 0]), float(near[k, 1])):
+            return make(int(k), True)
+    return make(int(order[0]), False)
+
+
+# --- search ----------------------------------------------------------------------------------
+
+
+def search_from_entry(index: TopoIndex, entry: Entry
+                      ) -> tuple[dict[int, float], dict[int, tuple[int, int, bool]]]:
+    """Least path cost [m] from the robot (via the entry point) to every reachable node.
+
+    Cost = straight line robot -> entry + arc lengths along traversable edges (A* with h = 0).
+    Returns (cost by node id, predecessor by node id) with pred[v] = (u, edge idx, forward);
+    u == ENTRY for the two nodes of the entry edge reached directly from the entry point.
+    """
+    e = entry.edge
+    dist: dict[int, float] = {}
+    pred: dict[int, tuple[int, int, bool]] = {}
+    heap: list[tuple[float, int, int, int, bool]] = []
+    heapq.heappush(heap, (entry.dist + entry.arc, e.a, ENTRY, e.idx, False))
+    heapq.heappush(heap, (entry.dist + e.length - entry.arc, e.b, ENTRY, e.idx, True))
+    while heap:
+        c, v, u, ei, fwd = heapq.heappop(heap)
+        if v in dist:
+            continue
+        dist[v] = c
+        pred[v] = (u, ei, fwd)
+        for w, wc, wi, wf in index.adj.get(v, ()):
+            if w not in dist:
+                heapq.heappush(heap, (c + wc, w, v, wi, wf))
+    return dist, pred
+
+
+def astar_cost(index: TopoIndex, entry: Entry, goal: int) -> float:
+    """Single-goal A* (Euclidean heuristic) from the entry point to `goal`; inf if unreachable.
+
+    Same costs as :func:`search_from_entry` (the heuristic is admissible: no edge is shorter
+    than the straight line between its nodes).
+    """
+    if goal not in index.nodes:
+        raise GraphInputError(f"goal node {goal} is not in the graph")
+    gx, gy = index.nodes[goal][1:]
+
+    def h(v: int) -> float:
+        return math.hypot(index.nodes[v][1] - gx, index.nodes[v][2] - gy)
+
+    e = entry.edge
+    best: dict[int, float] = {}
+    heap = [(entry.dist + entry.arc + h(e.a), entry.dist + entry.arc, e.a),
+            (entry.dist + e.length - entry.arc + h(e.b), entry.dist + e.length - entry.arc, e.b)]
+    heapq.heapify(heap)
+    done: set[int] = set()
+    while heap:
+        _, g, v = heapq.heappop(heap)
+        if v in done:
+            continue
+        if v == goal:
+            return g
+        done.add(v)
+        for w, wc, _, _ in index.adj.get(v, ()):
+            ng = g + wc
+            if w not in done and ng < best.get(w, math.inf):
+                best[w] = ng
+                heapq.heappush(heap, (ng + h(w), ng, w))
+    return math.inf
+
+
+def path_points(index: TopoIndex, entry: Entry, pred: dict[int, tuple[int, int, bool]],
+                goal: int) -> np.ndarray:
+    """Dense polyline [m] entry point -> along the edges -> goal node (not yet thinned)."""
+    if goal not in pred:
+        raise GraphInputError(f"node {goal} is not reachable from the entry point")
+    chain: list[tuple[int, bool]] = []
+    v = goal
+    while True:
+        u, ei, fwd = pred[v]
+        chain.append((ei, fwd))
+        if u == ENTRY:
+            break
+        v = u
+        if len(chain) > len(index.edges) + 1:  # defensive: a broken predecessor map
+            raise GraphInputError("predecessor chain does not end at the entry point")
+    chain.reverse()
+    e = entry.edge
+    first_ei, first_fwd = chain[0]
+    start = np.array([[entry.x, entry.y]])
+    if first_fwd:  # entry -> b
+        parts = [start, e.pts[entry.seg + 1:]]
+    else:  # entry -> a
+        parts = [start, e.pts[entry.seg::-1]]
+    for ei, fwd in chain[1:]:
+        pts = index.edges[ei].pts
+        parts.append((pts if fwd else pts[::-1])[1:])
+    return np.concatenate(parts)
+
+
+def thin_polyline(pts: np.ndarray, spacing: float, max_deviation: float = 0.05) -> np.ndarray:
+    """Thin a dense polyline to about `spacing` [m] between kept points without cutting corners.
+
+    Keeps the first and the last point; a point is kept when it is >= spacing from the previous
+    kept one, or when skipping it would let the straight chord between kept points pass more
+    than `max_deviation` [m] from a dropped point (corners survive). A kept point closer than
+    spacing/2 to the last point is dropped, unless it is a corner.
+    """
+    if spacing <= 0 or max_deviation < 0:
+        raise GraphInputError(f"need spacing > 0 and max_deviation >= 0 (got {spacing}, "
+                              f"{max_deviation})")
+    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+    n = len(pts)
+    if n <= 2:
+        return pts.copy()
+    kept = [0]
+    corner = [False]
+    last = 0
+    for i in range(1, n - 1):
+        p0 = pts[last]
+        if math.hypot(pts[i, 0] - p0[0], pts[i, 1] - p0[1]) >= spacing:
+            kept.append(i)
+            corner.append(False)
+            last = i
+            continue
+        # would the chord last -> i+1 cut a corner at any point in (last, i]?
+        q = pts[i + 1]
+        d = q - p0
+        dd = float(d @ d)
+        mid = pts[last + 1:i + 1]
+        if dd > 0:
+            s = np.clip((mid - p0) @ d / dd, 0.0, 1.0)
+            dev = np.hypot(*(p0 + s[:, None] * d - mid).T)
+        else:
+            dev = np.hypot(*(mid - p0).T)
+        if dev.max() > max_deviation:
+            kept.append(i)
+            corner.append(True)
+            last = i
+    end = pts[-1]
+    lp = pts[kept[-1]]
+    if len(kept) > 1 and not corner[-1] and math.hypot(*(end - lp)) < 0.5 * spacing:
+        kept.pop()
+    kept.append(n - 1)
+    return pts[kept]

@@ -1,0 +1,396 @@
+"""Planner core on hand-made topological graphs and grids (DESIGN.md §4 "Planner")."""
+
+from __future__ import annotations
+
+import math
+
+import msgspec
+import numpy as np
+import pytest
+
+from common import messages as m
+from common.grid import GridGeometry
+from common.params import PlannerParams
+from services.planner import frontier as fr
+from services.planner import graph as gr
+from services.planner.core import PlannerCore, PlannerInputError
+
+# --- builders --------------------------------------------------------------------------------
+
+
+def node(i, kind, x, y):
+    return m.TopoNode(id=i, kind=kind, x=float(x), y=float(y))
+
+
+def edge(a, b, pts, clearance=0.5, step=0.1):
+    """Edge a->b along the corner points `pts`, densified to ~step spacing like a skeleton."""
+    pts = np.asarray(pts, dtype=float)
+    dense = [pts[0]]
+    for p0, p1 in zip(pts[:-1], pts[1:], strict=True):
+        n = max(1, int(math.ceil(np.hypot(*(p1 - p0)) / step)))
+        for k in range(1, n + 1):
+            dense.append(p0 + (p1 - p0) * k / n)
+    dense = np.asarray(dense)
+    length = float(np.sum(np.hypot(*np.diff(dense, axis=0).T)))
+    return m.TopoEdge(a=a, b=b, points=dense.tolist(), length=length, clearance=clearance)
+
+
+def hdr():
+    return m.Header(seq=0, stamp=0.0, frame="map", src_seq=-1)
+
+
+def topo(nodes, edges):
+    return m.TopoGraph(header=hdr(), nodes=nodes, edges=edges)
+
+
+def rel(pmap):
+    return m.Reliability(header=hdr(), nodes=[
+        m.NodeReliability(id=i, x=0.0, y=0.0, p=p, d=0.5, a=0.0, r_min=math.inf,
+                          alpha_max=0.0, visible=False) for i, p in pmap.items()])
+
+
+def params(**kw):
+    return msgspec.structs.replace(PlannerParams(), **kw)
+
+
+def u_graph(narrow_to_4=False):
+    """Robot at the branch node 0 (0, 0).
+
+    End node 3 at (2, 0.5) is the nearest in a straight line (2.06 m) but 9.5 m away along the
+    U (up the left arm, across, down the right arm). End node 4 at (-3, 0): 3 m by path.
+    End node 5 at (0, -5): 5 m by path.
+    """
+    nodes = [node(0, "branch", 0, 0), node(1, "corner", 0, 4), node(2, "corner", 2, 4),
+             node(3, "end", 2, 0.5), node(4, "end", -3, 0), node(5, "end", 0, -5)]
+    edges = [edge(0, 1, [(0, 0), (0, 4)]), edge(1, 2, [(0, 4), (2, 4)]),
+             edge(2, 3, [(2, 4), (2, 0.5)]),
+             edge(0, 4, [(0, 0), (-3, 0)], clearance=0.15 if narrow_to_4 else 0.5),
+             edge(0, 5, [(0, 0), (0, -5)])]
+    return topo(nodes, edges)
+
+
+def dist_to_polylines(pt, tp):
+    best = math.inf
+    for e in tp.edges:
+        p = np.asarray(e.points)
+        for a, b in zip(p[:-1], p[1:], strict=True):
+            d = b - a
+            s = np.clip(np.dot(pt - a, d) / max(np.dot(d, d), 1e-12), 0, 1)
+            best = min(best, float(np.hypot(*(a + s * d - pt))))
+    return best
+
+
+POSE = (0.0, 0.0, 0.0)
+OPEN = {3: 0.5, 4: 0.5, 5: 0.5}
+
+
+# --- reliability strategy --------------------------------------------------------------------
+
+
+def test_waits_for_topo_and_reliability():
+    core = PlannerCore(params())
+    out = core.update(0.0, POSE, None, None, None, None)
+    assert out.state == "exploring" and out.waypoints == [] and "waiting for topo" in out.reason
+    out = core.update(0.1, POSE, u_graph(), None, None, None)
+    assert out.state == "exploring" and out.waypoints == [] and "waiting" in out.reason
+
+
+def test_no_end_nodes_is_done_only_after_a_reliability_update():
+    loop = topo([node(0, "branch", 0, 0), node(1, "branch", 2, 0)],
+                [edge(0, 1, [(0, 0), (2, 0)]), edge(0, 1, [(0, 0), (1, 1), (2, 0)])])
+    core = PlannerCore(params(strategy="all-end-nodes"))
+    out = core.update(0.0, POSE, loop, None, None, None)
+    assert out.state == "exploring" and "waiting" in out.reason
+    out = core.update(0.2, POSE, loop, rel({}), None, None)
+    assert out.state == "done" and "no end nodes" in out.reason
+
+
+def test_picks_nearest_by_path_cost_not_straight_line():
+    core = PlannerCore(params())
+    out = core.update(0.0, POSE, u_graph(), rel(OPEN), None, None)
+    assert out.state == "exploring"
+    assert out.target_id == 4, out.reason  # 3 m by path; node 3 is nearer in a straight line
+    assert out.target_xy == (-3.0, 0.0)
+    assert out.candidates == 3 and out.end_nodes == 3 and out.reliable == 0
+    assert out.target_p == pytest.approx(0.5)
+
+
+def test_ignores_reliable_nodes_and_reports_done():
+    core = PlannerCore(params())
+    out = core.update(0.0, POSE, u_graph(), rel({3: 0.5, 4: 0.95, 5: 0.5}), None, None)
+    assert out.target_id == 5 and out.reliable == 1
+    out = core.update(0.2, POSE, u_graph(), rel({3: 0.91, 4: 0.95, 5: 0.99}), None, None)
+    assert out.state == "done" and out.waypoints == [] and out.target_id == -1
+    assert "all 3 reachable end nodes reliable (P >= 0.9)" in out.reason
+
+
+def test_never_targets_a_node_behind_a_narrow_gap():
+    core = PlannerCore(params())
+    out = core.update(0.0, POSE, u_graph(narrow_to_4=True), rel(OPEN), None, None)
+    assert out.target_id == 5  # 4 is nearer but behind a 0.15 m clearance edge
+    out = core.update(0.2, POSE, u_graph(narrow_to_4=True), rel({3: 0.95, 4: 0.5, 5: 0.95}),
+                      None, None)
+    assert out.state == "done" and out.target_id == -1
+    assert "unreachable" in out.reason and "4" in out.reason
+
+
+def test_path_starts_at_robot_follows_edges_and_ends_at_target():
+    tp = u_graph()
+    core = PlannerCore(params())
+    pose = (0.15, 2.2, math.pi / 2)  # slightly off the left arm of the U
+    out = core.update(0.0, pose, tp, rel({3: 0.5, 4: 0.95, 5: 0.95}), None, None)
+    assert out.target_id == 3
+    wps = np.asarray(out.waypoints)
+    assert tuple(wps[0]) == pytest.approx(pose[:2])
+    assert tuple(wps[-1]) == pytest.approx((2.0, 0.5))
+    assert tuple(wps[1]) == pytest.approx((0.0, 2.2), abs=1e-6)  # entry point on the arm
+    for p in wps[1:]:
+        assert dist_to_polylines(p, tp) < 1e-6
+    steps = np.hypot(*np.diff(wps[1:], axis=0).T)
+    assert steps.max() <= 0.35 and steps.min() >= 0.1  # thinned to ~0.25 m
+    assert any(tuple(p) == pytest.approx((0.0, 4.0)) for p in wps)  # corners kept
+    assert any(tuple(p) == pytest.approx((2.0, 4.0)) for p in wps)
+    length = float(np.sum(np.hypot(*np.diff(wps, axis=0).T)))
+    assert length == pytest.approx(0.15 + 1.8 + 2.0 + 3.5, abs=0.05)  # up, across, down
+
+
+def test_replans_when_target_becomes_reliable():
+    core = PlannerCore(params())
+    out1 = core.update(0.0, POSE, u_graph(), rel(OPEN), None, None)
+    assert out1.target_id == 4
+    out2 = core.update(0.2, POSE, u_graph(), rel(OPEN), None, None)
+    assert out2.plan_id == out1.plan_id  # nothing changed: same plan
+    out3 = core.update(0.4, POSE, u_graph(), rel({3: 0.5, 4: 0.93, 5: 0.5}), None, None)
+    assert out3.target_id == 5 and out3.plan_id > out1.plan_id
+    assert "became reliable" in out3.reason
+
+
+def test_replans_when_target_moves_and_when_it_vanishes():
+    core = PlannerCore(params())
+    out1 = core.update(0.0, POSE, u_graph(), rel(OPEN), None, None)
+    moved = u_graph()
+    moved.nodes[4] = node(4, "end", -3.6, 0)
+    moved.edges[3] = edge(0, 4, [(0, 0), (-3.6, 0)])
+    out2 = core.update(0.2, POSE, moved, rel(OPEN), None, None)
+    assert out2.target_id == 4 and out2.plan_id == out1.plan_id + 1
+    assert out2.waypoints[-1] == pytest.approx((-3.6, 0.0))
+    gone = u_graph()
+    del gone.nodes[4]
+    del gone.edges[3]
+    out3 = core.update(0.4, POSE, gone, rel(OPEN), None, None)
+    assert out3.target_id == 5 and "vanished" in out3.reason
+
+
+def test_ties_prefer_the_node_ahead():
+    tp = topo([node(1, "end", -3, 0), node(2, "end", 3.2, 0)],
+              [edge(1, 2, [(-3, 0), (3.2, 0)])])
+    out = PlannerCore(params()).update(0.0, (0, 0, 0.0), tp, rel({1: 0.5, 2: 0.5}), None, None)
+    assert out.target_id == 2  # 3.2 m ahead beats 3.0 m behind (within the tie tolerance)
+    out = PlannerCore(params()).update(0.0, (0, 0, math.pi), tp, rel({1: 0.5, 2: 0.5}), None,
+                                       None)
+    assert out.target_id == 1
+
+
+def test_switches_only_to_a_much_cheaper_target():
+    core = PlannerCore(params())
+    assert core.update(0.0, POSE, u_graph(), rel(OPEN), None, None).target_id == 4
+    tp = u_graph()
+    tp.nodes.append(node(6, "end", 2.3, 0))  # 2.3 m: not < 0.7 * 3 m
+    tp.edges.append(edge(0, 6, [(0, 0), (2.3, 0)]))
+    out = core.update(2.5, POSE, tp, rel({**OPEN, 6: 0.5}), None, None)
+    assert out.target_id == 4
+    tp.nodes[-1] = node(6, "end", 1.5, 0)  # 1.5 m < 0.7 * 3 m
+    tp.edges[-1] = edge(0, 6, [(0, 0), (1.5, 0)])
+    out = core.update(3.0, POSE, tp, rel({**OPEN, 6: 0.5}), None, None)
+    assert out.target_id == 4  # re-evaluated at most every replan_period (2 s)
+    out = core.update(5.0, POSE, tp, rel({**OPEN, 6: 0.5}), None, None)
+    assert out.target_id == 6 and "switched from end node 4" in out.reason
+    assert out.replans == 1
+
+
+def test_blacklists_after_no_progress_by_id_and_position():
+    core = PlannerCore(params(progress_timeout=20.0, max_attempts=2))
+    out = core.update(0.0, POSE, u_graph(), rel(OPEN), None, None)
+    assert out.target_id == 4
+    t = 0.0
+    for _ in range(30):  # the robot never moves
+        t += 1.0
+        out = core.update(t, POSE, u_graph(), rel(OPEN), None, None)
+    assert out.target_id == 4 and out.blacklisted == [] and out.replans == 1  # 1st failure
+    reasons = []
+    for _ in range(15):
+        t += 1.0
+        out = core.update(t, POSE, u_graph(), rel(OPEN), None, None)
+        reasons.append(out.reason)
+    assert out.blacklisted == [4] and out.target_id == 5
+    assert any("blacklisted end node 4" in r and "no progress" in r for r in reasons)
+    assert "blacklisted: 4" in out.reason  # stays visible while exploring goes on
+    # the same place under a new id stays blacklisted
+    renamed = u_graph()
+    renamed.nodes[4] = node(9, "end", -3.1, 0)
+    renamed.edges[3] = edge(0, 9, [(0, 0), (-3.1, 0)])
+    out = core.update(t + 1, POSE, renamed, rel({3: 0.5, 9: 0.5, 5: 0.5}), None, None)
+    assert out.target_id == 5
+    out = core.update(t + 2, POSE, renamed, rel({3: 0.95, 9: 0.5, 5: 0.95}), None, None)
+    assert out.state == "done" and "1 blacklisted" in out.reason
+    snap = core.snapshot()
+    assert snap["blacklist"][0]["id"] == 4 and "no progress" in snap["blacklist"][0]["reason"]
+
+
+def test_progress_along_the_path_prevents_blacklisting():
+    core = PlannerCore(params(progress_timeout=5.0, max_attempts=1))
+    out = core.update(0.0, POSE, u_graph(), rel(OPEN), None, None)
+    assert out.target_id == 4
+    for k in range(1, 20):  # 0.1 m/s toward node 4 along the edge
+        out = core.update(float(k), (-0.1 * k, 0.0, math.pi), u_graph(), rel(OPEN), None, None)
+    assert out.target_id == 4 and out.blacklisted == []
+
+
+def test_entry_point_needs_line_of_sight_on_the_grid():
+    # two parallel corridors' skeletons; a wall hides the nearer one from the robot
+    tp = topo([node(1, "end", -2, 1.0), node(2, "end", 2, 1.0), node(3, "end", -2, -1.5),
+               node(4, "end", 2, -1.5), node(5, "branch", -2.5, -0.25)],
+              [edge(1, 5, [(-2, 1.0), (-2.5, -0.25)]), edge(5, 3, [(-2.5, -0.25), (-2, -1.5)]),
+               edge(1, 2, [(-2, 1.0), (2, 1.0)]), edge(3, 4, [(-2, -1.5), (2, -1.5)])])
+    geom = GridGeometry(0.1, -4.0, -4.0, 80, 80)
+    grid = np.zeros((80, 80), dtype=np.int8)
+    grid[44:46, 20:70] = 100  # wall at y in [0.4, 0.6], x in [-2, 3]
+    pr = {1: 0.95, 2: 0.95, 3: 0.95, 4: 0.5}
+    out = PlannerCore(params()).update(0.0, (0.0, 0.0, 0.0), tp, rel(pr), grid, geom)
+    assert out.target_id == 4
+    assert out.waypoints[1] == pytest.approx((0.0, -1.5), abs=1e-6)  # joins the visible edge
+    out = PlannerCore(params()).update(0.0, (0.0, 0.0, 0.0), tp, rel(pr), None, None)
+    assert out.waypoints[1] == pytest.approx((0.0, 1.0), abs=1e-6)  # no grid: nearest point
+
+
+def test_bad_inputs_raise_value_errors():
+    core = PlannerCore(params())
+    with pytest.raises(PlannerInputError):
+        core.update(float("nan"), POSE, None, None, None, None)
+    with pytest.raises(PlannerInputError):
+        core.update(0.0, (0.0, 0.0), None, None, None, None)
+    with pytest.raises(PlannerInputError):
+        core.update(0.0, POSE, None, None, np.zeros((3, 3), np.int8), None)
+    with pytest.raises(PlannerInputError):
+        core.update(0.0, POSE, None, None, np.zeros((3, 4), np.int8),
+                    GridGeometry(0.1, 0, 0, 3, 3))
+    with pytest.raises(ValueError):
+        PlannerCore(params(strategy="random"))
+    with pytest.raises(ValueError):
+        PlannerCore(params(switch_ratio=1.5))
+
+
+def test_astar_matches_single_source_search():
+    tp = u_graph()
+    index = gr.build_index(tp, 0.25)
+    entry = gr.find_entry(index, 0.3, 1.0)
+    dist, _ = gr.search_from_entry(index, entry)
+    for i in (3, 4, 5):
+        assert gr.astar_cost(index, entry, i) == pytest.approx(dist[i])
+    assert dist[3] == pytest.approx(0.3 + 3.0 + 2.0 + 3.5)
+
+
+# --- all-end-nodes ---------------------------------------------------------------------------
+
+
+def test_all_end_nodes_visits_reliable_nodes_and_marks_visited():
+    core = PlannerCore(params(strategy="all-end-nodes"))
+    allrel = {3: 0.99, 4: 0.99, 5: 0.99}
+    out = core.update(0.0, POSE, u_graph(), rel(allrel), None, None)
+    assert out.state == "exploring" and out.target_id == 4 and out.target_p == 0.0
+    out = core.update(1.0, (-2.6, 0.0, math.pi), u_graph(), rel(allrel), None, None)
+    assert out.target_id == 5 and "visited" in out.reason  # came within 0.5 m of node 4
+    # node 4 moves a little but stays within visit_radius of where the robot was: still visited
+    tp = u_graph()
+    tp.nodes[4] = node(4, "end", -3.05, 0)
+    tp.edges[3] = edge(0, 4, [(0, 0), (-3.05, 0)])
+    out = core.update(2.0, (0.0, -4.8, -math.pi / 2), tp, rel(allrel), None, None)
+    assert out.target_id == 3
+    out = core.update(3.0, (2.0, 0.6, -math.pi / 2), tp, rel(allrel), None, None)
+    assert out.state == "done" and "all 3 reachable end nodes visited" in out.reason
+
+
+# --- frontier --------------------------------------------------------------------------------
+
+
+def half_known_room():
+    """6 m x 6 m room with walls; the left half is known free, the right half unknown."""
+    geom = GridGeometry(0.1, 0.0, 0.0, 60, 60)
+    g = np.full((60, 60), -1, dtype=np.int8)
+    g[:, :30] = 0
+    g[0, :30] = 100
+    g[-1, :30] = 100
+    g[:, 0] = 100
+    return g, geom
+
+
+def test_frontier_goal_at_the_frontier_with_grid_path_length():
+    g, geom = half_known_room()
+    core = PlannerCore(params(strategy="frontier"))
+    out = core.update(0.0, (1.05, 3.05, 0.0), None, None, g, geom)
+    assert out.state == "exploring" and out.target_id == -1
+    gx, gy = out.target_xy
+    assert gx == pytest.approx(2.95)  # the last known free column, next to unknown
+    assert 2.5 < gy < 3.5  # the reachable cell nearest the centroid of the frontier group
+    wps = np.asarray(out.waypoints)
+    assert tuple(wps[0]) == pytest.approx((1.05, 3.05)) and tuple(wps[-1]) == pytest.approx(
+        (gx, gy))
+    length = float(np.sum(np.hypot(*np.diff(wps, axis=0).T)))
+    assert length == pytest.approx(math.hypot(gx - 1.05, gy - 3.05), abs=0.15)
+    assert "frontier" in out.reason
+
+
+def test_frontier_path_goes_around_a_wall():
+    g, geom = half_known_room()
+    g[1:50, 15] = 100  # wall with a gap at the top (rows 50..58)
+    search = fr.grid_search(g, geom, 0.55, 1.05, 0.2)
+    groups, _ = fr.find_frontiers(g, geom, search, 0.5, 3.0, 1.0)
+    assert len(groups) == 1
+    core = PlannerCore(params(strategy="frontier"))
+    out = core.update(0.0, (0.55, 1.05, 0.0), None, None, g, geom)
+    wps = np.asarray(out.waypoints)
+    length = float(np.sum(np.hypot(*np.diff(wps, axis=0).T)))
+    assert groups[0].path_length > 6.0  # around the wall, not the 2.4 m straight line
+    assert length == pytest.approx(groups[0].path_length, rel=0.1)
+    assert wps[:, 1].max() > 5.0  # through the gap
+
+
+def test_frontier_start_cell_unknown_and_done_when_no_frontier():
+    g, geom = half_known_room()
+    g[29:32, 9:12] = -1  # the robot's own cells are still unknown (enclosed: a tiny hole)
+    out = PlannerCore(params(strategy="frontier")).update(0.0, (1.05, 3.05, 0.0), None, None,
+                                                         g, geom)
+    assert out.state == "exploring" and out.waypoints
+    full = np.zeros((60, 60), dtype=np.int8)
+    full[0, :] = full[-1, :] = full[:, 0] = full[:, -1] = 100
+    core = PlannerCore(params(strategy="frontier"))
+    out = core.update(0.0, (1.05, 3.05, 0.0), None, None, full, geom)
+    assert out.state == "done" and out.waypoints == [] and "no frontier" in out.reason
+    out = core.update(0.0, (1.05, 3.05, 0.0), None, None, None, None)
+    assert out.state == "exploring" and "waiting for map" in out.reason
+
+
+def test_frontier_drops_small_groups_and_blacklists_a_stuck_goal():
+    g, geom = half_known_room()
+    g[1:59, 29] = 100  # wall the right side off ...
+    g[30:33, 29] = 0  # ... except a 0.3 m hole: a frontier of 3 cells < 0.5 m
+    out = PlannerCore(params(strategy="frontier")).update(0.0, (1.05, 3.05, 0.0), None, None,
+                                                         g, geom)
+    assert out.state == "done" and "shorter than 0.5 m" in out.reason
+    g, geom = half_known_room()
+    core = PlannerCore(params(strategy="frontier", progress_timeout=5.0, max_attempts=1))
+    out = core.update(0.0, (1.05, 3.05, 0.0), None, None, g, geom)
+    for k in range(1, 8):
+        out = core.update(float(k), (1.05, 3.05, 0.0), None, None, g, geom)
+    assert out.blacklisted == [0] and out.state == "done" and "blacklisted" in out.reason
+
+
+def test_frontier_undecided_band_counts_as_unknown_but_wall_specks_do_not():
+    g, geom = half_known_room()
+    g[:, 30:33] = 50  # once-seen band between free and never-seen space
+    g[20, 5] = 50  # an undecided speck enclosed by free cells
+    free = (g >= 0) & (g < 35)
+    unk = fr.unknown_mask(g)
+    assert unk[:, 30:33].all() and not unk[20, 5]
+    fm = fr.frontier_mask(free, unk)
+    assert fm[5:55, 29].all() and not fm[19:22, 4:7].any()
