@@ -60,6 +60,7 @@ __all__ = [
     "clearance",
     "pick_start_pose",
     "solid_to_boxes",
+    "map_grid_to_solid",
 ]
 
 ROBOT_RADIUS = 0.2  # [m] robot size used to validate start poses (paper: Pioneer 2DX)
@@ -112,8 +113,8 @@ def builtin_worlds() -> dict[str, str]:
             data = tomllib.loads(p.read_text())
         except (OSError, tomllib.TOMLDecodeError):
             continue
-        out[p.stem] = str(data.get("description", "")).splitlines()[0] if data.get(
-            "description") else ""
+        desc = str(data.get("description", "")).strip()
+        out[p.stem] = desc.splitlines()[0] if desc else ""
     return out
 
 
