@@ -90,6 +90,10 @@ class Monitor:
     ever_reliable: dict[int, bool] = field(default_factory=dict)
     targets: list[int] = field(default_factory=list)
     event: threading.Event = field(default_factory=threading.Event)
+    # coverage over distance: (sim_time, path_length, coverage), sampled on map updates
+    timeline: list[tuple[float, float, float]] = field(default_factory=list)
+    coverage_fn: Any = None
+    sample_every: float = 0.25  # [m] of travel (and at least every 5 s of sim time)
 
     def on_status(self, msg: m.ExploreStatus) -> None:
         with self.lock:
@@ -142,6 +146,15 @@ class Monitor:
     def on_map(self, msg: m.OccupancyGrid) -> None:
         with self.lock:
             self.grid = msg
+            sim = self.sim
+            last = self.timeline[-1] if self.timeline else None
+        if self.coverage_fn is None or sim is None:
+            return
+        if last is None or sim.path_length - last[1] >= self.sample_every \
+                or sim.sim_time - last[0] >= 5.0:
+            cov = self.coverage_fn(msg)
+            with self.lock:
+                self.timeline.append((sim.sim_time, sim.path_length, cov))
 
 
 class Truth:
@@ -230,6 +243,10 @@ def write_outputs(out: Path, report: dict, mon: Monitor, truth: Truth, p: Params
 
     out.mkdir(parents=True, exist_ok=True)
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
+    with (out / "timeline.csv").open("w") as f:
+        f.write("sim_time_s,path_length_m,coverage\n")
+        for t, d, c in mon.timeline:
+            f.write(f"{t:.2f},{d:.3f},{c:.4f}\n")
     with (out / "trail.csv").open("w") as f:
         f.write("x,y,segment\n")
         for x, y, s in mon.trail:
@@ -326,6 +343,7 @@ def run(args: argparse.Namespace) -> int:
     old_int = signal.signal(signal.SIGINT, on_signal)
     old_term = signal.signal(signal.SIGTERM, on_signal)
     mon = Monitor()
+    mon.coverage_fn = lambda g: truth.coverage(g, params)
     bus: Bus | None = None
     t0 = time.monotonic()
     finished, reason = False, ""
@@ -407,6 +425,8 @@ def run(args: argparse.Namespace) -> int:
         logf.close()
     with mon.lock:
         coverage = truth.coverage(mon.grid, params)
+        if sim is not None:
+            mon.timeline.append((sim.sim_time, sim.path_length, coverage))
         accuracy = truth.accuracy(mon.grid, params)
         report = make_report(world=args.world, strategy=args.strategy, seed=args.seed,
                              finished=finished, stop_reason=reason, mon=mon, sim=sim, wall=wall,
