@@ -301,7 +301,8 @@ def format_scalar(v: Any) -> str:
             return ".nan"
         if math.isinf(v):
             return ".inf" if v > 0 else "-.inf"
-        return repr(v)
+        # drop binary noise (9.350000000000001 -> 9.35) but keep ns of wall-clock stamps
+        return repr(v) if v == 0.0 or abs(v) < 1e-3 else repr(round(v, 9))
     if isinstance(v, Summary):
         return str(v)
     if isinstance(v, str):
@@ -734,6 +735,10 @@ def cmd_list(args: argparse.Namespace, bus: Bus, keys: Keys, stop: _Stop) -> int
     for r in rows:
         if r["bad"]:
             _out(f"  {short_key(r['key'], base)}: last error: {r['last_error']}")
+    if not rows and not services:
+        hint = "" if args.all_robots else " or --all-robots"
+        _out(f"nothing under {base}/: is the stack running there? (check --namespace/--robot"
+             f"{hint}, --connect)")
     return 0
 
 

@@ -115,6 +115,8 @@ def test_format_yaml_and_json():
     assert "pts: [[1.0, 2.0]]" in lines and "empty: []" in lines
     assert 's: "two words"' in lines and "r: .inf" in lines and "ok: true" in lines
     assert format_yaml(3.5) == ["3.5"]
+    assert format_yaml({"x": 9.350000000000001, "t": 1712345678.25, "e": 1e-12}) == [
+        "x: 9.35", "t: 1712345678.25", "e: 1e-12"]  # binary noise dropped, precision kept
     j = json.loads(json.dumps(to_jsonable({"r": math.inf, "b": b"\x01\x02", 1: Summary("<x>")})))
     assert j == {"r": "inf", "b": "AQI=", "1": "<x>"}
     table = format_table(["KEY", "HZ"], [["scan", 20.0], ["map", None]]).splitlines()
