@@ -240,7 +240,7 @@ class Bus:
                 params = str(query.parameters) if query.parameters is not None else ""
                 value = handler(params)
                 payload = value if isinstance(value, bytes) else msgspec.msgpack.encode(value)
-                query.reply(query.key_expr, payload, encoding=MSGPACK)
+                query.reply(key, payload, encoding=MSGPACK)  # our own key, not a wildcard
             except Exception as exc:
                 log.exception("state query failed: %s", exc)
                 try:
