@@ -134,6 +134,8 @@ class PlannerParams(_P):
     waypoint_spacing: float = 0.25  # [m] path polylines thinned to about this spacing
     path_tolerance: float = 0.4  # [m] a remaining waypoint this far off the skeleton -> new path
     frontier_match_radius: float = 1.0  # [m] frontier group this close to the goal stays target
+    done_confirm: int = 2  # consecutive updates without any candidate before reporting done
+    tip_length: float = 0.3  # [m] last part of an edge into an end node that may be narrow
 
 
 class ControllerParams(_P):
@@ -263,7 +265,10 @@ def _validate(p: Params) -> None:
         raise ParamError("planner.max_attempts must be >= 1")
     if not 0 < pl.switch_ratio <= 1:
         raise ParamError("planner.switch_ratio must be in (0, 1]")
-    for name in ("clearance_margin", "tie_tolerance", "min_frontier_size", "gain_scale"):
+    if pl.done_confirm < 1:
+        raise ParamError("planner.done_confirm must be >= 1")
+    for name in ("clearance_margin", "tie_tolerance", "min_frontier_size", "gain_scale",
+                 "tip_length"):
         v = getattr(pl, name)
         if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
             raise ParamError(f"planner.{name} must be a finite number >= 0 (got {v!r})")

@@ -50,7 +50,8 @@ def rel(pmap):
 
 
 def params(**kw):
-    return msgspec.structs.replace(PlannerParams(), **kw)
+    """Planner params; done is reported at once (done_confirm=1) unless a test says otherwise."""
+    return msgspec.structs.replace(PlannerParams(), **{"done_confirm": 1, **kw})
 
 
 def u_graph(narrow_to_4=False):
@@ -102,7 +103,36 @@ def test_no_end_nodes_is_done_only_after_a_reliability_update():
     out = core.update(0.0, POSE, loop, None, None, None)
     assert out.state == "exploring" and "waiting" in out.reason
     out = core.update(0.2, POSE, loop, rel({}), None, None)
+    assert out.state == "exploring" and "waiting" in out.reason  # no *earlier* reliability
+    out = core.update(0.4, POSE, loop, rel({}), None, None)
     assert out.state == "done" and "no end nodes" in out.reason
+
+
+def test_empty_topo_waits_and_done_needs_confirmation():
+    core = PlannerCore(params(done_confirm=2))
+    empty = topo([], [])
+    for k in range(3):
+        out = core.update(0.2 * k, POSE, empty, rel({}), None, None)
+        assert out.state == "exploring" and "empty" in out.reason
+    allrel = {3: 0.95, 4: 0.95, 5: 0.95}
+    out = core.update(1.0, POSE, u_graph(), rel(allrel), None, None)
+    assert out.state == "exploring" and out.waypoints == [] and "confirming (1/2)" in out.reason
+    out = core.update(1.2, POSE, u_graph(), rel(OPEN), None, None)
+    assert out.state == "exploring" and out.target_id == 4  # a candidate resets the count
+    out = core.update(1.4, POSE, u_graph(), rel(allrel), None, None)
+    assert out.state == "exploring" and out.waypoints == []
+    out = core.update(1.6, POSE, u_graph(), rel(allrel), None, None)
+    assert out.state == "done"
+
+
+def test_failed_only_when_the_robot_cannot_join_the_skeleton_for_a_while():
+    core = PlannerCore(params(progress_timeout=10.0))
+    narrow = u_graph()
+    narrow.edges = [msgspec.structs.replace(e, clearance=0.1) for e in narrow.edges]
+    out = core.update(0.0, POSE, narrow, rel(OPEN), None, None)
+    assert out.state == "exploring" and out.waypoints == [] and "cannot join" in out.reason
+    out = core.update(10.0, POSE, narrow, rel(OPEN), None, None)
+    assert out.state == "failed" and "clearance" in out.reason
 
 
 def test_picks_nearest_by_path_cost_not_straight_line():
@@ -394,3 +424,50 @@ def test_frontier_undecided_band_counts_as_unknown_but_wall_specks_do_not():
     assert unk[:, 30:33].all() and not unk[20, 5]
     fm = fr.frontier_mask(free, unk)
     assert fm[5:55, 29].all() and not fm[19:22, 4:7].any()
+
+
+def corridor_grid():
+    """Corridor x in [0, 6], y in [0, 1] (walls one cell thick around it), all known."""
+    geom = GridGeometry(0.1, -1.0, -1.0, 90, 40)
+    g = np.full((40, 90), -1, dtype=np.int8)
+    g[9:21, 9:71] = 100
+    g[10:20, 10:70] = 0  # free: x in [0, 6), y in [0, 1)
+    return g, geom
+
+
+def test_grid_clearance_lets_the_robot_into_a_dead_end_but_not_through_a_gap():
+    g, geom = corridor_grid()
+    # leaf edge to a dead-end corner: the message says 0.2 m (its tip), the grid agrees only
+    # at the tip; the path stops where the corridor narrows, within tip_length of the node
+    tp = topo([node(1, "end", 0.5, 0.5), node(2, "end", 5.85, 0.85)],
+              [edge(1, 2, [(0.5, 0.5), (5.5, 0.5), (5.85, 0.85)], clearance=0.2)])
+    core = PlannerCore(params())
+    out = core.update(0.0, (0.5, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), g, geom)
+    assert out.target_id == 2, out.reason
+    end = np.asarray(out.waypoints[-1])
+    assert 0.0 < np.hypot(*(end - (5.85, 0.85))) <= 0.3 + 1e-6
+    # without a grid the message's clearance (0.2 m < 0.25 m) rules: no way onto the skeleton
+    out = PlannerCore(params()).update(0.0, (0.5, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), None,
+                                       None)
+    assert out.target_id == -1 and out.waypoints == [] and "cannot join" in out.reason
+    # a 0.3 m wide door in the middle of the corridor: not passable whatever the message says
+    g[10:17, 30] = 100  # wall at x in [2.0, 2.1] except y in [0.7, 1.0]
+    tp2 = topo([node(1, "end", 0.5, 0.5), node(0, "branch", 1.0, 0.5), node(2, "end", 5.5, 0.5)],
+               [edge(1, 0, [(0.5, 0.5), (1.0, 0.5)]),
+                edge(0, 2, [(1.0, 0.5), (1.9, 0.5), (2.05, 0.85), (2.2, 0.5), (5.5, 0.5)])])
+    core = PlannerCore(params())
+    out = core.update(0.0, (0.6, 0.5, 0.0), tp2, rel({1: 0.95, 2: 0.5}), g, geom)
+    assert out.state == "done" and "unreachable" in out.reason and "2" in out.reason
+    g[10:17, 30] = 0  # door gone, the skeleton runs down the middle: reachable
+    tp2.edges[1] = edge(0, 2, [(1.0, 0.5), (5.5, 0.5)], clearance=0.2)
+    out = core.update(0.2, (0.6, 0.5, 0.0), tp2, rel({1: 0.95, 2: 0.5}), g, geom)
+    assert out.target_id == 2
+
+
+def test_trim_narrow_tip_keeps_the_wide_part():
+    pts = np.array([[0.0, 0.0], [1.0, 0.0], [1.1, 0.0], [1.2, 0.0], [1.3, 0.0]])
+    clear = lambda p: np.where(p[:, 0] > 1.05, 0.1, 0.5)  # noqa: E731
+    out = gr.trim_narrow_tip(pts, clear, 0.25, 0.3)
+    assert out.tolist() == [[0.0, 0.0], [1.0, 0.0]]
+    out = gr.trim_narrow_tip(pts, clear, 0.25, 0.15)  # narrow for longer than the tip: keep
+    assert len(out) == len(pts) - 2 or len(out) == len(pts)

@@ -133,7 +133,8 @@ def check_params(p: PlannerParams) -> None:
         v = getattr(p, name)
         if not (math.isfinite(v) and v > 0):
             raise PlannerInputError(f"planner.{name} must be > 0 (got {v!r})")
-    for name in ("clearance_margin", "tie_tolerance", "min_frontier_size", "gain_scale"):
+    for name in ("clearance_margin", "tie_tolerance", "min_frontier_size", "gain_scale",
+                 "tip_length"):
         v = getattr(p, name)
         if not (math.isfinite(v) and v >= 0):
             raise PlannerInputError(f"planner.{name} must be >= 0 (got {v!r})")
@@ -143,6 +144,8 @@ def check_params(p: PlannerParams) -> None:
         raise PlannerInputError(f"planner.switch_ratio must be in (0, 1] (got {p.switch_ratio})")
     if p.max_attempts < 1:
         raise PlannerInputError(f"planner.max_attempts must be >= 1 (got {p.max_attempts})")
+    if p.done_confirm < 1:
+        raise PlannerInputError(f"planner.done_confirm must be >= 1 (got {p.done_confirm})")
 
 
 def angle_diff(a: float, b: float) -> float:
@@ -168,7 +171,10 @@ class PlannerCore:
         self._attempts: list[_Mark] = []
         self._track: list[tuple[float, float]] = []
         self._track_arr = np.zeros((0, 2))
-        self._rel_seen = False
+        self._rel_updates = 0  # updates that came with a reliability message
+        self._rel_before = 0  # ... counted before the current update
+        self._no_cand = 0  # consecutive updates without a candidate
+        self._fail_since: float | None = None  # [s] since when the robot cannot plan at all
         self._last_t: float | None = None
         self._last_eval_t = -math.inf
         self._had_path = False
@@ -190,15 +196,17 @@ class PlannerCore:
                 self._target.progress_t = t
                 self._target.arrived_t = None
         self._last_t = t
+        self._rel_before = self._rel_updates
         if rel is not None:
-            self._rel_seen = True
+            self._rel_updates += 1
         self._record(x, y)
         if self.p.strategy == "frontier":
             ev = self._eval_frontier(x, y, topo, rel, grid_int8, geom, p_free, p_occ)
         else:
-            ev = self._eval_topo(x, y, topo, rel, grid_int8, geom, p_free)
+            ev = self._eval_topo(x, y, topo, rel, grid_int8, geom, p_free, p_occ)
         if ev.waiting is not None:
             self._target = None
+            self._no_cand = 0
             return self._emit(t, "exploring", ev.waiting, ev, 0)
         out = self._decide(t, x, y, th, ev)
         return out
@@ -275,21 +283,28 @@ class PlannerCore:
 
     # --- strategies --------------------------------------------------------------------------
 
-    def _eval_topo(self, x, y, topo, rel, grid, geom, p_free) -> _Eval:
+    def _eval_topo(self, x, y, topo, rel, grid, geom, p_free, p_occ) -> _Eval:
         p = self.p
         reliability = p.strategy == "reliability"
         if topo is None:
             return _Eval(waiting="waiting for topo")
         if reliability and rel is None:
             return _Eval(waiting="waiting for reliability")
+        need = p.robot_radius + p.clearance_margin
+        clearance_at = None
+        if grid is not None:
+            occ = classify(grid, p_free, p_occ) == OCCUPIED
+            clearance_at = gr.grid_clearance(fr.clearance_map(occ, geom.resolution), geom)
         try:
-            index = gr.build_index(topo, p.robot_radius + p.clearance_margin)
+            index = gr.build_index(topo, need, clearance_at, p.tip_length)
         except gr.GraphInputError as exc:
             raise PlannerInputError(str(exc)) from None
         ends = index.end_ids()
-        if not ends and not self._rel_seen:
-            return _Eval(waiting="waiting: the topo has no end nodes yet and no reliability "
-                                 "update arrived")
+        if not index.nodes:
+            return _Eval(waiting="waiting: the topological map is empty")
+        if not ends and self._rel_before == 0:
+            return _Eval(waiting="waiting: the topo has no end nodes yet and no earlier "
+                                 "reliability update")
         pmap = {n.id: float(n.p) for n in rel.nodes} if rel is not None else {}
 
         def prob(i: int) -> float:
@@ -318,8 +333,13 @@ class PlannerCore:
             if i not in dist:
                 unreachable.append(i)
                 continue
-            c = _Cand(i, nx, ny, dist[i], dist[i], 1.0, prob(i) if reliability else 0.0,
-                      (lambda i=i: gr.path_points(index, entry, pred, i)),
+            def path(i=i):
+                pts = gr.path_points(index, entry, pred, i)
+                if clearance_at is None:
+                    return pts
+                return gr.trim_narrow_tip(pts, clearance_at, need, p.tip_length)
+
+            c = _Cand(i, nx, ny, dist[i], dist[i], 1.0, prob(i) if reliability else 0.0, path,
                       label=(f"end node {i} (P={prob(i):.2f})" if reliability
                              else f"end node {i}"))
             if self._blacklisted(c):
@@ -328,8 +348,9 @@ class PlannerCore:
             ev.cands.append(c)
         if entry is None and open_ids:
             ev.failed = (f"cannot join the skeleton: no edge with clearance >= "
-                         f"{p.robot_radius + p.clearance_margin:.2f} m; {len(open_ids)} end "
-                         f"node(s) still open (ids {_ids(open_ids)})")
+                         f"{p.robot_radius + p.clearance_margin:.2f} m (of {len(index.narrow)} "
+                         f"narrow); {len(open_ids)} end node(s) still open "
+                         f"(ids {_ids(open_ids)})")
         reach = [i for i in ends if i in dist]
         if reliability:
             ok = [i for i in reach if prob(i) >= thr]
@@ -566,14 +587,40 @@ class PlannerCore:
             self._last_eval_t = t
         tg = self._target
         if tg is None:
-            if ev.failed is not None:
-                return self._emit(t, "failed", "; ".join(notes + [ev.failed]), ev, 0)
-            return self._emit(t, "done", "; ".join(notes + [ev.done]), ev, 0)
+            return self._no_target(t, ev, notes)
+        self._no_cand = 0
+        self._fail_since = None
         c = tg.cand
         head = f"target {c.label}: {tg.why}; path {c.dist:.1f} m; {len(cands)} candidate(s)"
         if self._blacklist:
             notes.append(f"blacklisted: {_ids([b.id for b in self._blacklist])}")
         return self._emit(t, "exploring", "; ".join([head] + notes), ev, len(cands))
+
+    def _no_target(self, t: float, ev: _Eval, notes: list[str]) -> PlanOutput:
+        """Stop; report done / failed only once the situation is confirmed.
+
+        done needs done_confirm consecutive updates without a candidate (one odd topology
+        update must not end the run); failed (the robot cannot join the skeleton / free space)
+        needs to last progress_timeout s.
+        """
+        p = self.p
+        if ev.failed is not None:
+            self._no_cand = 0
+            if self._fail_since is None:
+                self._fail_since = t
+            waited = t - self._fail_since
+            if waited >= p.progress_timeout:
+                return self._emit(t, "failed", "; ".join(notes + [ev.failed]), ev, 0)
+            return self._emit(t, "exploring", "; ".join(notes + [
+                f"{ev.failed} (for {waited:.1f} s; failed after {p.progress_timeout:g} s)"]),
+                ev, 0)
+        self._fail_since = None
+        self._no_cand += 1
+        if self._no_cand >= p.done_confirm:
+            return self._emit(t, "done", "; ".join(notes + [ev.done]), ev, 0)
+        return self._emit(t, "exploring", "; ".join(notes + [
+            f"no candidate left, confirming ({self._no_cand}/{p.done_confirm}): {ev.done}"]),
+            ev, 0)
 
     def _step_target(self, t, x, y, th, tg: _Target, c: _Cand, cands, ev: _Eval,
                      notes: list[str]):
@@ -590,7 +637,7 @@ class PlannerCore:
         elif rem < tg.best_rem - p.progress_distance:
             tg.best_rem = rem
             tg.progress_t = t
-        if math.hypot(x - c.x, y - c.y) <= p.goal_tolerance:
+        if math.hypot(x - tg.wps[-1, 0], y - tg.wps[-1, 1]) <= p.goal_tolerance:
             if tg.arrived_t is None:
                 tg.arrived_t = t
         else:
@@ -618,7 +665,8 @@ class PlannerCore:
         if t - self._last_eval_t >= p.replan_period:
             self._last_eval_t = t
             best, _ = self._choose(cands, x, y, th)
-            if not self._same(best, c) and best.cost < c.cost - (1 - p.switch_ratio) * c.scale * c.dist:
+            margin = (1 - p.switch_ratio) * c.scale * c.dist
+            if not self._same(best, c) and best.cost < c.cost - margin:
                 return "switch", best
             if c.dist < p.switch_ratio * rem - 1e-9:
                 notes.append(f"shorter path to the target ({c.dist:.1f} m < "

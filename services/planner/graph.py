@@ -108,9 +108,18 @@ def _edge_polyline(e: m.TopoEdge, pa: tuple[float, float], pb: tuple[float, floa
     return pts
 
 
-def build_index(topo: m.TopoGraph, min_clearance: float) -> TopoIndex:
+def build_index(topo: m.TopoGraph, min_clearance: float,
+                clearance_at: Callable[[np.ndarray], np.ndarray] | None = None,
+                tip_length: float = 0.0) -> TopoIndex:
     """TopoGraph -> TopoIndex. Edges with clearance < min_clearance [m] are not traversable.
 
+    The clearance is the edge's own ``clearance`` field, or, when ``clearance_at(points)``
+    (clearance [m] at each point) is given, its least value along the polyline leaving out the
+    last ``tip_length`` [m] next to an end node. The planner passes the distance to the nearest
+    *occupied* cell: a gap is narrow between obstacles (the message's clearance also counts
+    unknown cells, so every leaf edge ending at the edge of the known map would look narrow),
+    and a skeleton tip in a dead-end corner is always close to the walls, yet the robot only
+    needs to get near the end node (:func:`trim_narrow_tip` stops the path there).
     Self-loops are dropped (never on a shortest path). Raises GraphInputError if an edge refers
     to a node that is not in the graph.
     """
@@ -127,8 +136,17 @@ def build_index(topo: m.TopoGraph, min_clearance: float) -> TopoIndex:
             continue
         pts = _edge_polyline(e, nodes[e.a][1:], nodes[e.b][1:])
         cum = polyline_lengths(pts)
-        ok = e.clearance + 1e-9 >= min_clearance
-        edge = Edge(len(edges) if ok else len(narrow), e.a, e.b, pts, cum, float(e.clearance))
+        if clearance_at is None:
+            clear = float(e.clearance)
+        else:
+            lo = tip_length if nodes[e.a][0] == "end" else 0.0
+            hi = cum[-1] - (tip_length if nodes[e.b][0] == "end" else 0.0)
+            keep = (cum >= lo - 1e-9) & (cum <= hi + 1e-9)
+            if not np.any(keep):  # short edge: judge it by its middle point
+                keep = np.abs(cum - 0.5 * cum[-1]) == np.abs(cum - 0.5 * cum[-1]).min()
+            clear = float(np.min(clearance_at(pts[keep])))
+        ok = clear + 1e-9 >= min_clearance
+        edge = Edge(len(edges) if ok else len(narrow), e.a, e.b, pts, cum, clear)
         if not ok:
             narrow.append(edge)
             continue
@@ -341,3 +359,37 @@ def thin_polyline(pts: np.ndarray, spacing: float, max_deviation: float = 0.05) 
         kept.pop()
     kept.append(n - 1)
     return pts[kept]
+
+
+def grid_clearance(clearance: np.ndarray, geom: GridGeometry
+                   ) -> Callable[[np.ndarray], np.ndarray]:
+    """clearance_at for :func:`build_index`: a clearance map [m] (distance to the nearest
+    occupied cell) looked up at (n, 2) points [m]; points outside the grid get inf.
+    """
+
+    def clearance_at(pts: np.ndarray) -> np.ndarray:
+        pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+        rows, cols = geom.world_to_cell(pts[:, 0], pts[:, 1])
+        inside = geom.inside(rows, cols)
+        out = np.full(len(pts), np.inf)
+        out[inside] = clearance[rows[inside], cols[inside]]
+        return out
+
+    return clearance_at
+
+
+def trim_narrow_tip(pts: np.ndarray, clearance_at: Callable[[np.ndarray], np.ndarray],
+                    min_clearance: float, tip_length: float) -> np.ndarray:
+    """Cut the end of a path where it is narrower than min_clearance [m], at most the last
+    tip_length [m] (the skeleton tip in a dead-end corner); at least the first point stays.
+    """
+    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+    if len(pts) < 2 or tip_length <= 0:
+        return pts
+    c = clearance_at(pts)
+    cum = polyline_lengths(pts)
+    from_end = cum[-1] - cum
+    k = len(pts) - 1
+    while k > 0 and c[k] + 1e-9 < min_clearance and from_end[k] <= tip_length + 1e-9:
+        k -= 1
+    return pts[:k + 1]
