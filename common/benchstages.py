@@ -1,0 +1,281 @@
+"""Compute-stage benchmark: mapper and topology cores on synthetic office-like maps.
+
+Run: ``.venv/bin/python -m common.benchstages [--sizes 100 300 1000] [--repeats 3]``
+
+Maps are generated here (rooms along 2 m corridors, doors, tables, a few 1-cell chair legs; 0.1 m
+cells, n x n cells). A robot drives a route along the corridors; every pose gives a simulated
+181-beam scan (180 deg, 8 m, 1 cm noise) that the mapper core (``services.mapper.core``, imported
+lazily) fuses into a log-odds grid -- the "noisy" map.
+
+- mapper: time of ``MapperCore.integrate`` per scan.
+- topology: the robot first maps the first 60 % of its route (not timed), then one **cold**
+  full update of a fresh ``TopologyCore`` is timed (``cold_*``, repeated ``repeats`` times), and
+  then the robot keeps driving at 0.04 m per scan (0.2 m/s at 5 Hz, the paper's speed) into
+  unexplored corridor; ``median_ms``/``p99_ms`` are the per-scan ``update`` times of that core,
+  which may reuse its previous state (incremental work measured as it really happens).
+  ``clean_cold_ms``: a full update on the noise-free truth map (everything known).
+
+All times are wall-clock ``time.perf_counter`` medians / 99th percentiles in milliseconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+
+import numpy as np
+from numba import njit
+
+from common.grid import GridGeometry
+
+__all__ = ["office_truth", "office_route", "simulate_scan", "truth_to_grid", "bench_stages",
+           "format_table"]
+
+RES = 0.1  # [m/cell]
+CORRIDOR = 20  # [cells] 2 m corridors
+WALL = 2  # [cells]
+BLOCK = 120  # [cells] distance between corridor centre lines
+
+
+def office_truth(n: int, seed: int = 0) -> tuple[np.ndarray, list[int], list[int]]:
+    """Occupied-cell mask (n, n) of an office; returns (occ, corridor centre rows, vertical
+    corridor centre columns). Row = y, column = x, 0.1 m cells."""
+    if n < 60:
+        raise ValueError(f"office maps need n >= 60 cells (got {n})")
+    rng = np.random.default_rng(seed)
+    occ = np.zeros((n, n), bool)
+    block = BLOCK if n >= 2 * BLOCK else n
+    centres = list(range(block // 2, n - CORRIDOR, block))
+    half = CORRIDOR // 2
+    # horizontal band boundaries (room rows) between corridors and the outer walls
+    bounds = [WALL]
+    for c in centres:
+        bounds += [c - half - WALL, c + half + WALL]
+    bounds.append(n - WALL)
+    mids = [(centres[k] + centres[k + 1]) // 2 for k in range(len(centres) - 1)]
+    for mrow in mids:
+        occ[mrow - 1:mrow + 1, :] = True
+    for c in centres:
+        occ[c - half - WALL:c - half, :] = True
+        occ[c + half:c + half + WALL, :] = True
+    # room strips: (row0, row1, door wall row range, corridor side)
+    strips = []
+    for k, c in enumerate(centres):
+        lo = mids[k - 1] + 1 if k > 0 else WALL
+        hi = mids[k] - 1 if k < len(mids) else n - WALL
+        strips.append((lo, c - half - WALL, c - half - WALL, c - half))  # rooms below corridor
+        strips.append((c + half + WALL, hi, c + half, c + half + WALL))  # rooms above corridor
+    verts = [40 + half]
+    if n >= 200:
+        verts += list(range(340, n - 100, 300)) + [n - 60 + half]
+    verts = sorted(set(v for v in verts if v + half + WALL < n))
+    for r0, r1, d0, d1 in strips:
+        if r1 - r0 < 15:
+            continue
+        x = WALL
+        while x < n - WALL:
+            wdt = int(rng.integers(40, 71))
+            x1 = min(x + wdt, n - WALL)
+            if n - WALL - x1 < 25:
+                x1 = n - WALL
+            occ[r0:r1, x1 - 1:x1 + 1] = True  # wall on the room's right side
+            if x1 - x > 20:
+                door = int(rng.integers(x + 3, x1 - 12))
+                occ[d0:d1, door:door + 9] = False  # 0.9 m door
+                if rng.random() < 0.6 and x1 - x > 35 and r1 - r0 > 30:
+                    tw, th = int(rng.integers(8, 16)), int(rng.integers(6, 11))
+                    cx, cy = (x + x1) // 2, (r0 + r1) // 2
+                    occ[cy - th // 2:cy + th // 2, cx - tw // 2:cx + tw // 2] = True
+                for _ in range(int(rng.integers(0, 4))):  # chair legs, 1 cell
+                    occ[int(rng.integers(r0 + 3, r1 - 3)), int(rng.integers(x + 3, x1 - 3))] = True
+            x = x1 + 1
+    for v in verts:  # vertical corridors through every band
+        occ[WALL:n - WALL, v - half - WALL:v + half + WALL] = True
+        occ[WALL:n - WALL, v - half:v + half] = False
+    for c in centres:
+        occ[c - half:c + half, WALL:n - WALL] = False
+    occ[:WALL, :] = occ[-WALL:, :] = True
+    occ[:, :WALL] = occ[:, -WALL:] = True
+    return occ, centres, verts
+
+
+def office_route(n: int, centres: list[int], verts: list[int], step: float) -> np.ndarray:
+    """Poses (x, y, theta) every ``step`` [m] along a snake through the corridors."""
+    xl = (verts[0] if verts else 30) * RES + 0.05
+    xr = (verts[-1] if len(verts) > 1 else n - 30) * RES + 0.05
+    pts = []
+    for k, c in enumerate(centres):
+        y = c * RES
+        a, b = (xl, xr) if k % 2 == 0 else (xr, xl)
+        pts += [(a, y), (b, y)]
+    poses = []
+    for (x0, y0), (x1, y1) in zip(pts[:-1], pts[1:], strict=True):
+        d = math.hypot(x1 - x0, y1 - y0)
+        th = math.atan2(y1 - y0, x1 - x0)
+        for s in np.arange(0.0, d, step):
+            poses.append((x0 + (x1 - x0) * s / d, y0 + (y1 - y0) * s / d, th))
+    return np.asarray(poses)
+
+
+@njit(cache=True)
+def _raycast(occ, res, x, y, angles, rmax):  # pragma: no cover - compiled
+    h, w = occ.shape
+    out = np.full(angles.shape[0], rmax)
+    step = res * 0.25
+    for k in range(angles.shape[0]):
+        ca = math.cos(angles[k])
+        sa = math.sin(angles[k])
+        s = 0.0
+        while s < rmax:
+            c = int(math.floor((x + s * ca) / res))
+            r = int(math.floor((y + s * sa) / res))
+            if r < 0 or c < 0 or r >= h or c >= w or occ[r, c]:
+                out[k] = s
+                break
+            s += step
+    return out
+
+
+def simulate_scan(occ: np.ndarray, pose, rng: np.random.Generator, beams: int = 181,
+                  range_max: float = 8.0, noise: float = 0.01) -> np.ndarray:
+    """Ranges [m] of a forward 180-degree scan at ``pose`` in the truth map (origin 0, RES)."""
+    ang = pose[2] + np.linspace(-math.pi / 2, math.pi / 2, beams)
+    r = _raycast(occ, RES, float(pose[0]), float(pose[1]), ang, range_max)
+    hit = r < range_max
+    r[hit] = np.clip(r[hit] + rng.normal(0.0, noise, int(hit.sum())), 0.03, range_max - 1e-3)
+    return r
+
+
+def truth_to_grid(occ: np.ndarray) -> np.ndarray:
+    """Noise-free, fully known int8 grid (0 free, 100 occupied)."""
+    return np.where(occ, 100, 0).astype(np.int8)
+
+
+def _stats(samples: list[float]) -> dict[str, float]:
+    a = np.asarray(samples) * 1000.0
+    return {"median_ms": float(np.median(a)), "p99_ms": float(np.percentile(a, 99))}
+
+
+def _bench_size(n: int, repeats: int, stages: tuple[str, ...], seed: int) -> dict[str, dict]:
+    from common.params import MapperParams, TopologyParams
+    from services.topology.core import TopologyCore
+
+    occ, centres, verts = office_truth(n, seed)
+    geom = GridGeometry(RES, 0.0, 0.0, n, n)
+    out: dict[str, dict] = {}
+    try:
+        from services.mapper.core import MapperCore
+    except ImportError:
+        MapperCore = None  # noqa: N806
+    if MapperCore is None:
+        out["note"] = {"mapper": "services.mapper.core not importable: mapper stage skipped"}
+        return out
+    rng = np.random.default_rng(seed)
+    mp = MapperParams()
+    mapper = MapperCore.from_occupancy(np.full((n, n), -1, np.int8), geom, mp)
+    coarse = office_route(n, centres, verts, 0.3)
+    split = int(0.6 * len(coarse))
+    t_map: list[float] = []
+    ang_min, ang_inc = -math.pi / 2, math.pi / 180.0
+    for pose in coarse[:split]:
+        r = simulate_scan(occ, pose, rng)
+        t0 = time.perf_counter()
+        mapper.integrate(tuple(pose), r, ang_min, ang_inc, 0.02, 8.0)
+        t_map.append(time.perf_counter() - t0)
+    grid0 = mapper.occupancy(copy=True)
+    tp = TopologyParams()
+    res_topo: dict[str, float] = {}
+    if "topology" in stages:
+        cold = []
+        for _ in range(repeats):
+            core = TopologyCore(tp)
+            t0 = time.perf_counter()
+            core.update(grid0, geom, tuple(coarse[split - 1][:2]))
+            cold.append(time.perf_counter() - t0)
+        clean = truth_to_grid(occ)
+        cc = []
+        for _ in range(repeats):
+            c2 = TopologyCore(tp)
+            t0 = time.perf_counter()
+            r2 = c2.update(clean, geom, tuple(coarse[0][:2]))
+            cc.append(time.perf_counter() - t0)
+        res_topo.update({"cold_median_ms": float(np.median(cold) * 1000),
+                         "cold_p99_ms": float(np.percentile(cold, 99) * 1000),
+                         "clean_cold_ms": float(np.median(cc) * 1000),
+                         "clean_nodes": len(r2.nodes), "clean_edges": len(r2.edges)})
+    # continue driving at the paper's speed: 0.04 m per scan
+    start = coarse[split - 1]
+    fine = office_route(n, centres, verts, 0.04)
+    k0 = int(np.argmin(np.hypot(fine[:, 0] - start[0], fine[:, 1] - start[1])))
+    seq = fine[k0:k0 + max(40, 30 * repeats)]
+    t_topo: list[float] = []
+    last = None
+    for pose in seq:
+        r = simulate_scan(occ, pose, rng)
+        t0 = time.perf_counter()
+        mapper.integrate(tuple(pose), r, ang_min, ang_inc, 0.02, 8.0)
+        t_map.append(time.perf_counter() - t0)
+        if "topology" in stages:
+            g = mapper.occupancy()
+            t0 = time.perf_counter()
+            last = core.update(g, geom, (float(pose[0]), float(pose[1])))
+            t_topo.append(time.perf_counter() - t0)
+    if "mapper" in stages:
+        out["mapper"] = _stats(t_map) | {"scans": len(t_map)}
+    if "topology" in stages:
+        out["topology"] = _stats(t_topo) | res_topo | {
+            "scans": len(t_topo),
+            "nodes": len(last.nodes) if last else 0,
+            "edges": len(last.edges) if last else 0,
+            "core": core.snapshot()}
+    return out
+
+
+def bench_stages(sizes=(100, 300, 1000), repeats: int = 3, stages=("mapper", "topology"),
+                 seed: int = 0) -> dict:
+    """{stage: {"NxN": {"median_ms", "p99_ms", ...}}} (see module docstring)."""
+    stages = tuple(stages)
+    for s in stages:
+        if s not in ("mapper", "topology"):
+            raise ValueError(f"unknown stage {s!r} (use mapper, topology)")
+    if repeats < 1:
+        raise ValueError("repeats must be >= 1")
+    out: dict[str, dict] = {s: {} for s in stages}
+    for n in sizes:
+        res = _bench_size(int(n), repeats, stages, seed)
+        for k, v in res.items():
+            out.setdefault(k, {})[f"{n}x{n}"] = v
+    return out
+
+
+def format_table(results: dict) -> str:
+    """Plain-text table of :func:`bench_stages` results."""
+    lines = []
+    for stage, per in results.items():
+        if stage == "note":
+            for size, v in per.items():
+                lines.append(f"note {size}: {v}")
+            continue
+        lines.append(f"{stage}:")
+        lines.append(f"  {'size':>10} {'median ms':>10} {'p99 ms':>10}  extra")
+        for size, v in per.items():
+            extra = ", ".join(f"{k}={v[k]:.1f}" if isinstance(v[k], float) else f"{k}={v[k]}"
+                              for k in v if k not in ("median_ms", "p99_ms", "core"))
+            lines.append(f"  {size:>10} {v['median_ms']:>10.2f} {v['p99_ms']:>10.2f}  {extra}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[100, 300, 1000])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--stages", nargs="+", default=["mapper", "topology"])
+    a = ap.parse_args(argv)
+    res = bench_stages(tuple(a.sizes), a.repeats, tuple(a.stages))
+    print(format_table(res))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

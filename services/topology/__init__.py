@@ -1,0 +1,1 @@
+"""Topology service: thinning-based topological map (pure core in core.py)."""

@@ -1,0 +1,628 @@
+"""Skeleton -> topological graph kernels (numba, pure, no I/O).
+
+Paper §2.2 and Fig. 3: a skeleton pixel with one neighbour is an *end node*, with three or more a
+*branch node* (adjacent branch pixels form one node); a *corner node* is inserted where the
+straight line between two nodes is blocked, at the edge pixel farthest from that line.
+
+Conventions: skeleton/mask arrays are uint8 0/1 with a one-pixel zero border; pixels are handled
+as flat indices ``r * w + c`` into such an array. Node kinds: 0 end, 1 branch, 2 corner.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+__all__ = ["find_entry", "build_graph", "prune_spurs", "split_corners", "KIND_NAMES"]
+
+END, BRANCH, CORNER = 0, 1, 2
+KIND_NAMES = ("end", "branch", "corner")
+MIN_SELF_LOOP = 8  # self-loop edges with fewer pixels are thinning artefacts, not loops
+
+
+@njit(cache=True)
+def _nb(img, r, c):  # pragma: no cover - compiled
+    return (img[r - 1, c - 1] + img[r - 1, c] + img[r - 1, c + 1] + img[r, c - 1]
+            + img[r, c + 1] + img[r + 1, c - 1] + img[r + 1, c] + img[r + 1, c + 1])
+
+
+@njit(cache=True)
+def find_entry(mask, skel, r0, c0, max_steps):  # pragma: no cover - compiled
+    """Breadth-first search through ``mask`` (8-connected) from (r0, c0) to the nearest skeleton
+    pixel; returns its flat index or -1 (none within ``max_steps`` visited cells)."""
+    h, w = mask.shape
+    if mask[r0, c0] == 0:
+        return -1
+    start = r0 * w + c0
+    if skel[r0, c0]:
+        return start
+    seen = np.zeros(h * w, np.uint8)
+    q = np.empty(min(h * w, max_steps + 9), np.int64)
+    q[0] = start
+    seen[start] = 1
+    head = 0
+    n = 1
+    while head < n:
+        p = q[head]
+        head += 1
+        r = p // w
+        c = p - r * w
+        for dr in range(-1, 2):
+            for dc in range(-1, 2):
+                rr = r + dr
+                cc = c + dc
+                j = rr * w + cc
+                if mask[rr, cc] and not seen[j]:
+                    if skel[rr, cc]:
+                        return j
+                    seen[j] = 1
+                    if n < q.shape[0]:
+                        q[n] = j
+                        n += 1
+        if n >= q.shape[0]:
+            break
+    return -1
+
+
+@njit(cache=True)
+def component_peak(mask, dt, r0, c0):  # pragma: no cover - compiled
+    """Flat index of the cell with the largest ``dt`` in the 8-connected ``mask`` component of
+    (r0, c0). Used when thinning erased a whole component (Zhang-Suen removes 2x2 remnants)."""
+    h, w = mask.shape
+    seen = np.zeros(h * w, np.uint8)
+    q = np.empty(h * w, np.int64)
+    q[0] = r0 * w + c0
+    seen[q[0]] = 1
+    n = 1
+    head = 0
+    best = q[0]
+    bv = -1.0
+    while head < n:
+        p = q[head]
+        head += 1
+        r = p // w
+        c = p - r * w
+        if dt[r, c] > bv:
+            bv = dt[r, c]
+            best = p
+        for dr in range(-1, 2):
+            for dc in range(-1, 2):
+                j = (r + dr) * w + c + dc
+                if mask[r + dr, c + dc] and not seen[j]:
+                    seen[j] = 1
+                    q[n] = j
+                    n += 1
+    return best
+
+
+@njit(cache=True)
+def build_graph(skel, entry, seen, nodeid, buf):  # pragma: no cover - compiled
+    """Graph of the skeleton component containing flat pixel ``entry``.
+
+    ``seen`` (uint8, all 0) and ``nodeid`` (int32, all -1) are flat scratch arrays of the image
+    size; ``seen`` is restored on return, ``nodeid`` must be restored with :func:`reset_nodeid`
+    after the result has been used; ``buf`` is an int64 scratch array of the image size (this
+    keeps the cost proportional to the component, not to the image).
+
+    Returns (node_pix, node_kind, ea, eb, off, pix, nodeid, comp):
+    node_pix[k] representative pixel of node k (branch: cluster pixel nearest the centroid),
+    node_kind[k] 0/1/2, edge e goes from node ea[e] to eb[e] along pix[off[e]:off[e+1]] (both
+    node pixels included), nodeid[p] = node of pixel p or -1, comp = the component's pixels.
+    A cycle without any end/branch pixel gets one corner node (its smallest pixel) and a
+    self-loop edge.
+    """
+    h, w = skel.shape
+    comp = buf
+    comp[0] = entry
+    seen[entry] = 1
+    n = 1
+    head = 0
+    while head < n:
+        p = comp[head]
+        head += 1
+        r = p // w
+        c = p - r * w
+        for dr in range(-1, 2):
+            for dc in range(-1, 2):
+                rr = r + dr
+                cc = c + dc
+                j = rr * w + cc
+                if skel[rr, cc] and not seen[j]:
+                    seen[j] = 1
+                    comp[n] = j
+                    n += 1
+    comp = buf[:n].copy()
+    node_pix = np.empty(n, np.int64)
+    node_kind = np.empty(n, np.int8)
+    nn = 0
+    for k in range(n):
+        p = comp[k]
+        r = p // w
+        c = p - r * w
+        if _nb(skel, r, c) <= 1:
+            nodeid[p] = nn
+            node_pix[nn] = p
+            node_kind[nn] = END
+            nn += 1
+    q = np.empty(n, np.int64)
+    for k in range(n):
+        p = comp[k]
+        if nodeid[p] >= 0:
+            continue
+        r = p // w
+        c = p - r * w
+        if _nb(skel, r, c) < 3:
+            continue
+        nodeid[p] = nn
+        q[0] = p
+        m = 1
+        head = 0
+        sr = 0.0
+        sc = 0.0
+        while head < m:
+            x = q[head]
+            head += 1
+            xr = x // w
+            xc = x - xr * w
+            sr += xr
+            sc += xc
+            for dr in range(-1, 2):
+                for dc in range(-1, 2):
+                    rr = xr + dr
+                    cc = xc + dc
+                    j = rr * w + cc
+                    if skel[rr, cc] and nodeid[j] < 0 and _nb(skel, rr, cc) >= 3:
+                        nodeid[j] = nn
+                        q[m] = j
+                        m += 1
+        sr /= m
+        sc /= m
+        best = q[0]
+        bd = 1e18
+        for t in range(m):
+            x = q[t]
+            xr = x // w
+            xc = x - xr * w
+            d = (xr - sr) ** 2 + (xc - sc) ** 2
+            if d < bd:
+                bd = d
+                best = x
+        node_pix[nn] = best
+        node_kind[nn] = BRANCH
+        nn += 1
+    if nn == 0:  # an isolated cycle: give it a corner node so it is representable
+        p = comp.min()
+        nodeid[p] = 0
+        node_pix[0] = p
+        node_kind[0] = CORNER
+        nn = 1
+    node_pix = node_pix[:nn].copy()
+    node_kind = node_kind[:nn].copy()
+    # trace edges
+    cap = 3 * n + 24 * nn + 16
+    pix = np.empty(cap, np.int64)
+    off = np.empty(8 * nn + 2, np.int64)
+    ea = np.empty(8 * nn + 1, np.int32)
+    eb = np.empty(8 * nn + 1, np.int32)
+    ne = 0
+    npix = 0
+    off[0] = 0
+    for k in range(n):
+        p = comp[k]
+        a = nodeid[p]
+        if a < 0:
+            continue
+        r = p // w
+        c = p - r * w
+        for dr in range(-1, 2):
+            for dc in range(-1, 2):
+                if dr == 0 and dc == 0:
+                    continue
+                rr = r + dr
+                cc = c + dc
+                qq = rr * w + cc
+                if not skel[rr, cc]:
+                    continue
+                b = nodeid[qq]
+                if b >= 0:
+                    if b != a and p < qq:
+                        if node_pix[a] != p:
+                            pix[npix] = node_pix[a]
+                            npix += 1
+                        pix[npix] = p
+                        pix[npix + 1] = qq
+                        npix += 2
+                        if node_pix[b] != qq:
+                            pix[npix] = node_pix[b]
+                            npix += 1
+                        ea[ne] = a
+                        eb[ne] = b
+                        ne += 1
+                        off[ne] = npix
+                    continue
+                if seen[qq] == 2:
+                    continue
+                start = npix
+                if node_pix[a] != p:  # edges start and end at the node's own pixel
+                    pix[npix] = node_pix[a]
+                    npix += 1
+                pix[npix] = p
+                pix[npix + 1] = qq
+                npix += 2
+                seen[qq] = 2
+                prev = p
+                cur = qq
+                ok = True
+                while True:
+                    cr = cur // w
+                    ccol = cur - cr * w
+                    nxt = -1
+                    for d2r in range(-1, 2):
+                        for d2c in range(-1, 2):
+                            if d2r == 0 and d2c == 0:
+                                continue
+                            j = (cr + d2r) * w + ccol + d2c
+                            if skel[cr + d2r, ccol + d2c] and j != prev:
+                                nxt = j
+                    if nxt < 0:
+                        ok = False
+                        break
+                    pix[npix] = nxt
+                    npix += 1
+                    if nodeid[nxt] >= 0:
+                        break
+                    if seen[nxt] == 2:
+                        ok = False
+                        break
+                    seen[nxt] = 2
+                    prev = cur
+                    cur = nxt
+                b = nodeid[pix[npix - 1]]
+                if not ok or (b == a and npix - start < MIN_SELF_LOOP):
+                    npix = start
+                    continue
+                if node_pix[b] != pix[npix - 1]:
+                    pix[npix] = node_pix[b]
+                    npix += 1
+                ea[ne] = a
+                eb[ne] = b
+                ne += 1
+                off[ne] = npix
+    for k in range(n):
+        seen[comp[k]] = 0
+    return (node_pix, node_kind, ea[:ne].copy(), eb[:ne].copy(), off[:ne + 1].copy(),
+            pix[:npix].copy(), nodeid, comp)
+
+
+@njit(cache=True)
+def reset_nodeid(nodeid, comp):  # pragma: no cover - compiled
+    for k in range(comp.shape[0]):
+        nodeid[comp[k]] = -1
+
+
+@njit(cache=True)
+def decimate(pix, s0, s1, w):  # pragma: no cover - compiled
+    """Drop interior polyline pixels where the step direction does not change (lossless).
+
+    Returns (keep, koff): kept positions into ``pix`` for sub-edge k are keep[koff[k]:koff[k+1]].
+    """
+    m = s0.shape[0]
+    keep = np.empty(pix.shape[0] + 2 * m, np.int64)
+    koff = np.empty(m + 1, np.int64)
+    koff[0] = 0
+    n = 0
+    for k in range(m):
+        a = s0[k]
+        b = s1[k]
+        keep[n] = a
+        n += 1
+        for i in range(a + 1, b):
+            p0 = pix[i - 1]
+            p1 = pix[i]
+            p2 = pix[i + 1]
+            if p1 - p0 != p2 - p1:
+                keep[n] = i
+                n += 1
+        if b > a:
+            keep[n] = b
+            n += 1
+        koff[k + 1] = n
+    return keep[:n].copy(), koff
+
+
+@njit(cache=True)
+def edge_lengths(pix, off, w):  # pragma: no cover - compiled
+    """Polyline length of every edge in pixels (1 per straight step, sqrt(2) per diagonal)."""
+    ne = off.shape[0] - 1
+    out = np.zeros(ne)
+    for e in range(ne):
+        s = 0.0
+        for k in range(off[e] + 1, off[e + 1]):
+            a = pix[k - 1]
+            b = pix[k]
+            ar = a // w
+            br = b // w
+            s += ((ar - br) ** 2 + ((a - ar * w) - (b - br * w)) ** 2) ** 0.5
+        out[e] = s
+    return out
+
+
+@njit(cache=True)
+def prune_spurs(skel, node_pix, node_kind, ea, eb, off, pix, nodeid, dt,
+                spur_px, factor, spur_max_px):  # pragma: no cover - compiled
+    """One round of graph-based spur pruning, in place on ``skel``; returns the number cut.
+
+    A leaf edge (end node of degree 1 -- branch node) is cut when its length [px] is below
+    clip(factor * dt[branch pixel], spur_px, spur_max_px). A branch node never loses all its
+    edges (the longest is kept). The spur's pixels are erased except the branch pixel, then the
+    branch cluster's dangling pixels and staircase pixels are cleaned so the skeleton stays
+    one pixel wide.
+    """
+    h, w = skel.shape
+    nn = node_pix.shape[0]
+    ne = ea.shape[0]
+    deg = np.zeros(nn, np.int64)
+    for e in range(ne):
+        deg[ea[e]] += 1
+        deg[eb[e]] += 1
+    lens = edge_lengths(pix, off, w)
+    cut = np.zeros(ne, np.bool_)
+    ncut = np.zeros(nn, np.int64)
+    for e in range(ne):
+        a = ea[e]
+        b = eb[e]
+        if node_kind[a] == END and node_kind[b] == BRANCH:
+            j = b
+        elif node_kind[b] == END and node_kind[a] == BRANCH:
+            j = a
+        else:
+            continue
+        bp = node_pix[j]
+        thr = factor * dt[bp // w, bp - (bp // w) * w]
+        thr = min(max(thr, spur_px), spur_max_px)
+        if lens[e] < thr:
+            cut[e] = True
+            ncut[j] += 1
+    for j in range(nn):
+        if ncut[j] > 0 and ncut[j] >= deg[j]:
+            best = -1
+            bl = -1.0
+            for e in range(ne):
+                if cut[e] and (ea[e] == j or eb[e] == j) and lens[e] > bl:
+                    bl = lens[e]
+                    best = e
+            cut[best] = False
+    total = 0
+    for e in range(ne):
+        if not cut[e]:
+            continue
+        total += 1
+        if node_kind[ea[e]] == BRANCH:
+            j = ea[e]
+            keep = pix[off[e]]
+        else:
+            j = eb[e]
+            keep = pix[off[e + 1] - 1]
+        for k in range(off[e], off[e + 1]):
+            p = pix[k]
+            if p != keep and nodeid[p] != j:
+                skel[p // w, p - (p // w) * w] = 0
+        # erode cluster pixels of node j that now dangle off another cluster pixel
+        changed = True
+        while changed:
+            changed = False
+            kr = keep // w
+            kc = keep - kr * w
+            for r in range(max(kr - 4, 1), min(kr + 5, h - 1)):
+                for c in range(max(kc - 4, 1), min(kc + 5, w - 1)):
+                    p = r * w + c
+                    if skel[r, c] and nodeid[p] == j and _nb(skel, r, c) == 1:
+                        for dr in range(-1, 2):
+                            for dc in range(-1, 2):
+                                if (dr != 0 or dc != 0) and skel[r + dr, c + dc]:
+                                    if nodeid[(r + dr) * w + c + dc] == j:
+                                        skel[r, c] = 0
+                                        changed = True
+        _local_thin(skel, keep // w, keep - (keep // w) * w, 5)
+    return total
+
+
+@njit(cache=True)
+def _local_thin(img, r0, c0, rad):  # pragma: no cover - compiled
+    h, w = img.shape
+    changed = True
+    while changed:
+        changed = False
+        for r in range(max(r0 - rad, 1), min(r0 + rad + 1, h - 1)):
+            for c in range(max(c0 - rad, 1), min(c0 + rad + 1, w - 1)):
+                if not img[r, c]:
+                    continue
+                n = img[r - 1, c]
+                e = img[r, c + 1]
+                s = img[r + 1, c]
+                wv = img[r, c - 1]
+                if not ((n and e) or (e and s) or (s and wv) or (wv and n)):
+                    continue
+                if _nb(img, r, c) < 2:
+                    continue
+                x0 = 1 - img[r, c + 1]
+                x1 = 1 - img[r - 1, c + 1]
+                x2 = 1 - img[r - 1, c]
+                x3 = 1 - img[r - 1, c - 1]
+                x4 = 1 - img[r, c - 1]
+                x5 = 1 - img[r + 1, c - 1]
+                x6 = 1 - img[r + 1, c]
+                x7 = 1 - img[r + 1, c + 1]
+                nc = ((x0 - x0 * x1 * x2) + (x2 - x2 * x3 * x4) + (x4 - x4 * x5 * x6)
+                      + (x6 - x6 * x7 * x0))
+                if nc == 1:
+                    img[r, c] = 0
+                    changed = True
+
+
+@njit(cache=True)
+def _blocked(mask, p, q, w):  # pragma: no cover - compiled
+    """True if the Bresenham line between flat pixels p and q touches a zero cell of mask."""
+    r0 = p // w
+    c0 = p - r0 * w
+    r1 = q // w
+    c1 = q - r1 * w
+    dr = abs(r1 - r0)
+    dc = abs(c1 - c0)
+    sr = 1 if r1 > r0 else -1
+    sc = 1 if c1 > c0 else -1
+    err = dc - dr
+    r = r0
+    c = c0
+    while True:
+        if mask[r, c] == 0:
+            return True
+        if r == r1 and c == c1:
+            return False
+        e2 = 2 * err
+        if e2 > -dr:
+            err -= dr
+            c += sc
+        if e2 < dc:
+            err += dc
+            r += sr
+
+
+@njit(cache=True)
+def split_corners(mask, ea, eb, off, pix, w, min_dev_px, enabled):  # pragma: no cover - compiled
+    """Corner nodes (paper §2.2, Fig. 3(c)/(d)): indices into ``pix`` where edges are split.
+
+    For the piece pix[i..j] of an edge, if the straight line between its end pixels crosses a
+    zero cell of ``mask`` and the farthest pixel lies at least ``min_dev_px`` from that line,
+    split there and recurse on both halves. Self-loops are always split at the pixel farthest
+    from the node (a loop needs an intermediate node to be drawn). Returns a sorted int64 array of
+    split positions (absolute indices into ``pix``).
+    """
+    out = np.empty(pix.shape[0], np.int64)
+    no = 0
+    stack = np.empty((pix.shape[0] + 2, 2), np.int64)
+    for e in range(ea.shape[0]):
+        i0 = off[e]
+        j0 = off[e + 1] - 1
+        ns = 0
+        if ea[e] == eb[e]:
+            # self-loop: split at the farthest pixel from the node
+            pr = pix[i0] // w
+            pc = pix[i0] - pr * w
+            best = -1
+            bd = -1.0
+            for k in range(i0 + 1, j0):
+                r = pix[k] // w
+                c = pix[k] - r * w
+                d = (r - pr) ** 2 + (c - pc) ** 2
+                if d > bd:
+                    bd = d
+                    best = k
+            if best < 0:
+                continue
+            out[no] = best
+            no += 1
+            if enabled:
+                stack[0, 0] = i0
+                stack[0, 1] = best
+                stack[1, 0] = best
+                stack[1, 1] = j0
+                ns = 2
+        elif enabled:
+            stack[0, 0] = i0
+            stack[0, 1] = j0
+            ns = 1
+        while ns > 0:
+            ns -= 1
+            i = stack[ns, 0]
+            j = stack[ns, 1]
+            if j - i < 2:
+                continue
+            if not _blocked(mask, pix[i], pix[j], w):
+                continue
+            ar = pix[i] // w
+            ac = pix[i] - ar * w
+            br = pix[j] // w
+            bc = pix[j] - br * w
+            vr = br - ar
+            vc = bc - ac
+            norm = (vr * vr + vc * vc) ** 0.5
+            best = -1
+            bd = -1.0
+            for k in range(i + 1, j):
+                r = pix[k] // w
+                c = pix[k] - r * w
+                if norm > 0:
+                    d = abs(vr * (c - ac) - vc * (r - ar)) / norm
+                else:
+                    d = ((r - ar) ** 2 + (c - ac) ** 2) ** 0.5
+                if d > bd:
+                    bd = d
+                    best = k
+            if best < 0 or bd < min_dev_px:
+                continue
+            out[no] = best
+            no += 1
+            stack[ns, 0] = i
+            stack[ns, 1] = best
+            stack[ns + 1, 0] = best
+            stack[ns + 1, 1] = j
+            ns += 2
+    res = out[:no].copy()
+    res.sort()
+    return res
+
+
+@njit(cache=True)
+def assemble(ea, eb, off, pix, splits, n_nodes, dt, w):  # pragma: no cover - compiled
+    """Split edges at ``splits`` (corner nodes numbered from ``n_nodes`` in split order).
+
+    Returns (sa, sb, s0, s1, length_px, clear_px): sub-edge node ids, inclusive pixel-index ranges
+    into ``pix``, polyline length [px] and minimum ``dt`` value [px] along each sub-edge.
+    """
+    ne = ea.shape[0]
+    m = ne + splits.shape[0]
+    sa = np.empty(m, np.int32)
+    sb = np.empty(m, np.int32)
+    s0 = np.empty(m, np.int64)
+    s1 = np.empty(m, np.int64)
+    ln = np.zeros(m)
+    cl = np.zeros(m)
+    k = 0
+    t = 0
+    for e in range(ne):
+        start = off[e]
+        a = ea[e]
+        last = off[e + 1] - 1
+        while True:
+            if t < splits.shape[0] and splits[t] < last:
+                stop = splits[t]
+                b = n_nodes + t
+                t += 1
+            else:
+                stop = last
+                b = eb[e]
+            sa[k] = a
+            sb[k] = b
+            s0[k] = start
+            s1[k] = stop
+            s = 0.0
+            mn = 1e18
+            for i in range(start, stop + 1):
+                p = pix[i]
+                r = p // w
+                v = dt[r, p - r * w]
+                if v < mn:
+                    mn = v
+                if i > start:
+                    q = pix[i - 1]
+                    qr = q // w
+                    s += ((qr - r) ** 2 + ((q - qr * w) - (p - r * w)) ** 2) ** 0.5
+            ln[k] = s
+            cl[k] = mn
+            k += 1
+            if stop == last:
+                break
+            a = b
+            start = stop
+    return sa[:k], sb[:k], s0[:k], s1[:k], ln[:k], cl[:k]
