@@ -232,6 +232,17 @@ def _bench_size(n: int, repeats: int, stages: tuple[str, ...], seed: int) -> dic
     return out
 
 
+def _warm_up() -> None:
+    """Load the numba kernels (compiled or cached) before anything is timed."""
+    from common.params import TopologyParams
+    from services.topology.core import TopologyCore
+
+    g = np.full((40, 40), 100, np.int8)
+    g[5:35, 15:25] = 0
+    g[15:25, 5:35] = 0
+    TopologyCore(TopologyParams()).update(g, GridGeometry(RES, 0.0, 0.0, 40, 40), (2.0, 2.0))
+
+
 def bench_stages(sizes=(100, 300, 1000), repeats: int = 3, stages=("mapper", "topology"),
                  seed: int = 0) -> dict:
     """{stage: {"NxN": {"median_ms", "p99_ms", ...}}} (see module docstring)."""
@@ -242,6 +253,7 @@ def bench_stages(sizes=(100, 300, 1000), repeats: int = 3, stages=("mapper", "to
     if repeats < 1:
         raise ValueError("repeats must be >= 1")
     out: dict[str, dict] = {s: {} for s in stages}
+    _warm_up()
     for n in sizes:
         res = _bench_size(int(n), repeats, stages, seed)
         for k, v in res.items():
