@@ -45,6 +45,8 @@ P_UNSEEN = 0.5  # P of an end node the reliability message does not list yet (pa
 ENTRY_SKIP = 0.05  # [m] an entry point this close to the robot is not a separate waypoint
 TRACK_STEP = 0.05  # [m] robot positions are recorded (visit tracking) every this much travel
 REMAINING_WINDOW = 1.5  # [m] the robot is located on the path within this arc ahead of it
+SOFT_RADIUS_FACTOR = 2.0  # frontier: cells with clearance < this x (radius + margin) cost more
+SOFT_PENALTY = 2.0  # ... up to (1 + this) x their length at the hard limit
 
 
 class PlannerInputError(ValueError):
@@ -405,7 +407,9 @@ class PlannerCore:
             if rel is not None:
                 pm = {n.id: n.p for n in rel.nodes}
                 ev.reliable = sum(1 for i in ends if pm.get(i, 0.0) >= p.p_reliable)
-        search = fr.grid_search(grid, geom, x, y, p.robot_radius, p_free, p_occ)
+        hard = p.robot_radius + p.clearance_margin
+        search = fr.grid_search(grid, geom, x, y, hard, p_free, p_occ,
+                                soft_radius=SOFT_RADIUS_FACTOR * hard, soft_penalty=SOFT_PENALTY)
         if search.start is None:
             ev.failed = "the robot is not near known free space (no start cell for the search)"
             ev.done = ev.failed

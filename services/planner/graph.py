@@ -88,23 +88,24 @@ def polyline_lengths(pts: np.ndarray) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(seg)])
 
 
-def _edge_polyline(e: m.TopoEdge, pa: tuple[float, float], pb: tuple[float, float]) -> np.ndarray:
-    """Edge polyline oriented a -> b and anchored at both node positions."""
-    pts = np.asarray(e.points, dtype=np.float64).reshape(-1, 2) if e.points else np.zeros((0, 2))
-    a = np.asarray(pa, dtype=np.float64)
-    b = np.asarray(pb, dtype=np.float64)
+def _edge_polyline(e: m.TopoEdge, pa: tuple[float, float], pb: tuple[float, float]
+                   ) -> list[list[float]]:
+    """Edge polyline oriented a -> b and anchored at both node positions (plain lists: this
+    runs for every edge on every update, numpy per edge would cost more than the search)."""
+    pts = [list(q) for q in e.points]
+    ax, ay = pa
+    bx, by = pb
     if len(pts) >= 2:
         # tolerate a polyline given b -> a (orientation is part of the contract, but cheap to fix)
-        keep = np.hypot(*(pts[0] - a)) + np.hypot(*(pts[-1] - b))
-        flip = np.hypot(*(pts[0] - b)) + np.hypot(*(pts[-1] - a))
+        (x0, y0), (x1, y1) = pts[0], pts[-1]
+        keep = math.hypot(x0 - ax, y0 - ay) + math.hypot(x1 - bx, y1 - by)
+        flip = math.hypot(x0 - bx, y0 - by) + math.hypot(x1 - ax, y1 - ay)
         if flip < keep:
-            pts = pts[::-1]
-    if len(pts) == 0 or np.hypot(*(pts[0] - a)) > 1e-6:
-        pts = np.vstack([a, pts])
-    if np.hypot(*(pts[-1] - b)) > 1e-6:
-        pts = np.vstack([pts, b])
-    if len(pts) < 2:  # a == b and no points: degenerate
-        pts = np.vstack([a, b])
+            pts.reverse()
+    if not pts or math.hypot(pts[0][0] - ax, pts[0][1] - ay) > 1e-6:
+        pts.insert(0, [ax, ay])
+    if math.hypot(pts[-1][0] - bx, pts[-1][1] - by) > 1e-6 or len(pts) < 2:
+        pts.append([bx, by])
     return pts
 
 
@@ -126,27 +127,48 @@ def build_index(topo: m.TopoGraph, min_clearance: float,
     if not math.isfinite(min_clearance) or min_clearance < 0:
         raise GraphInputError(f"min_clearance must be finite and >= 0 (got {min_clearance})")
     nodes = {n.id: (n.kind, float(n.x), float(n.y)) for n in topo.nodes}
-    edges: list[Edge] = []
-    narrow: list[Edge] = []
-    adj: dict[int, list[tuple[int, float, int, bool]]] = {i: [] for i in nodes}
+    kept: list[m.TopoEdge] = []
+    flat: list[list[float]] = []
+    starts = [0]
     for e in topo.edges:
         if e.a not in nodes or e.b not in nodes:
             raise GraphInputError(f"edge {e.a}-{e.b} refers to a node that is not in the graph")
         if e.a == e.b:
             continue
-        pts = _edge_polyline(e, nodes[e.a][1:], nodes[e.b][1:])
-        cum = polyline_lengths(pts)
-        if clearance_at is None:
-            clear = float(e.clearance)
-        else:
-            lo = tip_length if nodes[e.a][0] == "end" else 0.0
-            hi = cum[-1] - (tip_length if nodes[e.b][0] == "end" else 0.0)
-            keep = (cum >= lo - 1e-9) & (cum <= hi + 1e-9)
-            if not np.any(keep):  # short edge: judge it by its middle point
-                keep = np.abs(cum - 0.5 * cum[-1]) == np.abs(cum - 0.5 * cum[-1]).min()
-            clear = float(np.min(clearance_at(pts[keep])))
-        ok = clear + 1e-9 >= min_clearance
-        edge = Edge(len(edges) if ok else len(narrow), e.a, e.b, pts, cum, clear)
+        flat.extend(_edge_polyline(e, nodes[e.a][1:], nodes[e.b][1:]))
+        starts.append(len(flat))
+        kept.append(e)
+    adj: dict[int, list[tuple[int, float, int, bool]]] = {i: [] for i in nodes}
+    if not kept:
+        return TopoIndex(nodes, [], [], adj)
+    P = np.asarray(flat, dtype=np.float64)
+    if not np.all(np.isfinite(P)):
+        raise GraphInputError("an edge polyline has a non-finite point")
+    o = np.asarray(starts)
+    step = np.hypot(np.diff(P[:, 0]), np.diff(P[:, 1]))
+    step[o[1:-1] - 1] = 0.0  # no step across two edges
+    cum_all = np.concatenate([[0.0], np.cumsum(step)])
+    base = np.repeat(cum_all[o[:-1]], np.diff(o))
+    cum_all = cum_all - base  # arc length within each edge
+    if clearance_at is not None:
+        length = cum_all[o[1:] - 1]
+        lo = np.array([tip_length if nodes[e.a][0] == "end" else 0.0 for e in kept])
+        hi = length - np.array([tip_length if nodes[e.b][0] == "end" else 0.0 for e in kept])
+        cnt = np.diff(o)
+        inner = (cum_all >= np.repeat(lo, cnt) - 1e-9) & (cum_all <= np.repeat(hi, cnt) + 1e-9)
+        c_all = np.asarray(clearance_at(P), dtype=np.float64)
+        clear = np.minimum.reduceat(np.where(inner, c_all, np.inf), o[:-1])
+        for k in np.nonzero(~np.isfinite(clear) & (np.add.reduceat(inner, o[:-1]) == 0))[0]:
+            seg = cum_all[o[k]:o[k + 1]]  # short edge: judge it by its middle point
+            clear[k] = c_all[o[k] + int(np.argmin(np.abs(seg - 0.5 * seg[-1])))]
+    else:
+        clear = np.array([float(e.clearance) for e in kept])
+    edges: list[Edge] = []
+    narrow: list[Edge] = []
+    for k, e in enumerate(kept):
+        ok = bool(clear[k] + 1e-9 >= min_clearance)
+        edge = Edge(len(edges) if ok else len(narrow), e.a, e.b, P[o[k]:o[k + 1]],
+                    cum_all[o[k]:o[k + 1]], float(clear[k]))
         if not ok:
             narrow.append(edge)
             continue
