@@ -108,6 +108,10 @@ class ReliabilityParams(_P):
     range_max: float = 8.0  # [m]
     laser_offset: float = 0.0  # [m]
     visit_radius: float = 0.5  # [m] counts as visited
+    view_distance: float = 0.25  # [m] robot travel that makes an observation new evidence
+    view_angle: float = math.radians(5.0)  # [rad] ... or change of bearing to the node
+    frontier_radius: float = 0.5  # [m] observations of a node this close to a frontier don't count
+    p_free: float = 0.35  # known-free threshold for the frontier test (as mapper.p_free)
     bearing_bin: float = math.radians(0.5)  # [rad] bearings stored one per bin (eq. 3)
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -21,6 +22,7 @@ from services.reliability.core import (
     is_observed,
     line_cells,
     line_of_sight,
+    new_viewpoint,
 )
 
 P = ReliabilityParams()
@@ -238,8 +240,11 @@ def test_first_observation_values():
     assert n.p == pytest.approx(bayes_update(0.5, 4.0 / 5.5))
 
 
+P_EVERY_SCAN = msgspec.structs.replace(P, view_distance=0.0)  # the paper's literal update
+
+
 def test_repeated_observation_follows_closed_form():
-    core = ReliabilityCore(P)
+    core = ReliabilityCore(P_EVERY_SCAN)
     r = 4.0 / 5.5
     for k in range(1, 6):
         n = core.update([(1, 2.0, 0.0)], [], (0.0, 0.0, 0.0), free_grid(), GEOM)[0]
@@ -303,8 +308,33 @@ def test_bearings_stay_bounded():
     assert s["alpha_max_deg"] > 355.0
 
 
-def test_reset_on_movement():
+def test_same_viewpoint_counts_once_new_viewpoints_count():
     core = ReliabilityCore(P)
+    for _ in range(10):  # standing still: one piece of evidence, not ten
+        n = core.update([(1, 2.0, 0.0)], [], (0.0, 0.0, 0.0), free_grid(), GEOM)[0]
+    assert n.n_obs == 10
+    assert n.p == pytest.approx(bayes_update(0.5, distance_index(2.0, P)))
+    # moving view_distance counts again
+    n = core.update([(1, 2.0, 0.0)], [], (-P.view_distance, 0.0, 0.0), free_grid(), GEOM)[0]
+    assert n.p > bayes_update(0.5, distance_index(2.0, P))
+    # so does a bearing change of view_angle without much travel
+    core2 = ReliabilityCore(P)
+    core2.update([(1, 2.0, 0.0)], [], (0.0, 0.0, 0.0), free_grid(), GEOM)
+    y = 2.0 * math.tan(P.view_angle) + 1e-3
+    n2 = core2.update([(1, 2.0, 0.0)], [], (0.0, y, 0.0), free_grid(), GEOM)[0]
+    assert y < P.view_distance and n2.p > bayes_update(0.5, distance_index(2.0, P))
+
+
+def test_new_viewpoint_rule():
+    assert new_viewpoint(None, 0, 0, 0, P)
+    assert not new_viewpoint((0.0, 0.0, 0.0), 0.1, 0.0, 0.01, P)
+    assert new_viewpoint((0.0, 0.0, 0.0), P.view_distance, 0.0, 0.0, P)
+    assert new_viewpoint((0.0, 0.0, math.pi - 0.01), 0.0, 0.0, -math.pi + 0.1, P)  # wraps
+    assert new_viewpoint((0.0, 0.0, 0.0), 0.0, 0.0, 0.0, P_EVERY_SCAN)
+
+
+def test_reset_on_movement():
+    core = ReliabilityCore(P_EVERY_SCAN)
     for _ in range(5):
         n = core.update([(1, 2.0, 0.0)], [], (0.0, 0.0, 0.0), free_grid(), GEOM)[0]
     assert n.p > 0.9

@@ -261,6 +261,36 @@ def _in_fov_range(nx: float, ny: float, lx: float, ly: float, theta: float,
     return abs(rel) <= 0.5 * params.fov + 1e-12
 
 
+def near_frontier(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, radius: float,
+                  p_free: float = 0.35) -> bool:
+    """Is there a frontier cell (known free, 4-adjacent to unknown) within radius [m] of the node?
+
+    Our interpretation of "the environment around the end node is examined" (paper §3.2): a
+    node next to a frontier sits where the map simply stops, so an observation of it says
+    nothing about whether it will stay (a wall hides the unknown behind it: occupied cells are
+    never frontier). radius <= 0 disables the test.
+    """
+    if radius <= 0.0:
+        return False
+    r, c = geom.world_to_cell(nx, ny)
+    k = int(math.ceil(radius / geom.resolution)) + 1
+    r0, r1 = max(0, int(r) - k), min(geom.height, int(r) + k + 1)
+    c0, c1 = max(0, int(c) - k), min(geom.width, int(c) + k + 1)
+    if r0 >= r1 or c0 >= c1:
+        return True  # node outside the map: nothing is known around it
+    win = grid[r0:r1, c0:c1]
+    free = (win >= 0) & (win < p_free * 100.0)
+    unknown = win < 0
+    pad = np.pad(unknown, 1, constant_values=False)
+    touch = pad[:-2, 1:-1] | pad[2:, 1:-1] | pad[1:-1, :-2] | pad[1:-1, 2:]
+    front = free & touch
+    if not front.any():
+        return False
+    rr, cc = np.nonzero(front)
+    x, y = geom.cell_to_world(rr + r0, cc + c0)
+    return bool(np.min(np.hypot(x - nx, y - ny)) <= radius)
+
+
 def is_observed(node_xy, pose, grid_int8: np.ndarray, geom: GridGeometry,
                 params: ReliabilityParams, p_occ: float = 0.65) -> bool:
     """Whether an end node counts as observed at this pose (paper §3.2, after eqs. 2 and 3).
@@ -286,6 +316,23 @@ def is_observed(node_xy, pose, grid_int8: np.ndarray, geom: GridGeometry,
 # --- the stateful core --------------------------------------------------------------------
 
 
+def new_viewpoint(last: tuple[float, float, float] | None, rx: float, ry: float,
+                  bearing: float, params: ReliabilityParams) -> bool:
+    """Does an observation from (rx, ry) at ``bearing`` count as new evidence for eq. 6?
+
+    The Bayes update (eqs. 6-10) treats observations as independent; repeated scans from the
+    same viewpoint are not, and counting every scan would make any still node in view reliable
+    within seconds. An observation counts when the robot moved ``view_distance`` [m] or the
+    bearing to the node turned ``view_angle`` [rad] since the node's last counted observation
+    (view_distance = 0: every scan counts, the paper's literal per-period update).
+    """
+    if last is None or params.view_distance <= 0.0:
+        return True
+    lx, ly, lb = last
+    turned = abs(math.remainder(bearing - lb, 2 * math.pi))
+    return math.hypot(rx - lx, ry - ly) >= params.view_distance or turned >= params.view_angle
+
+
 @dataclass
 class _Track:
     """Observation history of one end node since its anchor (where the history began)."""
@@ -305,6 +352,7 @@ class _Track:
     visited: bool = False
     visible: bool = False
     resets: int = field(default=0)
+    view: tuple[float, float, float] | None = None  # robot x, y [m], bearing [rad] last counted
 
 
 class ReliabilityCore:
@@ -407,7 +455,11 @@ class ReliabilityCore:
                     self._add_bearing(tr, math.atan2(ny - ry, nx - rx))
                 tr.d = distance_index(tr.r_min, pr)
                 tr.a = angle_index(tr.alpha_max, pr)
-                tr.p = min(bayes_update(tr.p, reliability_index(tr.d, tr.a)), pr.p_max)
+                bearing = math.atan2(ny - ry, nx - rx)
+                if new_viewpoint(tr.view, rx, ry, bearing, pr) and not near_frontier(
+                        nx, ny, grid, geom, pr.frontier_radius, pr.p_free):
+                    tr.view = (rx, ry, bearing)
+                    tr.p = min(bayes_update(tr.p, reliability_index(tr.d, tr.a)), pr.p_max)
             out.append(NodeReliability(
                 id=nid, x=nx, y=ny, p=tr.p, d=tr.d, a=tr.a, r_min=tr.r_min,
                 alpha_max=tr.alpha_max, visible=tr.visible, n_obs=tr.n_obs, visited=tr.visited))
