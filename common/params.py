@@ -150,11 +150,13 @@ class ControllerParams(_P):
     goal_tolerance: float = 0.15  # [m]
     slow_distance: float = 0.6  # [m] start slowing when the front is closer
     safety_distance: float = 0.3  # [m] hard stop when the front sector is closer
-    front_half_angle: float = 0.5  # [rad] front sector half width
+    front_half_angle: float = 1.2  # [rad] front sector half width (with the lateral corridor test)
     robot_radius: float = 0.2  # [m]
     stuck_time: float = 4.0  # [s] no motion while commanding -> recovery
     recovery_time: float = 1.5  # [s]
     recovery_speed: float = 0.1  # [m/s] backwards
+    recovery_backup: bool = False  # back up when stuck (blind: a forward 180 deg laser sees
+    #                                nothing behind; off = only turn in place, collision-free)
     heading_gain: float = 1.5  # [1/s] w = gain * heading error when turning in place
     search_window: float = 1.5  # [m] path progress is searched this far ahead of the last
     lateral_margin: float = 0.05  # [m] front sector: |lateral offset| <= robot_radius + this

@@ -87,8 +87,13 @@ class SimService:
             self.core.command(cmd.v, cmd.w)
 
     def physics_step(self) -> None:
+        before = self.core.collisions
         self.core.step()
         self.step_count += 1
+        if self.core.collisions != before:
+            x, y, th = self.core.truth_pose()
+            log.warning("collision #%d at x=%.2f y=%.2f heading=%.0f deg, sim time %.1f s",
+                        self.core.collisions, x, y, math.degrees(th), self.core.time)
         if self.step_count % self.steps_per_odom == 0:
             self.publish_odom()
 

@@ -105,8 +105,10 @@ def test_front_distance_sector_and_lateral_offset():
     assert front_distance(scan_with([(0.5, 0.0)]), P) == pytest.approx(0.5)
     # inside the angular sector but beside the robot's corridor (lateral 0.3 > 0.25): ignored
     assert front_distance(scan_with([(0.6, 0.3)]), P) == pytest.approx(8.0)
-    # outside the angular sector
-    assert front_distance(scan_with([(0.2, 0.2)]), P) == pytest.approx(8.0)
+    # ahead-left at 45 deg and inside the corridor: in the way (a sofa corner, say)
+    assert front_distance(scan_with([(0.2, 0.2)]), P) == pytest.approx(math.hypot(0.2, 0.2))
+    # outside the angular sector (about 76 deg): beside the robot, not ahead
+    assert front_distance(scan_with([(0.05, 0.2)]), P) == pytest.approx(8.0)
     # zero / non-finite ranges are not returns
     r, a, i = free_scan()
     r[90] = 0.0
@@ -230,8 +232,18 @@ def test_progress_never_goes_back():
     assert core.snapshot()["progress"] >= s1
 
 
-def test_stuck_triggers_recovery_backup_then_turn():
+P_BACKUP = ControllerParams(recovery_backup=True)
+
+
+def test_default_recovery_only_turns_in_place():
     core = ControllerCore(P)
+    cmds = [core.update(k * 0.2, (0.0, 0.0, 0.0), STRAIGHT, 1, False,
+                        scan_with([(0.25, 0.0)])) for k in range(int(P.stuck_time / 0.2) + 8)]
+    assert all(v >= 0.0 for v, _, _ in cmds)  # never drives blind backwards
+
+
+def test_stuck_triggers_recovery_backup_then_turn():
+    core = ControllerCore(P_BACKUP)
     pose = (0.0, 0.0, 0.0)
     t, dt = 0.0, 0.2
     mode = ""
@@ -253,7 +265,7 @@ def test_stuck_triggers_recovery_backup_then_turn():
 
 
 def test_blocked_for_long_triggers_recovery():
-    core = ControllerCore(P)
+    core = ControllerCore(P_BACKUP)
     scan = scan_with([(0.25, 0.0)])
     modes = [core.update(k * 0.2, (0.0, 0.0, 0.0), STRAIGHT, 1, False, scan)[2]
              for k in range(int(P.stuck_time / 0.2) + 2)]

@@ -344,7 +344,8 @@ class ControllerCore:
                 self._ref = (t, x, y, th)
             elif t - t0 >= p.stuck_time:
                 self.recoveries += 1
-                self._recovery = "turn" if rear_blocked(scan, p) else "backup"
+                self._recovery = ("backup" if p.recovery_backup and not rear_blocked(scan, p)
+                                  else "turn")
                 self._rec_start = t
         if self._recovery == "backup":
             if t - self._rec_start < p.recovery_time:
