@@ -1,0 +1,893 @@
+"""``topoexplore bench explore``: the strategy comparison suite (DESIGN §6 metrics).
+
+    topoexplore bench explore [--worlds a,b,...] [--strategies reliability,all-end-nodes,frontier]
+                              [--seeds N] [--out DIR] [--max-sim-time S] [--max-wall-time S]
+                              [--jobs 1] [--quick] [--no-progress]
+    topoexplore bench explore --from-results DIR [--out DIR2]
+
+Runs ``topoexplore run --lockstep`` (the real multi-process stack) for every world x strategy x
+seed, one after the other by default (each run is 7 processes; this is a 2-core machine), and
+writes to ``--out``:
+
+- ``results.json`` — every run's ``report.json`` plus derived fields (world label, exit code,
+  run directory, distance to 90 % / 95 % coverage, the coverage-over-distance timeline), the
+  per (world, strategy) aggregates, the per-pair ratios with their geometric means, the
+  coverage-distance table, the machine and the command that reproduces it;
+- ``results.csv`` — one row per run (scalar fields only);
+- ``summary.md`` — the tables in Markdown;
+- ``curves/<world>.png`` — coverage (y) over distance travelled (x), one line per strategy
+  (mean over seeds on a common distance grid);
+- ``runs/<world>-<strategy>-<seed>/`` — each run's own output (report, final.png, map, ...).
+
+Ratios (reliability / frontier, reliability / all-end-nodes; path length and sim time) are
+taken per run pair (same world, same seed). The headline figure is the geometric mean over
+the pairs where both runs finished; the other pairs are listed with the reason they were
+left out. ``--from-results DIR`` re-makes the summary, CSV and curves from ``DIR/results.json``
+without running anything. Exit code: 0 when the suite was run (whatever the runs' outcomes),
+2 on bad arguments (one line on stderr, before anything runs), 130 when interrupted (partial
+results are written).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime as _dt
+import json
+import math
+import os
+import platform
+import re
+import shlex
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+from collections.abc import Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_MAPS = REPO.parent / "shared" / "maps"
+EXTRA_MAPS = ("lse_arena.yaml",)  # real map_server maps added to the default suite
+STRATEGIES = ("reliability", "all-end-nodes", "frontier")
+QUICK_WORLDS = ("paper-room", "dead-end")
+RATIO_PAIRS = (("reliability", "frontier"), ("reliability", "all-end-nodes"))
+RATIO_METRICS = ("path_length_m", "sim_time_s")
+COVERAGE_THRESHOLDS = (0.90, 0.95)
+LOW_COVERAGE = 0.95  # finished runs below this coverage are pointed out in the summary
+DEFAULT_SEEDS = 2
+DEFAULT_MAX_SIM_TIME = 1800.0  # [s] simulated time per run
+DEFAULT_MAX_WALL_TIME = 1800.0  # [s] wall time per run (0: no limit)
+CURVE_POINTS = 400  # points of the common distance grid of the mean curves
+PACKAGES = ("eclipse-zenoh", "numpy", "scipy", "opencv-python-headless", "pymunk", "msgspec",
+            "msgpack", "scikit-image", "numba", "tqdm", "matplotlib", "topoexplore")
+
+# aggregated per (world, strategy): field -> (column title, decimals)
+AGG_FIELDS = {
+    "path_length_m": ("path [m]", 1),
+    "sim_time_s": ("sim time [s]", 0),
+    "coverage": ("coverage", 3),
+    "map_accuracy": ("map accuracy", 3),
+    "collisions": ("collisions", 1),
+    "end_nodes_visited": ("end nodes visited", 1),
+    "end_nodes_accepted_remote": ("accepted from a distance", 1),
+    "wall_time_s": ("wall [s]", 1),
+}
+
+
+class BenchArgError(ValueError):
+    """Bad command-line argument for ``bench explore`` (one-line message)."""
+
+
+class BenchDataError(ValueError):
+    """Bad data given to an analysis function (one-line message)."""
+
+
+# --------------------------------------------------------------------------------------------
+# pure analysis (unit-tested on hand-made reports and timelines)
+
+
+def distance_to_coverage(distances: Sequence[float], coverages: Sequence[float],
+                         threshold: float) -> float | None:
+    """Distance travelled [m] at the first timeline sample whose coverage is >= ``threshold``.
+
+    ``distances`` are the path lengths of the samples [m] (a stale, smaller value is treated as
+    the running maximum: the path length never decreases), ``coverages`` the coverage at each
+    sample (0..1). Returns ``None`` if the coverage never reaches the threshold.
+    """
+    d = np.asarray(distances, dtype=np.float64)
+    c = np.asarray(coverages, dtype=np.float64)
+    if d.ndim != 1 or c.shape != d.shape:
+        raise BenchDataError(f"distances and coverages must be 1-D of equal length "
+                             f"(got {d.shape} and {c.shape})")
+    if not (0.0 < threshold <= 1.0):
+        raise BenchDataError(f"threshold must be in (0, 1] (got {threshold})")
+    if not (np.all(np.isfinite(d)) and np.all(np.isfinite(c))):
+        raise BenchDataError("distances and coverages must be finite")
+    hit = np.flatnonzero(c >= threshold)
+    if hit.size == 0:
+        return None
+    return float(np.maximum.accumulate(d)[hit[0]])
+
+
+def coverage_on_grid(distances: Sequence[float], coverages: Sequence[float],
+                     grid: Sequence[float]) -> np.ndarray:
+    """Coverage of one run at the distances ``grid`` [m]: the last sample at or before each
+    distance (step function); 0 before the first sample, the final value after the last."""
+    d = np.maximum.accumulate(np.asarray(distances, dtype=np.float64))
+    c = np.asarray(coverages, dtype=np.float64)
+    g = np.asarray(grid, dtype=np.float64)
+    if d.ndim != 1 or c.shape != d.shape:
+        raise BenchDataError("distances and coverages must be 1-D of equal length")
+    if d.size == 0:
+        return np.zeros_like(g)
+    idx = np.searchsorted(d, g, side="right") - 1
+    return np.where(idx >= 0, c[np.clip(idx, 0, None)], 0.0)
+
+
+def mean_curve(timelines: Sequence[tuple[Sequence[float], Sequence[float]]],
+               points: int = CURVE_POINTS) -> tuple[np.ndarray, np.ndarray]:
+    """Mean coverage over several runs on a common distance grid 0..longest run [m].
+
+    ``timelines`` holds ``(distances, coverages)`` per run; a run that stopped earlier keeps
+    its final coverage. Returns ``(grid, mean)``; empty arrays if there is no sample at all.
+    """
+    tls = [(np.asarray(d, dtype=np.float64), np.asarray(c, dtype=np.float64))
+           for d, c in timelines if len(d) > 0]
+    if not tls:
+        return np.zeros(0), np.zeros(0)
+    end = max(float(np.max(d)) for d, _ in tls)
+    grid = np.linspace(0.0, end, max(2, points))
+    stack = np.stack([coverage_on_grid(d, c, grid) for d, c in tls])
+    return grid, stack.mean(axis=0)
+
+
+def geometric_mean(values: Iterable[float]) -> float | None:
+    """exp(mean(log v)) of positive finite values; ``None`` for none."""
+    v = np.asarray(list(values), dtype=np.float64)
+    if v.size == 0:
+        return None
+    if not np.all(np.isfinite(v)) or np.any(v <= 0):
+        raise BenchDataError("geometric mean needs positive finite values")
+    return float(np.exp(np.mean(np.log(v))))
+
+
+def _num(v: Any) -> float | None:
+    if isinstance(v, bool) or v is None:
+        return None
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return None
+    return f if math.isfinite(f) else None
+
+
+def pair_ratios(runs: Sequence[dict], num: str, den: str, metric: str) -> dict[str, Any]:
+    """Per (world, seed) pair: ``metric`` of strategy ``num`` / ``metric`` of strategy ``den``.
+
+    A pair counts in the headline geometric mean only if both runs finished and both values
+    are positive; every other pair is listed with ``included: false`` and the reason. Runs
+    are grouped by ``world_label`` (falling back to ``world``) and ``seed``.
+    """
+    by_key: dict[tuple[str, int, str], dict] = {}
+    for r in runs:
+        by_key[(_label(r), int(r["seed"]), r["strategy"])] = r
+    keys = sorted({(w, s) for (w, s, st) in by_key if st == num}
+                  & {(w, s) for (w, s, st) in by_key if st == den})
+    pairs = []
+    for w, s in keys:
+        a, b = by_key[(w, s, num)], by_key[(w, s, den)]
+        va, vb = _num(a.get(metric)), _num(b.get(metric))
+        ratio = va / vb if va is not None and vb is not None and vb > 0 else None
+        why = []
+        for name, r in ((num, a), (den, b)):
+            if not r.get("finished"):
+                why.append(f"{name} not finished ({r.get('stop_reason') or 'no reason'})")
+        if not why and (va is None or vb is None):
+            why.append(f"{metric} missing")
+        elif not why and (va <= 0 or vb <= 0):
+            why.append(f"{metric} is zero (ratio undefined in a geometric mean)")
+        pairs.append({"world": w, "seed": s, num: va, den: vb, "ratio": ratio,
+                      "included": not why, "excluded_reason": "; ".join(why)})
+    included = [p["ratio"] for p in pairs if p["included"]]
+    by_world: dict[str, dict[str, Any]] = {}
+    for w in sorted({p["world"] for p in pairs}):
+        rs = [p["ratio"] for p in pairs if p["world"] == w and p["included"]]
+        by_world[w] = {"geomean": geometric_mean(rs), "n_included": len(rs),
+                       "n_pairs": sum(1 for p in pairs if p["world"] == w)}
+    return {"numerator": num, "denominator": den, "metric": metric, "pairs": pairs,
+            "geomean": geometric_mean(included), "n_included": len(included),
+            "n_excluded": len(pairs) - len(included), "by_world": by_world}
+
+
+def all_ratios(runs: Sequence[dict], strategies: Sequence[str]) -> dict[str, dict]:
+    """``{"<metric>:<num>/<den>": pair_ratios(...)}`` for the pairs whose strategies ran."""
+    out = {}
+    for metric in RATIO_METRICS:
+        for num, den in RATIO_PAIRS:
+            if num in strategies and den in strategies:
+                out[f"{metric}:{num}/{den}"] = pair_ratios(runs, num, den, metric)
+    return out
+
+
+def _stats(values: Sequence[float | None]) -> dict[str, Any]:
+    v = [x for x in values if x is not None]
+    if not v:
+        return {"mean": None, "min": None, "max": None, "n": 0}
+    return {"mean": float(np.mean(v)), "min": float(min(v)), "max": float(max(v)), "n": len(v)}
+
+
+def aggregate(runs: Sequence[dict]) -> dict[str, dict[str, dict]]:
+    """``{world: {strategy: {runs, finished, finished_rate, <field>: {mean, min, max, n}}}}``.
+
+    Means are over every seed, finished or not (the finished rate says how many finished).
+    """
+    out: dict[str, dict[str, dict]] = {}
+    for w, st in sorted({(_label(r), r["strategy"]) for r in runs}):
+        rs = [r for r in runs if _label(r) == w and r["strategy"] == st]
+        fin = sum(1 for r in rs if r.get("finished"))
+        agg: dict[str, Any] = {"runs": len(rs), "finished": fin, "finished_rate": fin / len(rs)}
+        for f in AGG_FIELDS:
+            agg[f] = _stats([_num(r.get(f)) for r in rs])
+        out.setdefault(w, {})[st] = agg
+    return out
+
+
+def coverage_distance_table(runs: Sequence[dict]) -> dict[str, dict[str, dict]]:
+    """``{world: {strategy: {"d90": [per seed], "d90_mean", "d90_reached", ...}}}`` [m].
+
+    Per seed: the distance of :func:`distance_to_coverage` (``None`` if never reached); the
+    mean is over the seeds that reached it (``None`` if none did).
+    """
+    out: dict[str, dict[str, dict]] = {}
+    for w, st in sorted({(_label(r), r["strategy"]) for r in runs}):
+        rs = sorted((r for r in runs if _label(r) == w and r["strategy"] == st),
+                    key=lambda r: int(r["seed"]))
+        row: dict[str, Any] = {"seeds": [int(r["seed"]) for r in rs]}
+        for thr in COVERAGE_THRESHOLDS:
+            k = f"d{round(thr * 100)}"
+            ds = [r.get(f"{k}_m") for r in rs]
+            got = [d for d in ds if d is not None]
+            row[k] = ds
+            row[f"{k}_mean"] = float(np.mean(got)) if got else None
+            row[f"{k}_reached"] = f"{len(got)}/{len(ds)}"
+        out.setdefault(w, {})[st] = row
+    return out
+
+
+def derive(run: dict) -> dict:
+    """Add the derived fields computed from the run's own data (distances to 90/95 %)."""
+    tl = run.get("timeline") or []
+    d = [row[1] for row in tl]
+    c = [row[2] for row in tl]
+    for thr in COVERAGE_THRESHOLDS:
+        run[f"d{round(thr * 100)}_m"] = distance_to_coverage(d, c, thr) if tl else None
+    return run
+
+
+def analyse(runs: Sequence[dict], strategies: Sequence[str]) -> dict[str, Any]:
+    return {"aggregate": aggregate(runs), "ratios": all_ratios(runs, strategies),
+            "coverage_distance": coverage_distance_table(runs)}
+
+
+def _label(r: dict) -> str:
+    return str(r.get("world_label") or r.get("world"))
+
+
+# --------------------------------------------------------------------------------------------
+# output files
+
+
+def read_timeline(path: Path) -> list[list[float]]:
+    """``timeline.csv`` of a run -> ``[[sim_time_s, path_length_m, coverage], ...]``."""
+    rows = []
+    with path.open() as f:
+        for row in csv.DictReader(f):
+            rows.append([float(row["sim_time_s"]), float(row["path_length_m"]),
+                         float(row["coverage"])])
+    return rows
+
+
+def write_csv(path: Path, runs: Sequence[dict]) -> None:
+    cols: list[str] = []
+    for r in runs:
+        for k, v in r.items():
+            if k not in cols and not isinstance(v, (list, dict)):
+                cols.append(k)
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=cols, extrasaction="ignore")
+        w.writeheader()
+        for r in runs:
+            w.writerow({k: r.get(k) for k in cols})
+
+
+def plot_curves(world: str, runs: Sequence[dict], strategies: Sequence[str], path: Path) -> bool:
+    """Coverage over distance for one world, one line per strategy (mean over seeds).
+
+    Returns False (and writes nothing) when no run of the world has a timeline.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    lines = []
+    for st in strategies:
+        rs = [r for r in runs if _label(r) == world and r["strategy"] == st]
+        tls = [([row[1] for row in r["timeline"]], [row[2] for row in r["timeline"]])
+               for r in rs if r.get("timeline")]
+        grid, mean = mean_curve(tls)
+        if grid.size:
+            fin = sum(1 for r in rs if r.get("finished"))
+            lines.append((st, grid, mean, len(tls), fin, len(rs)))
+    if not lines:
+        return False
+    fig, ax = plt.subplots(figsize=(7.0, 4.5), dpi=110)
+    try:
+        for st, grid, mean, n_tl, fin, n in lines:
+            seeds = "seed 0" if n_tl == 1 else f"mean of {n_tl} seeds"
+            ax.plot(grid, mean, lw=1.8, label=f"{st} ({seeds}; {fin}/{n} finished)")
+            ax.plot(grid[-1:], mean[-1:], "o", color=ax.lines[-1].get_color(), ms=4)
+        for thr in COVERAGE_THRESHOLDS:
+            ax.axhline(thr, color="0.6", lw=0.8, ls=":")
+        ax.set_xlabel("distance travelled [m]")
+        ax.set_ylabel("coverage (share of reachable free space mapped)")
+        ax.set_ylim(0.0, 1.02)
+        ax.set_xlim(left=0.0)
+        ax.set_title(f"{world}: coverage over distance")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="lower right", fontsize=8)
+        fig.tight_layout()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(path)
+    finally:
+        plt.close(fig)
+    return True
+
+
+def _n(k: int, word: str) -> str:
+    if k == 1:
+        return f"1 {word}"
+    return f"{k} {word[:-1] + 'ies' if word.endswith('y') else word + 's'}"
+
+
+def _fmt(v: Any, dec: int) -> str:
+    if v is None:
+        return "–"
+    return f"{v:.{dec}f}"
+
+
+def _fmt_stats(s: dict, dec: int) -> str:
+    if s["n"] == 0:
+        return "–"
+    text = _fmt(s["mean"], dec)
+    if s["n"] > 1 and s["max"] - s["min"] > 10.0 ** -dec / 2:
+        text += f" ({_fmt(s['min'], dec)}–{_fmt(s['max'], dec)})"
+    return text
+
+
+def format_summary(doc: dict) -> str:
+    cfg = doc["config"]
+    runs = doc["runs"]
+    strategies = cfg["strategies"]
+    worlds = [w for w in cfg["world_labels"] if w in doc["aggregate"]]
+    mach = doc["machine"]
+    L = ["# Exploration strategy comparison (`topoexplore bench explore`)", ""]
+    L.append(f"Made {doc['created']}. {len(runs)} of {cfg['planned_runs']} planned runs "
+             f"({_n(len(cfg['world_labels']), 'world')} x {_n(len(strategies), 'strategy')} x "
+             f"{_n(cfg['seeds'], 'seed')}), lockstep, max sim time {cfg['max_sim_time']:g} s, "
+             f"max wall time {cfg['max_wall_time']:g} s per run, {cfg['jobs']} at a time.")
+    if doc.get("interrupted"):
+        L.append("")
+        L.append("**Interrupted: the suite is incomplete.**")
+    L += ["", "Reproduce (from the repository root):", "", "```", doc["command"], "```", ""]
+    L.append(f"Machine: {mach['nproc']} CPUs ({mach['cpu_model']}), {mach['platform']}, "
+             f"Python {mach['python']}, git {mach['git']}.")
+    L.append("Packages: " + ", ".join(f"{k} {v}" for k, v in mach["packages"].items()) + ".")
+    for note in doc.get("notes", []):
+        L += ["", f"Note: {note}"]
+    L += ["", "## Per world and strategy", "",
+          "Mean over seeds, finished or not (min–max in brackets when they differ). "
+          "`accepted from a distance` = end nodes reliable at the end without a visit."]
+    cols = ["strategy", "finished"] + [t for t, _ in AGG_FIELDS.values()]
+    for w in worlds:
+        L += ["", f"### {w}", "", "| " + " | ".join(cols) + " |",
+              "|" + "---|" * len(cols)]
+        for st in strategies:
+            a = doc["aggregate"][w].get(st)
+            if a is None:
+                continue
+            cells = [st, f"{a['finished']}/{a['runs']}"]
+            cells += [_fmt_stats(a[f], dec) for f, (_, dec) in AGG_FIELDS.items()]
+            L.append("| " + " | ".join(cells) + " |")
+        stops = [f"{r['strategy']} seed {r['seed']}: {r.get('stop_reason') or '?'}"
+                 for r in runs if _label(r) == w and not r.get("finished")]
+        if stops:
+            L += ["", "Not finished: " + "; ".join(stops) + "."]
+    low = [f"{_label(r)}/{r['strategy']} seed {r['seed']} ({r['coverage']:.3f})" for r in runs
+           if r.get("finished") and _num(r.get("coverage")) is not None
+           and r["coverage"] < LOW_COVERAGE]
+    if low:
+        L += ["", f"Caution: finished with coverage below {LOW_COVERAGE:g} (they still count as "
+              "finished in the ratios): " + "; ".join(low) + "."]
+    L += ["", "## Ratios (per run pair: same world, same seed)", ""]
+    if not doc["ratios"]:
+        L.append("No ratio: the suite does not hold both strategies of a pair.")
+    for key, rr in doc["ratios"].items():
+        metric, _ = key.split(":")
+        name = f"{metric} {rr['numerator']} / {rr['denominator']}"
+        gm = rr["geomean"]
+        head = (f"**{_fmt(gm, 3)}**" if gm is not None else "**none** (no pair where both "
+                "finished)")
+        L.append(f"- {name}: geometric mean {head} over {rr['n_included']} pair(s) where "
+                 f"both runs finished; {rr['n_excluded']} pair(s) excluded.")
+        for w, bw in rr["by_world"].items():
+            L.append(f"  - {w}: {_fmt(bw['geomean'], 3)} ({bw['n_included']}/{bw['n_pairs']} "
+                     "pairs)")
+    excluded = {}
+    for rr in doc["ratios"].values():
+        for p in rr["pairs"]:
+            if not p["included"]:
+                excluded[(p["world"], p["seed"], rr["numerator"], rr["denominator"])] = \
+                    p["excluded_reason"]
+    if excluded:
+        L += ["", "Excluded pairs (the same for both metrics):", ""]
+        for (w, s, a, b), why in sorted(excluded.items()):
+            L.append(f"- {w} seed {s}, {a} vs {b}: {why}")
+    pair_rows = [(key, p) for key, rr in doc["ratios"].items() for p in rr["pairs"]]
+    if pair_rows:
+        L += ["", "| ratio | world | seed | value | counted |", "|---|---|---|---|---|"]
+        for key, p in pair_rows:
+            L.append(f"| {key.replace(':', ' ')} | {p['world']} | {p['seed']} | "
+                     f"{_fmt(p['ratio'], 3)} | {'yes' if p['included'] else 'no'} |")
+    L += ["", "## Distance to 90 % and 95 % coverage [m]", "",
+          "Distance travelled at the first timeline sample (every 0.25 m of travel) with at "
+          "least that coverage; mean over the seeds that reached it (seeds reached / seeds); "
+          "– = never.", "", "| world | strategy | 90 % | 95 % |", "|---|---|---|---|"]
+    for w in worlds:
+        for st in strategies:
+            row = doc["coverage_distance"].get(w, {}).get(st)
+            if row is None:
+                continue
+            L.append(f"| {w} | {st} | {_fmt(row['d90_mean'], 1)} ({row['d90_reached']}) | "
+                     f"{_fmt(row['d95_mean'], 1)} ({row['d95_reached']}) |")
+    L += ["", "## Curves and runs", ""]
+    for w in worlds:
+        if (doc.get("curves") or {}).get(w):
+            L.append(f"- {w}: ![{w}]({doc['curves'][w]})")
+    L.append("")
+    L.append("Each run's directory (report.json, final.png, map.pgm/yaml, timeline.csv, "
+             "logs.txt): " + ", ".join(f"[{Path(r['run_dir']).name}]({r['run_dir']}/final.png)"
+                                       for r in runs if r.get("run_dir")) + ".")
+    return "\n".join(L) + "\n"
+
+
+def write_all(out: Path, doc: dict) -> None:
+    """results.json, results.csv, curves/*.png and summary.md from ``doc`` (analysis redone)."""
+    cfg = doc["config"]
+    doc.update(analyse(doc["runs"], cfg["strategies"]))
+    doc["curves"] = {}
+    for w in cfg["world_labels"]:
+        rel = f"curves/{w}.png"
+        if plot_curves(w, doc["runs"], cfg["strategies"], out / rel):
+            doc["curves"][w] = rel
+    out.mkdir(parents=True, exist_ok=True)
+    _write_json(out / "results.json", doc)
+    write_csv(out / "results.csv", doc["runs"])
+    (out / "summary.md").write_text(format_summary(doc))
+
+
+def _write_json(path: Path, doc: dict) -> None:
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(doc, indent=1) + "\n")
+    tmp.replace(path)
+
+
+# --------------------------------------------------------------------------------------------
+# machine, arguments
+
+
+def machine_info() -> dict[str, Any]:
+    from importlib import metadata
+
+    cpu = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    pkgs = {}
+    for p in PACKAGES:
+        try:
+            pkgs[p] = metadata.version(p)
+        except metadata.PackageNotFoundError:
+            pkgs[p] = "not installed"
+    git = "unknown"
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, text=True,
+                              capture_output=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                               cwd=REPO, text=True, capture_output=True, timeout=10).stdout
+        if head:
+            git = head + (" (with uncommitted changes)" if dirty.strip() else "")
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return {"nproc": os.cpu_count(), "cpu_model": cpu, "platform": platform.platform(),
+            "python": platform.python_version(), "packages": pkgs, "git": git}
+
+
+@dataclass
+class Config:
+    worlds: list[tuple[str, str, str]]  # (label, argument for `run`, text for the command)
+    strategies: list[str]
+    seeds: int
+    out: Path
+    max_sim_time: float
+    max_wall_time: float
+    jobs: int
+    progress: bool = True
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def command(self) -> str:
+        args = ["topoexplore", "bench", "explore",
+                "--worlds", ",".join(t for _, _, t in self.worlds),
+                "--strategies", ",".join(self.strategies), "--seeds", str(self.seeds),
+                "--max-sim-time", f"{self.max_sim_time:g}",
+                "--max-wall-time", f"{self.max_wall_time:g}", "--jobs", str(self.jobs),
+                "--out", str(self.out)]
+        return shlex.join(args)
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # one line, no usage block
+        raise BenchArgError(message)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = _Parser(prog="topoexplore bench explore", description=__doc__,
+                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--worlds", help="comma-separated built-in names or world/map files "
+                    "(default: every built-in world + ../shared/maps/lse_arena.yaml)")
+    ap.add_argument("--strategies", help=f"comma-separated (default {','.join(STRATEGIES)})")
+    ap.add_argument("--seeds", type=int, help=f"seeds 0..N-1 (default {DEFAULT_SEEDS})")
+    ap.add_argument("--out", default=None, help="output directory (default runs/bench-explore)")
+    ap.add_argument("--max-sim-time", type=float, default=DEFAULT_MAX_SIM_TIME,
+                    help="per run, simulated seconds [s]")
+    ap.add_argument("--max-wall-time", type=float, default=DEFAULT_MAX_WALL_TIME,
+                    help="per run, wall seconds [s] (0: no limit)")
+    ap.add_argument("--jobs", type=int, default=1, help="runs at a time (each is 7 processes)")
+    ap.add_argument("--quick", action="store_true",
+                    help=f"smoke suite: {','.join(QUICK_WORLDS)} x all strategies x 1 seed")
+    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    ap.add_argument("--from-results", metavar="DIR",
+                    help="re-make summary, CSV and curves from DIR/results.json (no runs)")
+    return ap
+
+
+def resolve_world(text: str) -> tuple[str, str, str]:
+    """World name or file -> ``(label, argument for run, text for the command)``.
+
+    A relative file path is looked up from the current directory, then from the repository
+    root. Raises :class:`BenchArgError` for unknown names and unreadable files.
+    """
+    from sim.world import WorldError, load_world
+
+    if "/" not in text and not text.endswith((".toml", ".yaml", ".yml")):
+        try:
+            load_world(text)
+        except WorldError as exc:
+            raise BenchArgError(str(exc)) from None
+        return text, text, text
+    p = Path(text)
+    cands = [p] if p.is_absolute() else [Path.cwd() / p, REPO / p]
+    path = next((c.resolve() for c in cands if c.is_file()), None)
+    if path is None:
+        raise BenchArgError(f"world file not found: {text}")
+    try:
+        load_world(str(path))
+    except WorldError as exc:
+        raise BenchArgError(str(exc)) from None
+    return path.stem, str(path), os.path.relpath(path, REPO)
+
+
+def default_worlds() -> tuple[list[str], list[str]]:
+    """Every built-in world plus the real maps of :data:`EXTRA_MAPS` that exist; notes."""
+    from sim.world import builtin_worlds
+
+    worlds = list(builtin_worlds())
+    notes = []
+    for name in EXTRA_MAPS:
+        p = SHARED_MAPS / name
+        if p.is_file():
+            worlds.append(str(p))
+        else:
+            notes.append(f"map {p} not found: skipped (needs ../shared beside the checkout)")
+    return worlds, notes
+
+
+def parse_config(argv: Sequence[str]) -> tuple[Config | None, argparse.Namespace]:
+    """Parse and check everything (worlds load, strategies, numbers, output dir) or raise
+    :class:`BenchArgError`. Returns ``(None, args)`` for ``--from-results``."""
+    args = build_parser().parse_args(list(argv))
+    if args.from_results is not None:
+        if any(v is not None for v in (args.worlds, args.strategies, args.seeds)) or args.quick:
+            raise BenchArgError("--from-results takes no --worlds/--strategies/--seeds/--quick")
+        if not (Path(args.from_results) / "results.json").is_file():
+            raise BenchArgError(f"no results.json in {args.from_results}")
+        return None, args
+    notes: list[str] = []
+    if args.worlds is not None:
+        texts = [w.strip() for w in args.worlds.split(",") if w.strip()]
+        if not texts:
+            raise BenchArgError("--worlds is empty")
+    elif args.quick:
+        texts = list(QUICK_WORLDS)
+    else:
+        texts, notes = default_worlds()
+    worlds = [resolve_world(t) for t in texts]
+    labels = [w[0] for w in worlds]
+    dup = sorted({x for x in labels if labels.count(x) > 1})
+    if dup:
+        raise BenchArgError(f"world given twice: {', '.join(dup)}")
+    if args.strategies is not None:
+        strategies = [s.strip() for s in args.strategies.split(",") if s.strip()]
+        bad = [s for s in strategies if s not in STRATEGIES]
+        if bad or not strategies:
+            raise BenchArgError(f"unknown strategy {bad[0] if bad else '(none)'!r}: choose "
+                                f"from {', '.join(STRATEGIES)}")
+        if len(set(strategies)) != len(strategies):
+            raise BenchArgError("strategy given twice")
+    else:
+        strategies = list(STRATEGIES)
+    seeds = args.seeds if args.seeds is not None else (1 if args.quick else DEFAULT_SEEDS)
+    if seeds < 1:
+        raise BenchArgError(f"--seeds must be >= 1 (got {seeds})")
+    if not (math.isfinite(args.max_sim_time) and args.max_sim_time > 0):
+        raise BenchArgError("--max-sim-time must be a positive number")
+    if not (math.isfinite(args.max_wall_time) and args.max_wall_time >= 0):
+        raise BenchArgError("--max-wall-time must be >= 0")
+    if args.jobs < 1:
+        raise BenchArgError(f"--jobs must be >= 1 (got {args.jobs})")
+    out = Path(args.out or "runs/bench-explore")
+    if out.exists() and not out.is_dir():
+        raise BenchArgError(f"--out {out} is not a directory")
+    return Config(worlds=worlds, strategies=strategies, seeds=seeds, out=out,
+                  max_sim_time=float(args.max_sim_time), max_wall_time=float(args.max_wall_time),
+                  jobs=args.jobs, progress=not args.no_progress, notes=notes), args
+
+
+# --------------------------------------------------------------------------------------------
+# running
+
+
+_ACTIVE: set[subprocess.Popen] = set()
+_ACTIVE_LOCK = threading.Lock()
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _stop(p: subprocess.Popen) -> None:
+    """SIGTERM the run's process group (the runner stops its stack), SIGKILL if it lingers."""
+    for sig, wait in ((signal.SIGTERM, 20), (signal.SIGKILL, 5)):
+        if p.poll() is not None:
+            return
+        try:
+            os.killpg(p.pid, sig)
+        except ProcessLookupError:
+            return
+        try:
+            p.wait(timeout=wait)
+        except subprocess.TimeoutExpired:
+            pass
+
+
+def run_one(label: str, world_arg: str, strategy: str, seed: int, out: Path,
+            max_sim_time: float, max_wall_time: float) -> dict:
+    """One ``topoexplore run --lockstep`` into ``out/runs/<label>-<strategy>-<seed>/``.
+
+    Returns its report plus derived fields; a run that left no report gets a stub report
+    (``finished: false``, metrics ``None``) whose ``stop_reason`` says what happened.
+    """
+    rel = f"runs/{label}-{strategy}-{seed}"
+    run_dir = out / rel
+    if run_dir.exists():
+        shutil.rmtree(run_dir)  # never read a stale report
+    run_dir.mkdir(parents=True)
+    cmd = [sys.executable, "-m", "common.cli", "run", "--world", world_arg, "--strategy",
+           strategy, "--seed", str(seed), "--lockstep", "--quiet", "--out", str(run_dir.resolve()),
+           "--connect", f"tcp/127.0.0.1:{_free_port()}",
+           "--namespace", f"bench{os.getpid()}{re.sub('[^A-Za-z0-9]', '', label)[:12]}"
+                          f"{STRATEGIES.index(strategy)}s{seed}",
+           "--max-sim-time", f"{max_sim_time:g}", "--max-wall-time", f"{max_wall_time:g}"]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
+    # safety net above the runner's own wall limit: startup, shutdown and the final picture
+    timeout = max_wall_time + 180.0 if max_wall_time > 0 else None
+    with (run_dir / "bench-stderr.txt").open("w") as err:
+        p = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=err,
+                             start_new_session=True)
+        with _ACTIVE_LOCK:
+            _ACTIVE.add(p)
+        try:
+            code = p.wait(timeout=timeout)
+            note = ""
+        except subprocess.TimeoutExpired:
+            _stop(p)
+            code = p.returncode
+            note = f"killed by the bench after {timeout:g} wall s"
+        except BaseException:  # Ctrl-C: the run is in its own session, stop it ourselves
+            _stop(p)
+            raise
+        finally:
+            with _ACTIVE_LOCK:
+                _ACTIVE.discard(p)
+    try:
+        report = json.loads((run_dir / "report.json").read_text())
+    except (OSError, ValueError):
+        last = [ln for ln in (run_dir / "bench-stderr.txt").read_text().splitlines() if ln]
+        report = {"world": world_arg, "strategy": strategy, "seed": seed, "finished": False,
+                  "stop_reason": note or f"no report.json (exit code {code}"
+                                         f"{': ' + last[-1][:200] if last else ''})"}
+        for f in AGG_FIELDS:
+            report[f] = None
+    if note and report.get("stop_reason"):
+        report["stop_reason"] += f" ({note})"
+    run = dict(report)
+    run["world_label"] = label
+    run["exit_code"] = code
+    run["run_dir"] = rel
+    tl_path = run_dir / "timeline.csv"
+    try:
+        run["timeline"] = read_timeline(tl_path) if tl_path.is_file() else []
+    except (OSError, ValueError, KeyError):
+        run["timeline"] = []
+    return derive(run)
+
+
+def _result_text(r: dict) -> str:
+    if r.get("path_length_m") is None:
+        return f"{r['strategy']}: no report"
+    return (f"{_label(r)}/{r['strategy']}/{r['seed']} "
+            f"{'finished' if r.get('finished') else 'NOT finished'} "
+            f"{r['path_length_m']:.1f} m cov {r.get('coverage') or 0:.2f}")
+
+
+def run_suite(cfg: Config, argv: Sequence[str]) -> int:
+    from tqdm import tqdm
+
+    out = cfg.out
+    out.mkdir(parents=True, exist_ok=True)
+    plan = [(w, seed, st) for w in cfg.worlds for seed in range(cfg.seeds)
+            for st in cfg.strategies]
+    doc: dict[str, Any] = {
+        "version": 1,
+        "created": _dt.datetime.now().astimezone().isoformat(timespec="seconds"),
+        "command": cfg.command,
+        "argv": list(argv),
+        "machine": machine_info(),
+        "config": {"worlds": [w[2] for w in cfg.worlds],
+                   "world_labels": [w[0] for w in cfg.worlds], "strategies": cfg.strategies,
+                   "seeds": cfg.seeds, "max_sim_time": cfg.max_sim_time,
+                   "max_wall_time": cfg.max_wall_time, "jobs": cfg.jobs,
+                   "planned_runs": len(plan)},
+        "notes": list(cfg.notes),
+        "interrupted": False,
+        "runs": [],
+    }
+    for note in cfg.notes:
+        print(f"topoexplore bench explore: {note}", file=sys.stderr)
+    bar = tqdm(total=len(plan), unit="run", desc="bench explore", file=sys.stderr,
+               dynamic_ncols=True, disable=not cfg.progress)
+    order = {(w[0], seed, st): i for i, (w, seed, st) in enumerate(plan)}
+    lock = threading.Lock()
+    last = ""
+
+    def done(run: dict) -> None:
+        nonlocal last
+        with lock:
+            doc["runs"].append(run)
+            doc["runs"].sort(key=lambda r: order.get((_label(r), r["seed"], r["strategy"]), 0))
+            _write_json(out / "results.json", doc)  # partial results survive an interrupt
+            last = _result_text(run)
+            bar.set_postfix_str(f"last {last}", refresh=False)
+            bar.update(1)
+
+    def one(item) -> dict:
+        (label, arg, _), seed, st = item
+        if cfg.jobs == 1:
+            bar.set_postfix_str(f"now {label}/{st}/{seed} | last {last}")
+        return run_one(label, arg, st, seed, out, cfg.max_sim_time, cfg.max_wall_time)
+
+    try:
+        if cfg.jobs == 1:
+            for item in plan:
+                done(one(item))
+        else:
+            with ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
+                futs = [pool.submit(one, item) for item in plan]
+                try:
+                    for f in as_completed(futs):
+                        done(f.result())
+                except BaseException:
+                    for f in futs:
+                        f.cancel()
+                    raise
+    except KeyboardInterrupt:
+        doc["interrupted"] = True
+        with _ACTIVE_LOCK:
+            active = list(_ACTIVE)
+        for p in active:
+            _stop(p)
+    finally:
+        bar.close()
+    write_all(out, doc)
+    n_fin = sum(1 for r in doc["runs"] if r.get("finished"))
+    print(f"bench explore: {len(doc['runs'])}/{len(plan)} runs, {n_fin} finished -> "
+          f"{out}/summary.md, results.json, results.csv, curves/", file=sys.stderr)
+    for key, rr in doc["ratios"].items():
+        if key.startswith("path_length_m"):
+            print(f"  path {rr['numerator']}/{rr['denominator']}: geometric mean "
+                  f"{_fmt(rr['geomean'], 3)} over {rr['n_included']} finished pair(s), "
+                  f"{rr['n_excluded']} excluded", file=sys.stderr)
+    return 130 if doc["interrupted"] else 0
+
+
+def from_results(src: Path, out: Path | None) -> int:
+    try:
+        doc = json.loads((src / "results.json").read_text())
+        runs = doc["runs"]
+        doc["config"]["strategies"]
+        doc["config"]["world_labels"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        print(f"topoexplore bench explore: cannot read {src / 'results.json'}: {exc}",
+              file=sys.stderr)
+        return 2
+    out = out or src
+    for r in runs:  # older files, or runs copied without timeline: read the run directory
+        if not r.get("timeline") and r.get("run_dir") and (src / r["run_dir"] / "timeline.csv"
+                                                            ).is_file():
+            r["timeline"] = read_timeline(src / r["run_dir"] / "timeline.csv")
+        derive(r)
+        if out.resolve() != src.resolve() and r.get("run_dir"):
+            r["run_dir"] = os.path.relpath(src / r["run_dir"], out)
+    write_all(out, doc)
+    print(f"bench explore: re-made {out}/summary.md, results.json, results.csv, curves/ from "
+          f"{src / 'results.json'} ({len(runs)} runs)", file=sys.stderr)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        cfg, args = parse_config(argv)
+    except BenchArgError as exc:
+        print(f"topoexplore bench explore: {exc}", file=sys.stderr)
+        return 2
+    except SystemExit as exc:  # --help
+        return int(exc.code or 0)
+    if cfg is None:
+        return from_results(Path(args.from_results), Path(args.out) if args.out else None)
+    try:
+        cfg.out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        print(f"topoexplore bench explore: cannot create {cfg.out}: {exc}", file=sys.stderr)
+        return 2
+    return run_suite(cfg, ["bench", "explore", *argv])
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
