@@ -1,0 +1,109 @@
+"""The `topoexplore` command: one-line errors, worlds listing, map save and render against a
+running stack, render of a saved run directory."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from common.bus import Bus
+from common.grid import classify
+from common.keys import Keys
+from common.mapio import read_map_server
+from tests.conftest import REPO
+
+
+def cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "common.cli", *args], cwd=REPO,
+                          capture_output=True, text=True, timeout=timeout,
+                          env=dict(os.environ, PYTHONPATH=str(REPO)))
+
+
+def one_line_error(r: subprocess.CompletedProcess) -> None:
+    assert r.returncode != 0
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_worlds_lists_builtins():
+    r = cli("worlds")
+    assert r.returncode == 0
+    names = [ln.split()[0] for ln in r.stdout.splitlines()]
+    for w in ("paper-room", "dead-end", "junction", "corner", "office", "maze"):
+        assert w in names
+
+
+def test_worlds_check_summarizes_a_map_world():
+    r = cli("worlds", "--check", str(REPO.parent / "shared" / "maps" / "small_house.yaml"))
+    if not (REPO.parent / "shared").exists():
+        pytest.skip("../shared not present")
+    assert r.returncode == 0 and "wall segments" in r.stdout
+
+
+@pytest.mark.parametrize("content", [
+    "name = 'x'\nsize = [-1, 5]\n",
+    "name = 'x'\nsize = [5, 5]\n[robot]\npose = [50, 50, 0]\n",
+    "name = 'x'\nsize = [5, 5]\n[[walls]]\npoints = 'no'\n",
+    "this is not toml",
+    "name = 'x'\nmap = 'missing.yaml'\n",
+])
+def test_bad_world_file_one_line(tmp_path, content):
+    f = tmp_path / "w.toml"
+    f.write_text(content)
+    one_line_error(cli("worlds", "--check", str(f)))
+    one_line_error(cli("run", "--world", str(f), "--lockstep", "--out", str(tmp_path / "o")))
+
+
+@pytest.mark.parametrize("args", [
+    ["run", "--world", "no-such-world"],
+    ["run", "--set", "planner.strategy=random"],
+    ["run", "--set", "sim.scan_hz=-5"],
+    ["run", "--params", "/nonexistent.toml"],
+    ["run", "--speed", "0"],
+    ["up", "--profile", "/nonexistent.toml"],
+    ["bench", "stages", "--sizes", "abc"],
+    ["map", "save", "/tmp/x.yaml", "--connect", "tcp/127.0.0.1:1", "--timeout", "0.5"],
+])
+def test_bad_arguments_one_line(args, tmp_path):
+    one_line_error(cli(*args))
+
+
+def test_map_save_and_render_live_then_saved_dir(procs, endpoint, namespace, tmp_path):
+    procs.python("-m", "common.cli", "up", "--profile", "mapping", "--connect", endpoint,
+                 "--namespace", namespace)
+    keys = Keys(namespace, "robot1")
+    with Bus.client(endpoint, wait_for_router=True) as bus:
+        deadline = time.monotonic() + 60
+        while keys.alive("topology") not in bus.alive(keys.alive_all()) \
+                or keys.alive("sim") not in bus.alive(keys.alive_all()):
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+    time.sleep(2.0)  # a few scans
+    common = ["--connect", endpoint, "--namespace", namespace]
+    r = cli("map", "save", str(tmp_path / "live" / "map.yaml"), *common)
+    assert r.returncode == 0, r.stderr
+    grid, geom = read_map_server(tmp_path / "live" / "map.yaml")
+    cls = classify(grid)
+    assert (cls == 1).sum() > 100 and (cls == 2).sum() > 10  # free and occupied seen
+    assert geom.resolution == pytest.approx(0.1)
+    r = cli("render", "--live", "-o", str(tmp_path / "live.png"), *common)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "live.png").stat().st_size > 1000
+    # a saved directory with only map files renders too
+    r = cli("render", str(tmp_path / "live"))
+    assert r.returncode == 0, r.stderr
+    import cv2
+
+    img = cv2.imread(str(tmp_path / "live" / "render.png"))
+    assert img is not None and img.shape[2] == 3 and np.any(img != img[0, 0])
+
+
+def test_render_bad_directory(tmp_path):
+    one_line_error(cli("render", str(tmp_path)))
+    one_line_error(cli("render"))
