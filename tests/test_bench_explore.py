@@ -1,0 +1,258 @@
+"""``topoexplore bench explore``: ratio arithmetic, coverage distances, files, arguments, and
+one small smoke run of the real suite (2 worlds x 3 strategies x 1 seed, capped sim time)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from common import benchexplore as be
+from tests.conftest import REPO, SHARED
+
+
+def rep(world, strategy, seed, path, sim, finished=True, coverage=1.0, timeline=None):
+    return {"world": world, "world_label": world, "strategy": strategy, "seed": seed,
+            "finished": finished, "stop_reason": "done: x" if finished else "max sim time",
+            "path_length_m": path, "sim_time_s": sim, "wall_time_s": 2.0, "coverage": coverage,
+            "map_accuracy": 0.99, "collisions": 0, "end_nodes_visited": 1,
+            "end_nodes_accepted_remote": 1, "timeline": timeline or []}
+
+
+RUNS = [
+    rep("a", "reliability", 0, 10.0, 100.0), rep("a", "frontier", 0, 20.0, 150.0),
+    rep("a", "all-end-nodes", 0, 12.5, 110.0),
+    rep("a", "reliability", 1, 8.0, 90.0), rep("a", "frontier", 1, 32.0, 180.0),
+    rep("a", "all-end-nodes", 1, 16.0, 100.0, finished=False),
+    rep("b", "reliability", 0, 5.0, 60.0), rep("b", "frontier", 0, 4.0, 200.0, finished=False),
+    rep("b", "all-end-nodes", 0, 0.0, 40.0),
+]
+
+
+# -- ratios --------------------------------------------------------------------------------
+
+
+def test_pair_ratios_per_pair_and_geometric_mean():
+    rr = be.pair_ratios(RUNS, "reliability", "frontier", "path_length_m")
+    by = {(p["world"], p["seed"]): p for p in rr["pairs"]}
+    assert set(by) == {("a", 0), ("a", 1), ("b", 0)}
+    assert by[("a", 0)]["ratio"] == pytest.approx(0.5) and by[("a", 0)]["included"]
+    assert by[("a", 1)]["ratio"] == pytest.approx(0.25) and by[("a", 1)]["included"]
+    # unfinished pair: ratio shown, not counted, reason given
+    assert by[("b", 0)]["ratio"] == pytest.approx(1.25) and not by[("b", 0)]["included"]
+    assert "frontier not finished" in by[("b", 0)]["excluded_reason"]
+    assert rr["geomean"] == pytest.approx(math.sqrt(0.5 * 0.25))
+    assert (rr["n_included"], rr["n_excluded"]) == (2, 1)
+    assert rr["by_world"]["a"]["geomean"] == pytest.approx(math.sqrt(0.125))
+    assert rr["by_world"]["b"] == {"geomean": None, "n_included": 0, "n_pairs": 1}
+
+
+def test_pair_ratios_exclude_unfinished_and_zero_denominator():
+    rr = be.pair_ratios(RUNS, "reliability", "all-end-nodes", "path_length_m")
+    by = {(p["world"], p["seed"]): p for p in rr["pairs"]}
+    assert by[("a", 0)]["included"] and by[("a", 0)]["ratio"] == pytest.approx(0.8)
+    assert "all-end-nodes not finished" in by[("a", 1)]["excluded_reason"]
+    assert by[("b", 0)]["ratio"] is None and "zero" in by[("b", 0)]["excluded_reason"]
+    assert rr["geomean"] == pytest.approx(0.8) and rr["n_excluded"] == 2
+    st = be.pair_ratios(RUNS, "reliability", "all-end-nodes", "sim_time_s")
+    assert st["geomean"] == pytest.approx(math.sqrt(100.0 / 110.0 * 60.0 / 40.0))  # b counts
+
+
+def test_all_ratios_only_for_strategies_that_ran_and_none_without_pairs():
+    assert set(be.all_ratios(RUNS, ["reliability", "frontier"])) == {
+        "path_length_m:reliability/frontier", "sim_time_s:reliability/frontier"}
+    assert be.all_ratios(RUNS, ["reliability"]) == {}
+    only_unfinished = [rep("a", "reliability", 0, 1.0, 1.0, finished=False),
+                       rep("a", "frontier", 0, 2.0, 1.0)]
+    rr = be.pair_ratios(only_unfinished, "reliability", "frontier", "path_length_m")
+    assert rr["geomean"] is None and rr["n_excluded"] == 1
+
+
+def test_geometric_mean():
+    assert be.geometric_mean([2.0, 8.0]) == pytest.approx(4.0)
+    assert be.geometric_mean([]) is None
+    with pytest.raises(be.BenchDataError):
+        be.geometric_mean([1.0, 0.0])
+
+
+def test_aggregate_means_over_all_seeds():
+    agg = be.aggregate(RUNS)
+    a = agg["a"]["all-end-nodes"]
+    assert (a["runs"], a["finished"], a["finished_rate"]) == (2, 1, 0.5)
+    assert a["path_length_m"] == {"mean": 14.25, "min": 12.5, "max": 16.0, "n": 2}
+
+
+# -- coverage over distance ----------------------------------------------------------------
+
+
+TL_D = [0.0, 0.3, 1.0, 2.0, 1.9, 3.0]  # a stale, smaller distance at index 4
+TL_C = [0.0, 0.5, 0.85, 0.89, 0.92, 0.94]
+
+
+def test_distance_to_coverage():
+    assert be.distance_to_coverage(TL_D, TL_C, 0.9) == pytest.approx(2.0)  # running max
+    assert be.distance_to_coverage(TL_D, TL_C, 0.95) is None
+    assert be.distance_to_coverage(TL_D, TL_C, 0.5) == pytest.approx(0.3)
+    assert be.distance_to_coverage([], [], 0.9) is None
+    for args in (([0.0, 1.0], [0.1], 0.9), (TL_D, TL_C, 0.0), (TL_D, TL_C, 1.5),
+                 ([0.0, float("nan")], [0.1, 0.2], 0.9)):
+        with pytest.raises(be.BenchDataError):
+            be.distance_to_coverage(*args)
+
+
+def test_derive_and_table():
+    runs = [be.derive(rep("a", "reliability", s, 3.0, 10.0,
+                          timeline=[[0.0, d, c] for d, c in zip(TL_D, TL_C, strict=True)]))
+            for s in (0, 1)]
+    runs[1]["timeline"][-1][2] = 0.96
+    runs[1] = be.derive(runs[1])
+    assert runs[0]["d90_m"] == pytest.approx(2.0) and runs[0]["d95_m"] is None
+    assert runs[1]["d95_m"] == pytest.approx(3.0)
+    row = be.coverage_distance_table(runs)["a"]["reliability"]
+    assert row["d90"] == [2.0, 2.0] and row["d90_mean"] == pytest.approx(2.0)
+    assert row["d95"] == [None, 3.0] and row["d95_mean"] == pytest.approx(3.0)
+    assert row["d95_reached"] == "1/2"
+
+
+def test_mean_curve_holds_final_coverage():
+    grid, mean = be.mean_curve([([0.0, 1.0, 2.0], [0.2, 0.6, 1.0]), ([0.0, 1.0], [0.4, 0.8])],
+                               points=5)
+    np.testing.assert_allclose(grid, [0.0, 0.5, 1.0, 1.5, 2.0])
+    np.testing.assert_allclose(mean, [0.3, 0.3, 0.7, 0.7, 0.9])
+    g, m = be.mean_curve([([], [])])
+    assert g.size == 0 and m.size == 0
+
+
+# -- files (--from-results) ----------------------------------------------------------------
+
+
+def _doc(runs):
+    return {"version": 1, "created": "2026-01-01T00:00:00+00:00",
+            "command": "topoexplore bench explore --worlds a,b", "argv": [],
+            "machine": be.machine_info(),
+            "config": {"worlds": ["a", "b"], "world_labels": ["a", "b"],
+                       "strategies": list(be.STRATEGIES), "seeds": 2, "max_sim_time": 900.0,
+                       "max_wall_time": 600.0, "jobs": 1, "planned_runs": 12},
+            "notes": ["map x not found: skipped"], "interrupted": False, "runs": runs}
+
+
+def test_from_results_writes_summary_csv_json_and_curves(tmp_path, capsys):
+    runs = []
+    for r in RUNS:
+        r = dict(r)
+        k = {"reliability": 1.0, "all-end-nodes": 0.8, "frontier": 0.6}[r["strategy"]]
+        r["timeline"] = [[t, t * k, min(1.0, 0.1 * t)] for t in range(11)]
+        runs.append(r)
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "results.json").write_text(json.dumps(_doc(runs)))
+    out = tmp_path / "out"
+    assert be.main(["--from-results", str(src), "--out", str(out)]) == 0
+    doc = json.loads((out / "results.json").read_text())
+    rr = doc["ratios"]["path_length_m:reliability/frontier"]
+    assert rr["geomean"] == pytest.approx(math.sqrt(0.125)) and rr["n_excluded"] == 1
+    assert doc["runs"][0]["d90_m"] == pytest.approx(9.0)  # coverage 0.9 at t=9, k=1
+    assert doc["coverage_distance"]["a"]["frontier"]["d90_mean"] == pytest.approx(5.4)
+    rows = (out / "results.csv").read_text().splitlines()
+    assert len(rows) == 1 + len(RUNS) and "timeline" not in rows[0]
+    summary = (out / "summary.md").read_text()
+    for text in ("geometric mean **0.354** over 2 pair(s)", "1 pair(s) excluded",
+                 "b seed 0, reliability vs frontier: frontier not finished",
+                 "| a | frontier | 5.4 (2/2) |", "Note: map x not found",
+                 "2 CPUs" if os.cpu_count() == 2 else "CPUs", "curves/a.png"):
+        assert text in summary, text
+    for w in ("a", "b"):
+        png = (out / "curves" / f"{w}.png").read_bytes()
+        assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
+    assert "re-made" in capsys.readouterr().err
+
+
+# -- arguments -----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("argv", [
+    ["--worlds", "no-such-world"], ["--strategies", "reliability,greedy"], ["--seeds", "0"],
+    ["--jobs", "0"], ["--max-sim-time", "-5"], ["--worlds", "maps/none.yaml"], ["--bogus"],
+    ["--worlds", "dead-end,dead-end"], ["--from-results", "/nonexistent-dir"],
+    ["--from-results", ".", "--seeds", "2"],
+])
+def test_bad_arguments_one_line_exit_2_before_anything(argv, tmp_path, capsys):
+    out = tmp_path / "bench"
+    assert be.main([*argv, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("topoexplore bench explore: ") and "\n" not in err
+    assert not out.exists()
+
+
+def test_defaults_and_quick():
+    cfg, _ = be.parse_config(["--quick"])
+    assert [w[0] for w in cfg.worlds] == list(be.QUICK_WORLDS) and cfg.seeds == 1
+    assert cfg.strategies == list(be.STRATEGIES) and cfg.jobs == 1
+    cfg, _ = be.parse_config([])
+    labels = [w[0] for w in cfg.worlds]
+    assert {"paper-room", "dead-end", "junction", "corner", "office", "maze", "small-house",
+            "large-office"} <= set(labels) and cfg.seeds == 2
+    if (SHARED / "maps" / "lse_arena.yaml").is_file():
+        assert "lse_arena" in labels and not cfg.notes
+        assert "../shared/maps/lse_arena.yaml" in cfg.command
+    else:
+        assert any("lse_arena" in n for n in cfg.notes)
+
+
+# -- smoke run of the real suite -----------------------------------------------------------
+
+
+@pytest.mark.timeout(420)
+def test_smoke_suite_files_and_ratio_arithmetic(tmp_path):
+    """2 worlds x 3 strategies x 1 seed, lockstep, capped at 50 sim s / 12 wall s per run, two
+    runs at a time (~45 s): whatever the outcomes, the files exist and every ratio in
+    results.json equals the one recomputed from the runs' own report.json files."""
+    out = tmp_path / "bench"
+    worlds = ["dead-end", "corner"]
+    r = subprocess.run([sys.executable, "-m", "common.cli", "bench", "explore", "--worlds",
+                        ",".join(worlds), "--seeds", "1", "--max-sim-time", "50",
+                        "--max-wall-time", "12", "--jobs", "2", "--no-progress", "--out", str(out)],
+                       cwd=REPO, capture_output=True, text=True, timeout=400,
+                       env=dict(os.environ, PYTHONPATH=str(REPO)))
+    assert r.returncode == 0, r.stderr[-2000:]
+    for name in ("results.json", "results.csv", "summary.md"):
+        assert (out / name).stat().st_size > 0, name
+    doc = json.loads((out / "results.json").read_text())
+    assert len(doc["runs"]) == 6 and len((out / "results.csv").read_text().splitlines()) == 7
+    reports = {}
+    for run in doc["runs"]:
+        run_dir = out / run["run_dir"]
+        assert run_dir.name == f"{run['world_label']}-{run['strategy']}-{run['seed']}"
+        report = json.loads((run_dir / "report.json").read_text())
+        reports[(run["world_label"], run["strategy"])] = report
+        assert {k: run[k] for k in report} == report  # the report, unchanged, plus fields
+    for w in worlds:
+        if any(doc["runs"][i]["timeline"] for i in range(6) if doc["runs"][i]["world_label"] == w):
+            assert (out / "curves" / f"{w}.png").stat().st_size > 0
+    assert set(doc["ratios"]) == {f"{m}:reliability/{d}" for m in be.RATIO_METRICS
+                                  for d in ("frontier", "all-end-nodes")}
+    for key, rr in doc["ratios"].items():
+        metric, pair = key.split(":")
+        num, den = pair.split("/")
+        assert len(rr["pairs"]) == 2
+        included = []
+        for p in rr["pairs"]:
+            a, b = reports[(p["world"], num)], reports[(p["world"], den)]
+            want = a[metric] / b[metric] if b[metric] > 0 else None
+            assert p["ratio"] == pytest.approx(want) if want is not None else p["ratio"] is None
+            both = a["finished"] and b["finished"] and a[metric] > 0 and b[metric] > 0
+            assert p["included"] == both, p
+            if both:
+                included.append(want)
+        assert rr["n_included"] == len(included) and rr["n_excluded"] == 2 - len(included)
+        if included:
+            assert rr["geomean"] == pytest.approx(math.exp(np.mean(np.log(included))))
+        else:
+            assert rr["geomean"] is None
+    summary = (out / "summary.md").read_text()
+    assert "--worlds dead-end,corner" in summary and "## Ratios" in summary
