@@ -431,16 +431,16 @@ def format_summary(doc: dict) -> str:
         for w, bw in rr["by_world"].items():
             L.append(f"  - {w}: {_fmt(bw['geomean'], 3)} ({bw['n_included']}/{bw['n_pairs']} "
                      "pairs)")
-    excluded = {}
+    excluded: dict[tuple, list[str]] = {}
     for rr in doc["ratios"].values():
         for p in rr["pairs"]:
             if not p["included"]:
-                excluded[(p["world"], p["seed"], rr["numerator"], rr["denominator"])] = \
-                    p["excluded_reason"]
+                excluded.setdefault((p["world"], p["seed"], rr["numerator"], rr["denominator"],
+                                     p["excluded_reason"]), []).append(rr["metric"])
     if excluded:
-        L += ["", "Excluded pairs (the same for both metrics):", ""]
-        for (w, s, a, b), why in sorted(excluded.items()):
-            L.append(f"- {w} seed {s}, {a} vs {b}: {why}")
+        L += ["", "Excluded pairs:", ""]
+        for (w, s, a, b, why), metrics in sorted(excluded.items()):
+            L.append(f"- {w} seed {s}, {a} vs {b} ({', '.join(metrics)}): {why}")
     pair_rows = [(key, p) for key, rr in doc["ratios"].items() for p in rr["pairs"]]
     if pair_rows:
         L += ["", "| ratio | world | seed | value | counted |", "|---|---|---|---|---|"]
@@ -544,7 +544,8 @@ class Config:
                 "--strategies", ",".join(self.strategies), "--seeds", str(self.seeds),
                 "--max-sim-time", f"{self.max_sim_time:g}",
                 "--max-wall-time", f"{self.max_wall_time:g}", "--jobs", str(self.jobs),
-                "--out", str(self.out)]
+                "--out", str(self.out if self.out.is_absolute() or Path.cwd().resolve() == REPO
+                             else self.out.resolve())]
         return shlex.join(args)
 
 

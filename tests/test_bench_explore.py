@@ -162,7 +162,7 @@ def test_from_results_writes_summary_csv_json_and_curves(tmp_path, capsys):
     assert len(rows) == 1 + len(RUNS) and "timeline" not in rows[0]
     summary = (out / "summary.md").read_text()
     for text in ("geometric mean **0.354** over 2 pair(s)", "1 pair(s) excluded",
-                 "b seed 0, reliability vs frontier: frontier not finished",
+                 "b seed 0, reliability vs frontier (path_length_m, sim_time_s): frontier not finished",
                  "| a | frontier | 5.4 (2/2) |", "Note: map x not found",
                  "2 CPUs" if os.cpu_count() == 2 else "CPUs", "curves/a.png"):
         assert text in summary, text
