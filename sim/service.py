@@ -99,16 +99,19 @@ class SimService:
 
     # -- modes ----------------------------------------------------------------------------
     def wait_for_pipeline(self) -> None:
+        """Lockstep: before scan 0, wait for the listed services and for a scan subscriber
+        (a scan nobody receives would cost a whole lockstep timeout)."""
         want = set(self.p.lockstep_wait_for)
-        if not want:
-            return
         deadline = time.monotonic() + self.p.lockstep_wait
+        alive: set[str] = set()
         while not self.node.stop.is_set() and time.monotonic() < deadline:
-            alive = {k.rsplit("/", 1)[-1] for k in self.node.bus.alive(self.node.keys.alive_all())}
-            if want <= alive:
+            if want:
+                alive = {k.rsplit("/", 1)[-1]
+                         for k in self.node.bus.alive(self.node.keys.alive_all())}
+            if want <= alive and self.pub_scan.matched:
                 return
             time.sleep(0.05)
-        log.warning("lockstep: starting without %s", sorted(want - alive))
+        log.warning("lockstep: starting without %s", sorted(want - alive) or "a scan subscriber")
 
     def step_lockstep(self) -> None:
         if not self.started:
