@@ -133,6 +133,7 @@ class Bus:
 
     def __init__(self, config: zenoh.Config, name: str = ""):
         self.name = name
+        init_logging()
         try:
             self.session = zenoh.open(config)
         except Exception as exc:
@@ -282,9 +283,20 @@ class Bus:
         return self._closed
 
 
-def init_logging(level: int = logging.INFO) -> None:
-    """Keep zenoh's own Rust logging quiet unless asked (RUST_LOG)."""
+_LOG_INIT = False
+
+
+def init_logging() -> None:
+    """Zenoh's own (Rust) logging: off unless asked with RUST_LOG (e.g. RUST_LOG=zenoh=warn).
+
+    It writes to stdout, and at session close it reports benign races ("Received Data for
+    unknown expr_id") as errors, which would corrupt the output of our tools.
+    """
+    global _LOG_INIT
+    if _LOG_INIT:
+        return
+    _LOG_INIT = True
     try:
-        zenoh.init_log_from_env_or("error")
+        zenoh.init_log_from_env_or("off")
     except Exception:
         pass
