@@ -214,8 +214,10 @@ def bench_pipeline_latency(world: str, duration: float = 20.0) -> dict:
                                            for k in arrivals[b] if k in arrivals[a]])
         total = _stats_ms([arrivals["cmd_vel"][k] - arrivals["scan"][k]
                            for k in arrivals["cmd_vel"] if k in arrivals["scan"]])
+        to_plan = _stats_ms([arrivals["plan"][k] - arrivals["scan"][k]
+                             for k in arrivals["plan"] if k in arrivals["scan"]])
         answered = len(arrivals["cmd_vel"]) / max(1, len(arrivals["scan"]))
-    return {"world": world, "scan_to_cmd_vel": total, "hops": hops,
+    return {"world": world, "scan_to_cmd_vel": total, "scan_to_plan": to_plan, "hops": hops,
             "scans": len(arrivals["scan"]), "answered_share": round(answered, 3)}
 
 
@@ -289,6 +291,10 @@ def format_bus(bus: dict) -> str:
         lines.append(f"  real time, {r['world']}: scan -> cmd_vel median {s['median_ms']:.1f} ms, "
                      f"p99 {s['p99_ms']:.1f} ms over {s['n']} scans "
                      f"(answered {r['answered_share']:.0%})")
+        sp = r["scan_to_plan"]
+        lines.append(f"      scan -> plan (mapper, topology, reliability, planner) median "
+                     f"{sp['median_ms']:.1f} ms, p99 {sp['p99_ms']:.1f} ms; the controller answers "
+                     f"each scan with the newest plan, so plan->cmd_vel can be negative")
         for hop, h in r["hops"].items():
             lines.append(f"      {hop:<20} median {h['median_ms']:6.1f} ms  p99 {h['p99_ms']:6.1f} ms")
     for r in bus["lockstep_explore"]:
