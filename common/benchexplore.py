@@ -173,8 +173,10 @@ def pair_ratios(runs: Sequence[dict], num: str, den: str, metric: str) -> dict[s
     """Per (world, seed) pair: ``metric`` of strategy ``num`` / ``metric`` of strategy ``den``.
 
     A pair counts in the headline geometric mean only if both runs finished and both values
-    are positive; every other pair is listed with ``included: false`` and the reason. Runs
-    are grouped by ``world_label`` (falling back to ``world``) and ``seed``.
+    are positive; every other pair is listed with ``included: false`` and the reason. A
+    second figure, ``geomean_covered``, keeps only the counted pairs where both runs also
+    reached coverage >= :data:`LOW_COVERAGE` (a run can "finish" with the map incomplete).
+    Runs are grouped by ``world_label`` (falling back to ``world``) and ``seed``.
     """
     by_key: dict[tuple[str, int, str], dict] = {}
     for r in runs:
@@ -194,9 +196,13 @@ def pair_ratios(runs: Sequence[dict], num: str, den: str, metric: str) -> dict[s
             why.append(f"{metric} missing")
         elif not why and (va <= 0 or vb <= 0):
             why.append(f"{metric} is zero (ratio undefined in a geometric mean)")
+        ca, cb = _num(a.get("coverage")), _num(b.get("coverage"))
+        covered = ca is not None and cb is not None and min(ca, cb) >= LOW_COVERAGE
         pairs.append({"world": w, "seed": s, num: va, den: vb, "ratio": ratio,
-                      "included": not why, "excluded_reason": "; ".join(why)})
+                      "included": not why, "excluded_reason": "; ".join(why),
+                      "both_covered": covered})
     included = [p["ratio"] for p in pairs if p["included"]]
+    covered_r = [p["ratio"] for p in pairs if p["included"] and p["both_covered"]]
     by_world: dict[str, dict[str, Any]] = {}
     for w in sorted({p["world"] for p in pairs}):
         rs = [p["ratio"] for p in pairs if p["world"] == w and p["included"]]
@@ -204,7 +210,8 @@ def pair_ratios(runs: Sequence[dict], num: str, den: str, metric: str) -> dict[s
                        "n_pairs": sum(1 for p in pairs if p["world"] == w)}
     return {"numerator": num, "denominator": den, "metric": metric, "pairs": pairs,
             "geomean": geometric_mean(included), "n_included": len(included),
-            "n_excluded": len(pairs) - len(included), "by_world": by_world}
+            "n_excluded": len(pairs) - len(included), "by_world": by_world,
+            "geomean_covered": geometric_mean(covered_r), "n_covered": len(covered_r)}
 
 
 def all_ratios(runs: Sequence[dict], strategies: Sequence[str]) -> dict[str, dict]:
@@ -296,7 +303,7 @@ def read_timeline(path: Path) -> list[list[float]]:
 
 
 def write_csv(path: Path, runs: Sequence[dict]) -> None:
-    cols: list[str] = []
+    cols: list[str] = ["world_label", "strategy", "seed", "finished"]
     for r in runs:
         for k, v in r.items():
             if k not in cols and not isinstance(v, (list, dict)):
@@ -427,7 +434,9 @@ def format_summary(doc: dict) -> str:
         head = (f"**{_fmt(gm, 3)}**" if gm is not None else "**none** (no pair where both "
                 "finished)")
         L.append(f"- {name}: geometric mean {head} over {rr['n_included']} pair(s) where "
-                 f"both runs finished; {rr['n_excluded']} pair(s) excluded.")
+                 f"both runs finished; {rr['n_excluded']} pair(s) excluded. Over the "
+                 f"{rr.get('n_covered', 0)} of those where both runs also reached coverage "
+                 f">= {LOW_COVERAGE:g}: {_fmt(rr.get('geomean_covered'), 3)}.")
         for w, bw in rr["by_world"].items():
             L.append(f"  - {w}: {_fmt(bw['geomean'], 3)} ({bw['n_included']}/{bw['n_pairs']} "
                      "pairs)")

@@ -50,6 +50,16 @@ def test_pair_ratios_per_pair_and_geometric_mean():
     assert (rr["n_included"], rr["n_excluded"]) == (2, 1)
     assert rr["by_world"]["a"]["geomean"] == pytest.approx(math.sqrt(0.125))
     assert rr["by_world"]["b"] == {"geomean": None, "n_included": 0, "n_pairs": 1}
+    assert rr["geomean_covered"] == rr["geomean"] and rr["n_covered"] == 2
+
+
+def test_pair_ratios_covered_figure_leaves_out_incomplete_maps():
+    runs = [rep("a", "reliability", 0, 10.0, 1.0), rep("a", "frontier", 0, 20.0, 1.0),
+            rep("a", "reliability", 1, 10.0, 1.0), rep("a", "frontier", 1, 1.0, 1.0,
+                                                         coverage=0.9)]
+    rr = be.pair_ratios(runs, "reliability", "frontier", "path_length_m")
+    assert rr["geomean"] == pytest.approx(math.sqrt(0.5 * 10.0)) and rr["n_included"] == 2
+    assert rr["geomean_covered"] == pytest.approx(0.5) and rr["n_covered"] == 1
 
 
 def test_pair_ratios_exclude_unfinished_and_zero_denominator():
@@ -160,6 +170,7 @@ def test_from_results_writes_summary_csv_json_and_curves(tmp_path, capsys):
     assert doc["coverage_distance"]["a"]["frontier"]["d90_mean"] == pytest.approx(5.4)
     rows = (out / "results.csv").read_text().splitlines()
     assert len(rows) == 1 + len(RUNS) and "timeline" not in rows[0]
+    assert rows[0].startswith("world_label,strategy,seed,finished,")
     summary = (out / "summary.md").read_text()
     for text in ("geometric mean **0.354** over 2 pair(s)", "1 pair(s) excluded",
                  "b seed 0, reliability vs frontier (path_length_m, sim_time_s): frontier not finished",
