@@ -290,11 +290,25 @@ def _validate(p: Params) -> None:
         raise ParamError("controller: need 0 < slow_min_scale <= 1 and lateral_margin >= 0")
     from common.keys import check_segment
 
+    for ep in p.bus.connect.split(","):
+        check_endpoint(ep.strip())
     try:
         check_segment(p.bus.namespace, "namespace")
         check_segment(p.bus.robot, "robot name")
     except ValueError as exc:
         raise ParamError(str(exc)) from None
+
+
+def check_endpoint(ep: str) -> str:
+    """A Zenoh locator like tcp/127.0.0.1:7447 (tcp/udp/tls/quic need host:port, port 1..65535)."""
+    proto, sep, addr = ep.partition("/")
+    if not sep or not proto or not addr:
+        raise ParamError(f"bad endpoint {ep!r}: expected PROTOCOL/HOST:PORT, e.g. tcp/127.0.0.1:7447")
+    if proto in ("tcp", "udp", "tls", "quic"):
+        host, colon, port = addr.rpartition(":")
+        if not colon or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+            raise ParamError(f"bad endpoint {ep!r}: port must be 1..65535")
+    return ep
 
 
 def load_params(path: str | Path | None = None, overrides: list[str] | None = None) -> Params:

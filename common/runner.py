@@ -406,7 +406,7 @@ def run(args: argparse.Namespace) -> int:
         with mon.lock:
             st = mon.status
             sim = mon.sim
-            if st is not None and st.header.src_seq in mon.sim_by_seq:
+            if finished and st is not None and st.header.src_seq in mon.sim_by_seq:
                 sim = mon.sim_by_seq[st.header.src_seq]  # deterministic: the scan of 'done'
         restarts = sup.restarts
         bad = _bad_message_total(bus, keys) if startup else 0

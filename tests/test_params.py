@@ -38,6 +38,8 @@ def test_toml_and_overrides(tmp_path):
     ("", ["noequals"]),
     ("", ["reliability.p_reliable=1.5"]),
     ("", ['bus.namespace="a b"']),
+    ("", ['bus.connect="tcp/127.0.0.1:99999"']),
+    ("", ['bus.connect="localhost"']),
 ])
 def test_bad_parameters_give_one_line(tmp_path, content, overrides):
     f = tmp_path / "p.toml"

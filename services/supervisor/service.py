@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from common.bus import Bus
+from common.bus import Bus, BusError
 from common.keys import Keys
 from services.supervisor.core import ProcSpec, ProcState, Profile, RestartPolicy
 
@@ -110,6 +110,27 @@ class Supervisor:
         if self.zenoh_config:
             cmd += ["--zenoh-config", self.zenoh_config]
         self.router = self._spawn("router", cmd)
+        self._wait_router_port()
+
+    def _wait_router_port(self, timeout: float = 15.0) -> None:
+        """Wait until the router accepts TCP connections; raise BusError if it exits first."""
+        import socket
+
+        proto, _, addr = self.endpoint.split(",")[0].partition("/")
+        host, _, port = addr.rpartition(":")
+        if proto != "tcp" or not port.isdigit():
+            return
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.router is not None and self.router.poll() is not None:
+                raise BusError(f"the router on {self.endpoint} exited at start "
+                               f"(code {self.router.returncode}; port in use?)")
+            with socket.socket() as sock:
+                sock.settimeout(0.2)
+                if sock.connect_ex((host if host != "0.0.0.0" else "127.0.0.1", int(port))) == 0:
+                    return
+            time.sleep(0.05)
+        raise BusError(f"the router on {self.endpoint} did not open its port in {timeout:g} s")
 
     def start_process(self, name: str, now: float) -> None:
         st = self.states[name]
