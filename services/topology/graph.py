@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from services.topology.skeleton import _redundant
+
 __all__ = ["find_entry", "build_graph", "prune_spurs", "split_corners", "KIND_NAMES"]
 
 END, BRANCH, CORNER = 0, 1, 2
@@ -435,27 +437,7 @@ def _local_thin(img, r0, c0, rad):  # pragma: no cover - compiled
         changed = False
         for r in range(max(r0 - rad, 1), min(r0 + rad + 1, h - 1)):
             for c in range(max(c0 - rad, 1), min(c0 + rad + 1, w - 1)):
-                if not img[r, c]:
-                    continue
-                n = img[r - 1, c]
-                e = img[r, c + 1]
-                s = img[r + 1, c]
-                wv = img[r, c - 1]
-                if not ((n and e) or (e and s) or (s and wv) or (wv and n)):
-                    continue
-                if _nb(img, r, c) < 2:
-                    continue
-                x0 = 1 - img[r, c + 1]
-                x1 = 1 - img[r - 1, c + 1]
-                x2 = 1 - img[r - 1, c]
-                x3 = 1 - img[r - 1, c - 1]
-                x4 = 1 - img[r, c - 1]
-                x5 = 1 - img[r + 1, c - 1]
-                x6 = 1 - img[r + 1, c]
-                x7 = 1 - img[r + 1, c + 1]
-                nc = ((x0 - x0 * x1 * x2) + (x2 - x2 * x3 * x4) + (x4 - x4 * x5 * x6)
-                      + (x6 - x6 * x7 * x0))
-                if nc == 1:
+                if img[r, c] and _redundant(img, r, c):
                     img[r, c] = 0
                     changed = True
 
