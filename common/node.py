@@ -73,6 +73,15 @@ class OdomBuffer:
         with self._lock:
             return (self._t[-1], self._p[-1]) if self._t else None
 
+    def pose_near(self, stamp: float) -> tuple[float, float, float] | None:
+        """Pose at stamp if covered, else the newest pose (real time: a late or old input);
+        None only when no odometry has arrived."""
+        pose = self.pose_at(stamp)
+        if pose is None:
+            newest = self.latest()
+            pose = newest[1] if newest is not None else None
+        return pose
+
     def pose_at(self, stamp: float, tolerance: float = 1e-6) -> tuple[float, float, float] | None:
         """Pose at stamp (linear interpolation, angle-aware); None if not covered yet."""
         with self._lock:

@@ -56,3 +56,12 @@ def test_inbox_wait_wakes_on_put():
     t.start()
     assert ib.wait(lambda: ib.pending("x") > 0, 5.0)
     t.join()
+
+
+def test_pose_near_falls_back_to_newest():
+    b = OdomBuffer()
+    assert b.pose_near(1.0) is None
+    b.add(0.0, (0.0, 0.0, 0.0))
+    b.add(1.0, (1.0, 0.0, 0.0))
+    assert b.pose_near(0.5) == (0.5, 0.0, 0.0)
+    assert b.pose_near(5.0) == (1.0, 0.0, 0.0)  # not covered yet: newest

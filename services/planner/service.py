@@ -49,7 +49,7 @@ class PlannerService:
         rel, _ = got
         inbox = self.node.inbox
         topo, grid = inbox.latest.get("topo"), inbox.latest.get("map")
-        pose = self.odom.pose_at(rel.header.stamp) or (self.odom.latest() or (0, None))[1]
+        pose = self.odom.pose_near(rel.header.stamp)
         if pose is None:
             log.warning("reliability %d skipped: no pose", rel.header.src_seq)
             return

@@ -39,7 +39,7 @@ class ReliabilityService:
             return
         topo, _ = got
         grid = self.node.inbox.latest.get("map")
-        pose = self.odom.pose_at(topo.header.stamp) or (self.odom.latest() or (0, None))[1]
+        pose = self.odom.pose_near(topo.header.stamp)
         if grid is None or pose is None:
             self.skipped += 1
             log.warning("topo %d skipped: %s missing", topo.header.src_seq,

@@ -33,7 +33,7 @@ class TopologyService:
         if got is None:
             return
         grid, _ = got
-        pose = self.odom.pose_at(grid.header.stamp) or (self.odom.latest() or (0, None))[1]
+        pose = self.odom.pose_near(grid.header.stamp)
         if pose is None:
             self.skipped += 1
             log.warning("no odometry for map at %.3f: skipped", grid.header.stamp)
