@@ -32,8 +32,10 @@ class ControllerService:
 
     def ready(self, scan: m.LaserScan) -> bool:
         ok = self.odom.newest >= scan.header.stamp - 1e-6
-        if self.node.lockstep:
-            ok = ok and self.node.inbox.src_seq("plan") >= scan.header.src_seq
+        if self.node.lockstep:  # the plan and status derived from this very scan
+            k = scan.header.src_seq
+            inbox = self.node.inbox
+            ok = ok and inbox.src_seq("plan") >= k and inbox.src_seq("explore/status") >= k
         return ok
 
     def step(self) -> None:
@@ -43,7 +45,7 @@ class ControllerService:
         scan, _ = got
         inbox = self.node.inbox
         plan, status = inbox.latest.get("plan"), inbox.latest.get("explore/status")
-        pose = self.odom.pose_at(scan.header.stamp) or (self.odom.latest() or (0, None))[1]
+        pose = self.odom.pose_near(scan.header.stamp)
         if pose is None:
             v, w, mode = 0.0, 0.0, "no-pose"
         else:
