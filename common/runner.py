@@ -90,6 +90,9 @@ class Monitor:
     ever_reliable: dict[int, bool] = field(default_factory=dict)
     targets: list[int] = field(default_factory=list)
     event: threading.Event = field(default_factory=threading.Event)
+    # src_seq of the scan whose status ended the run: later outputs are ignored, so the
+    # report, map and picture describe exactly that scan (deterministic in lockstep)
+    end_seq: int | None = None
     # coverage over distance: (sim_time, path_length, coverage), sampled on map updates
     timeline: list[tuple[float, float, float]] = field(default_factory=list)
     coverage_fn: Any = None
@@ -97,7 +100,11 @@ class Monitor:
 
     def on_status(self, msg: m.ExploreStatus) -> None:
         with self.lock:
+            if self.end_seq is not None:
+                return  # keep the status that ended the run (later scans repeat it)
             self.status = msg
+            if msg.state in ("done", "failed"):
+                self.end_seq = msg.header.src_seq
         if msg.state in ("done", "failed"):
             self.event.set()
 
@@ -131,8 +138,13 @@ class Monitor:
                 self.seg_target = cur
                 self.targets.append(msg.target_id)
 
+    def _late(self, msg: Any) -> bool:
+        return self.end_seq is not None and msg.header.src_seq > self.end_seq
+
     def on_rel(self, msg: m.Reliability) -> None:
         with self.lock:
+            if self._late(msg):
+                return
             self.rel = msg
             for n in msg.nodes:
                 self.seen_end_ids.add(n.id)
@@ -141,10 +153,14 @@ class Monitor:
 
     def on_topo(self, msg: m.TopoGraph) -> None:
         with self.lock:
+            if self._late(msg):
+                return
             self.topo = msg
 
     def on_map(self, msg: m.OccupancyGrid) -> None:
         with self.lock:
+            if self._late(msg):
+                return
             self.grid = msg
             sim = self.sim
             last = self.timeline[-1] if self.timeline else None
