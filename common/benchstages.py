@@ -1,4 +1,4 @@
-"""Compute-stage benchmark: mapper and topology cores on synthetic office-like maps.
+"""Compute-stage benchmark: every service core on synthetic office-like maps.
 
 Run: ``.venv/bin/python -m common.benchstages [--sizes 100 300 1000] [--repeats 3]``
 
@@ -14,6 +14,11 @@ lazily) fuses into a log-odds grid -- the "noisy" map.
   unexplored corridor; ``median_ms``/``p99_ms`` are the per-scan ``update`` times of that core,
   which may reuse its previous state (incremental work measured as it really happens).
   ``clean_cold_ms``: a full update on the noise-free truth map (everything known).
+- reliability, planner (reliability strategy), planner-frontier (explore_lite-style frontier
+  strategy, grid search), controller: per-scan ``update`` time of each core on that same drive,
+  fed like the services feed them (the topology's result, the reliability's output, the plan and
+  the scan). Message decoding and the bus are not included (``topoexplore bench stages --bus``
+  measures those with real processes).
 
 All times are wall-clock ``time.perf_counter`` medians / 99th percentiles in milliseconds.
 """
@@ -157,8 +162,23 @@ def _stats(samples: list[float]) -> dict[str, float]:
     return {"median_ms": float(np.median(a)), "p99_ms": float(np.percentile(a, 99))}
 
 
+STAGES = ("mapper", "topology", "reliability", "planner", "planner-frontier", "controller")
+
+
 def _bench_size(n: int, repeats: int, stages: tuple[str, ...], seed: int) -> dict[str, dict]:
-    from common.params import MapperParams, TopologyParams
+    import msgspec
+
+    from common import messages as msg
+    from common.params import (
+        ControllerParams,
+        MapperParams,
+        PlannerParams,
+        ReliabilityParams,
+        TopologyParams,
+    )
+    from services.controller.core import ControllerCore
+    from services.planner.core import PlannerCore
+    from services.reliability.core import ReliabilityCore
     from services.topology.core import TopologyCore
 
     occ, centres, verts = office_truth(n, seed)
@@ -210,17 +230,44 @@ def _bench_size(n: int, repeats: int, stages: tuple[str, ...], seed: int) -> dic
     k0 = int(np.argmin(np.hypot(fine[:, 0] - start[0], fine[:, 1] - start[1])))
     seq = fine[k0:k0 + max(40, 30 * repeats)]
     t_topo: list[float] = []
+    times: dict[str, list[float]] = {s: [] for s in STAGES[2:]}
     last = None
-    for pose in seq:
+    rcore = ReliabilityCore(ReliabilityParams())
+    pcore = PlannerCore(PlannerParams())
+    fcore = PlannerCore(msgspec.structs.replace(PlannerParams(), strategy="frontier"))
+    ccore = ControllerCore(ControllerParams())
+    hdr = msg.Header(seq=0, stamp=0.0, frame="map", src_seq=-1)
+    for k, pose in enumerate(seq):
+        t = 0.2 * k  # [s] 5 Hz
+        pose3 = (float(pose[0]), float(pose[1]), float(pose[2]))
         r = simulate_scan(occ, pose, rng)
         t0 = time.perf_counter()
         mapper.integrate(tuple(pose), r, ang_min, ang_inc, 0.02, 8.0)
         t_map.append(time.perf_counter() - t0)
-        if "topology" in stages:
-            g = mapper.occupancy()
+        if "topology" not in stages:
+            continue
+        g = mapper.occupancy()
+        t0 = time.perf_counter()
+        last = core.update(g, geom, (float(pose[0]), float(pose[1])))
+        t_topo.append(time.perf_counter() - t0)
+        ends = [(nd.id, nd.x, nd.y) for nd in last.nodes if nd.kind == "end"]
+        edges = [(e.a, e.b, e.points) for e in last.edges]
+        t0 = time.perf_counter()
+        rel = rcore.update(ends, last.gone, pose3, g, geom, 0.65, edges)
+        times["reliability"].append(time.perf_counter() - t0)
+        topo = msg.TopoGraph(header=hdr, nodes=last.nodes, edges=last.edges, gone=last.gone)
+        relm = msg.Reliability(header=hdr, nodes=rel)
+        t0 = time.perf_counter()
+        plan = pcore.update(t, pose3, topo, relm, g, geom)
+        times["planner"].append(time.perf_counter() - t0)
+        if "planner-frontier" in stages:
             t0 = time.perf_counter()
-            last = core.update(g, geom, (float(pose[0]), float(pose[1])))
-            t_topo.append(time.perf_counter() - t0)
+            fcore.update(t, pose3, topo, None, g, geom)
+            times["planner-frontier"].append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        ccore.update(t, pose3, np.asarray(plan.waypoints).reshape(-1, 2), plan.plan_id, False,
+                     (r, ang_min, ang_inc))
+        times["controller"].append(time.perf_counter() - t0)
     if "mapper" in stages:
         out["mapper"] = _stats(t_map) | {"scans": len(t_map)}
     if "topology" in stages:
@@ -229,27 +276,30 @@ def _bench_size(n: int, repeats: int, stages: tuple[str, ...], seed: int) -> dic
             "nodes": len(last.nodes) if last else 0,
             "edges": len(last.edges) if last else 0,
             "core": core.snapshot()}
+    for s in STAGES[2:]:
+        if s in stages and times[s]:
+            out[s] = _stats(times[s]) | {"scans": len(times[s])}
+    if "reliability" in out:
+        out["reliability"]["end_nodes"] = len(rel)
+    if "planner" in out:
+        out["planner"]["edges"] = len(last.edges)
     return out
 
 
 def _warm_up() -> None:
-    """Load the numba kernels (compiled or cached) before anything is timed."""
-    from common.params import TopologyParams
-    from services.topology.core import TopologyCore
-
-    g = np.full((40, 40), 100, np.int8)
-    g[5:35, 15:25] = 0
-    g[15:25, 5:35] = 0
-    TopologyCore(TopologyParams()).update(g, GridGeometry(RES, 0.0, 0.0, 40, 40), (2.0, 2.0))
+    """Load the numba kernels (compiled or cached) and first-call caches before timing."""
+    _bench_size(100, 1, STAGES, 0)
 
 
-def bench_stages(sizes=(100, 300, 1000), repeats: int = 3, stages=("mapper", "topology"),
+def bench_stages(sizes=(100, 300, 1000), repeats: int = 3, stages=STAGES,
                  seed: int = 0) -> dict:
     """{stage: {"NxN": {"median_ms", "p99_ms", ...}}} (see module docstring)."""
     stages = tuple(stages)
     for s in stages:
-        if s not in ("mapper", "topology"):
-            raise ValueError(f"unknown stage {s!r} (use mapper, topology)")
+        if s not in STAGES:
+            raise ValueError(f"unknown stage {s!r} (use {', '.join(STAGES)})")
+    if any(s in stages for s in STAGES[2:]) and "topology" not in stages:
+        stages = stages + ("topology",)  # the later stages run on its output
     if repeats < 1:
         raise ValueError("repeats must be >= 1")
     out: dict[str, dict] = {s: {} for s in stages}
@@ -282,7 +332,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[100, 300, 1000])
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--stages", nargs="+", default=["mapper", "topology"])
+    ap.add_argument("--stages", nargs="+", default=list(STAGES))
     a = ap.parse_args(argv)
     res = bench_stages(tuple(a.sizes), a.repeats, tuple(a.stages))
     print(format_table(res))

@@ -150,6 +150,7 @@ class NodeReliability(msgspec.Struct, kw_only=True):
     visible: bool  # observed in this update
     n_obs: int = 0  # observations since the history (re)started
     visited: bool = False  # robot came within the visit radius
+    frontier: int = 0  # frontier cells the node's leaf chain owns (observations don't count)
 
 
 class Reliability(msgspec.Struct, kw_only=True):

@@ -91,6 +91,9 @@ class TopologyParams(_P):
     spur_clearance_factor: float = 1.6  # spur threshold = clip(f * clearance at branch, ...)
     spur_max_length: float = 1.0  # [m] ... spur_length, spur_max_length) (docs/topology.md)
     spur_rounds: int = 3  # prune / re-trace rounds per update
+    frontier_spur_length: float = 0.4  # [m] a short leaf is kept if this much frontier (free
+    # next to unknown) lies within its end's clearance + frontier_spur_margin; 0 disables
+    frontier_spur_margin: float = 0.3  # [m]
     entry_radius: float = 0.5  # [m] robot cell not free: use the nearest free cell this close
     incremental: bool = True  # re-thin only the window that changed (checked at its seam)
 
@@ -111,6 +114,8 @@ class ReliabilityParams(_P):
     view_distance: float = 0.25  # [m] robot travel that makes an observation new evidence
     view_angle: float = math.radians(5.0)  # [rad] ... or change of bearing to the node
     frontier_radius: float = 0.5  # [m] observations of a node this close to a frontier don't count
+    frontier_group: float = 0.4  # [m] ... nor of a node whose leaf chain is the nearest skeleton
+    # to a frontier group of at least this length (core.frontier_owned); 0 disables
     p_free: float = 0.35  # known-free threshold for the frontier test (as mapper.p_free)
     bearing_bin: float = math.radians(0.5)  # [rad] bearings stored one per bin (eq. 3)
 
@@ -140,6 +145,8 @@ class PlannerParams(_P):
     frontier_match_radius: float = 1.0  # [m] frontier group this close to the goal stays target
     done_confirm: int = 2  # consecutive updates without any candidate before reporting done
     tip_length: float = 0.3  # [m] last part of an edge into an end node that may be narrow
+    approach_narrow: bool = True  # an open end node behind a narrow edge: go up to the
+    # narrow point and look (the map there is often only narrow because it is half seen)
 
 
 class ControllerParams(_P):
@@ -244,7 +251,8 @@ def _validate(p: Params) -> None:
     if t.spur_length < 0 or t.fill_holes < 0 or t.min_free_area < 0 or t.open_cells < 0:
         raise ParamError("topology: sizes must be >= 0")
     if (t.spur_clearance_factor < 0 or t.spur_max_length < 0 or t.spur_rounds < 0
-            or t.entry_radius < 0 or t.corner_min_deviation < 0):
+            or t.entry_radius < 0 or t.corner_min_deviation < 0
+            or t.frontier_spur_length < 0 or t.frontier_spur_margin < 0):
         raise ParamError("topology: spur/entry/corner sizes must be >= 0")
     if t.skeleton_method not in ("zhang", "skimage", "lee"):
         raise ParamError(f"topology.skeleton_method must be zhang, skimage or lee "
@@ -257,6 +265,8 @@ def _validate(p: Params) -> None:
     for name in ("alpha_full", "move_tolerance", "fov", "range_max", "visit_radius",
                  "bearing_bin", "d_c"):
         pos("reliability", name, getattr(r, name))
+    if r.frontier_group < 0 or r.frontier_radius < 0:
+        raise ParamError("reliability: frontier_group and frontier_radius must be >= 0")
     pl = p.planner
     if pl.strategy not in STRATEGIES:
         raise ParamError(f"planner.strategy must be one of {', '.join(STRATEGIES)} (got {pl.strategy!r})")

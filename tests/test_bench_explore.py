@@ -267,3 +267,19 @@ def test_smoke_suite_files_and_ratio_arithmetic(tmp_path):
             assert rr["geomean"] is None
     summary = (out / "summary.md").read_text()
     assert "--worlds dead-end,corner" in summary and "## Ratios" in summary
+
+
+def test_bench_stages_times_every_core():
+    """`bench stages` (compute part) on the smallest map: a figure for every service core."""
+    from common import benchstages
+
+    res = benchstages.bench_stages(sizes=(100,), repeats=1)
+    for stage in benchstages.STAGES:
+        v = res[stage]["100x100"]
+        assert v["median_ms"] >= 0 and v["p99_ms"] >= v["median_ms"], stage
+        assert v["scans"] > 0
+    assert res["reliability"]["100x100"]["end_nodes"] > 0
+    table = benchstages.format_table(res)
+    assert all(f"{s}:" in table for s in benchstages.STAGES)
+    with pytest.raises(ValueError):
+        benchstages.bench_stages(sizes=(100,), stages=("nope",))

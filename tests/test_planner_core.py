@@ -455,7 +455,7 @@ def test_grid_clearance_lets_the_robot_into_a_dead_end_but_not_through_a_gap():
     tp2 = topo([node(1, "end", 0.5, 0.5), node(0, "branch", 1.0, 0.5), node(2, "end", 5.5, 0.5)],
                [edge(1, 0, [(0.5, 0.5), (1.0, 0.5)]),
                 edge(0, 2, [(1.0, 0.5), (1.9, 0.5), (2.05, 0.85), (2.2, 0.5), (5.5, 0.5)])])
-    core = PlannerCore(params())
+    core = PlannerCore(params(approach_narrow=False))
     out = core.update(0.0, (0.6, 0.5, 0.0), tp2, rel({1: 0.95, 2: 0.5}), g, geom)
     assert out.state == "done" and "unreachable" in out.reason and "2" in out.reason
     g[10:17, 30] = 0  # door gone, the skeleton runs down the middle: reachable
@@ -471,3 +471,45 @@ def test_trim_narrow_tip_keeps_the_wide_part():
     assert out.tolist() == [[0.0, 0.0], [1.0, 0.0]]
     out = gr.trim_narrow_tip(pts, clear, 0.25, 0.15)  # narrow for longer than the tip: keep
     assert len(out) == len(pts) - 2 or len(out) == len(pts)
+
+
+def test_approaches_a_node_behind_a_narrow_passage_once():
+    """An open end node behind a narrow point: the robot goes up to the narrow point (where it
+    can look through), never beyond; standing there the node counts as unreachable, and the
+    way becoming wide gives the whole path."""
+    g, geom = corridor_grid()
+    g[10:17, 30] = 100  # 0.3 m door at x in [2.0, 2.1]
+    tp = topo([node(1, "end", 0.5, 0.5), node(0, "branch", 1.0, 0.5), node(2, "end", 5.5, 0.5)],
+              [edge(1, 0, [(0.5, 0.5), (1.0, 0.5)]),
+               edge(0, 2, [(1.0, 0.5), (1.9, 0.5), (2.05, 0.85), (2.2, 0.5), (5.5, 0.5)])])
+    p = params()
+    core = PlannerCore(p)
+    out = core.update(0.0, (0.6, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), g, geom)
+    assert out.state == "exploring" and out.target_id == 2, out.reason
+    assert "narrow passage" in out.reason
+    wps = np.asarray(out.waypoints)
+    clear = gr.grid_clearance(fr.clearance_map(g > 65, geom.resolution), geom)(wps)
+    assert np.all(clear >= p.robot_radius + p.clearance_margin - 1e-9)
+    stop = wps[-1]
+    assert 1.3 < stop[0] < 2.0, stop  # up to the door, not through it
+    # standing at the narrow point the robot has looked: the node is unreachable, done
+    pose = (float(stop[0]) - 0.2, float(stop[1]), 0.0)
+    out = core.update(1.0, pose, tp, rel({1: 0.95, 2: 0.5}), g, geom)
+    assert out.state == "done" and "unreachable" in out.reason and "(ids 2)" in out.reason
+    # the door opens while the robot approaches: a new path to the node itself
+    core3 = PlannerCore(p)
+    out = core3.update(0.0, (0.6, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), g, geom)
+    assert "narrow passage" in out.reason
+    g[10:17, 30] = 0
+    tp.edges[1] = edge(0, 2, [(1.0, 0.5), (5.5, 0.5)], clearance=0.2)
+    out = core3.update(0.2, (0.8, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), g, geom)
+    assert out.target_id == 2 and "wide now" in out.reason
+    assert np.hypot(*(np.asarray(out.waypoints[-1]) - (5.5, 0.5))) < 0.35
+
+
+def test_cut_at_narrow():
+    pts = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [3.0, 0.0]])
+    clear = lambda p: np.where(np.abs(p[:, 0] - 2.0) < 0.1, 0.1, 0.5)  # noqa: E731
+    assert gr.cut_at_narrow(pts, clear, 0.25).tolist() == [[0.0, 0.0], [1.0, 0.0]]
+    assert len(gr.cut_at_narrow(pts, clear, 0.05)) == 4
+    assert len(gr.cut_at_narrow(pts[2:], clear, 0.25)) == 0

@@ -19,7 +19,10 @@ from services.reliability.core import (
     bayes_update,
     circular_spread,
     distance_index,
+    frontier_cells,
+    frontier_owned,
     is_observed,
+    leaf_chains,
     line_cells,
     line_of_sight,
     new_viewpoint,
@@ -419,3 +422,86 @@ def test_update_rejects_bad_input():
         core.update([(1, 2.0, 0.0)], [], (0.0, 0.0, 0.0), g, GEOM, p_occ=1.5)
     with pytest.raises(ReliabilityError):
         ReliabilityCore("defaults")
+
+
+# --- frontier rules (docs/design.md: observations of a node next to unknown space don't count)
+
+
+def side_opening_grid(width_m: float = 1.0) -> np.ndarray:
+    """Corridor x in [-5, 0), y in [-1, 1) with walls all round, except an opening of width_m
+    in its upper wall at x in [-3, -3 + width_m): free cells up to y = 1.5, unknown beyond."""
+    g = np.full((GEOM.height, GEOM.width), 100, dtype=np.int8)
+
+    def cells(x0, x1, y0, y1):
+        r0, c0 = GEOM.world_to_cell(x0 + 0.05, y0 + 0.05)
+        r1, c1 = GEOM.world_to_cell(x1 - 0.05, y1 - 0.05)
+        return slice(int(r0), int(r1) + 1), slice(int(c0), int(c1) + 1)
+
+    g[cells(-5, 0, -1, 1)] = 0
+    g[cells(-3, -3 + width_m, 1, 1.5)] = 0
+    g[cells(-3, -3 + width_m, 1.5, 3)] = -1
+    return g
+
+
+def chain_edges():
+    """end 1 - corner 2 - branch 3, and the branch's other leaves 4 and 5."""
+    return [(1, 2, [(-4.5, 0.0), (-2.5, 0.0)]), (2, 3, [(-2.5, 0.0), (-0.5, 0.0)]),
+            (3, 4, [(-0.5, 0.0), (-0.5, -0.8)]), (3, 5, [(-0.5, 0.0), (-0.1, 0.5)])]
+
+
+def test_frontier_cells_groups_and_grid_edge():
+    g = side_opening_grid()
+    cells = frontier_cells(g, 0.35, 4)
+    assert len(cells) == 10  # the row of free cells below the unknown, 1 m wide
+    x, y = GEOM.cell_to_world(cells[:, 0], cells[:, 1])
+    assert np.allclose(y, 1.45) and x.min() > -3.0 and x.max() < -2.0
+    assert len(frontier_cells(side_opening_grid(0.3), 0.35, 4)) == 0  # 3 cells: a wall hole
+    assert len(frontier_cells(side_opening_grid(0.3), 0.35, 1)) == 3
+    # free cells on the border of the grid touch the unknown outside it
+    assert len(frontier_cells(free_grid(), 0.35, 4)) == 4 * 200 - 4
+
+
+def test_leaf_chains_stop_at_branches_and_other_ends():
+    edges = [(a, b) for a, b, _ in chain_edges()]
+    ch = leaf_chains([1, 4, 5], edges)
+    assert ch == {1: [0, 1], 4: [2], 5: [3]}
+    # a corridor with two ends: the same edges for both; an end node of degree 0 owns nothing
+    assert leaf_chains([7, 8, 9], [(7, 6), (6, 8)]) == {7: [0, 1], 8: [1, 0], 9: []}
+
+
+def test_frontier_owned_by_the_leaf_chain_nearest_to_it():
+    g = side_opening_grid()
+    edges = [(a, b, np.asarray(p)) for a, b, p in chain_edges()]
+    own = frontier_owned([1, 4, 5], edges, g, GEOM, 0.35, 4, 8.0)
+    assert own == {1: 10}
+    assert frontier_owned([1, 4, 5], edges, g, GEOM, 0.35, 4, 1.0) == {}  # 1.45 m away
+    assert frontier_owned([1, 4, 5], edges, side_opening_grid(0.3), GEOM, 0.35, 4, 8.0) == {}
+
+
+def test_observations_of_a_node_owning_a_frontier_do_not_count():
+    g = side_opening_grid()
+    edges = chain_edges()
+    core = ReliabilityCore(P)
+    ends = [(1, -4.5, 0.0), (4, -0.5, -0.8)]
+    out = None
+    for k in range(8):  # the robot drives along the corridor looking at both nodes
+        pose = (-2.0 + 0.1 * k, 0.3 - 0.1 * k, -math.pi / 2 if k % 2 else math.pi)
+        out = core.update(ends, [], pose, g, GEOM, edges=edges)
+    p = {n.id: n for n in out}
+    assert p[1].frontier == 10 and p[1].p == P.p_init and p[1].n_obs > 0
+    assert p[4].frontier == 0 and p[4].p > P.p_init
+    # the frontier is resolved (a wall there now): node 1's observations count again
+    g2 = g.copy()
+    g2[g2 == -1] = 100
+    for k in range(4):
+        out = core.update(ends, [], (-2.0 - 0.3 * k, 0.0, math.pi), g2, GEOM, edges=edges)
+    p = {n.id: n for n in out}
+    assert p[1].frontier == 0 and p[1].p > P.p_init
+    # no edges given / frontier_group = 0: the rule is off
+    core = ReliabilityCore(msgspec.structs.replace(P, frontier_group=0.0))
+    for k in range(4):
+        out = core.update(ends, [], (-2.0 - 0.3 * k, 0.0, math.pi), g, GEOM, edges=edges)
+    assert {n.id: n.p for n in out}[1] > P.p_init
+    with pytest.raises(ReliabilityError):
+        ReliabilityCore(P).update(ends, [], (0.0, 0.0, 0.0), g, GEOM,
+                                  edges=[(1, 2, [(0.0, math.nan)])])

@@ -380,3 +380,35 @@ def test_snapshot_is_json_able():
     c.update(g, geom, (5.0, 1.5))
     snap = json.loads(json.dumps(c.snapshot()))
     assert snap["updates"] == 1 and snap["counts"]["end"] == 2
+
+
+def side_opening(beyond: int):
+    """1 m corridor along x with a 1 m opening in its upper wall at x in [3.5, 4.5): free up to
+    y = 2.4, then `beyond` (unknown: the map stops there; occupied: a shallow niche)."""
+    g, geom = grid(8, 4)
+    rect(g, 0.5, 1.0, 7.5, 2.0)
+    rect(g, 3.5, 2.0, 4.5, 2.4)
+    rect(g, 3.5, 2.4, 4.5, 3.5, beyond)
+    return g, geom
+
+
+def ends_near(res, x, y, r=0.8):
+    return [n for n in res.nodes if n.kind == "end" and math.dist((n.x, n.y), (x, y)) < r]
+
+
+def test_a_short_branch_into_unknown_space_is_kept():
+    g, geom = side_opening(UNK)
+    res = core().update(g, geom, (1.0, 1.5))
+    check_wellformed(res, geom)
+    assert len(ends_near(res, 4.0, 2.3)) == 1  # where the map opens into the unknown
+    assert kinds(res)["branch"] == 1
+    # the same niche closed by a wall: a spur, pruned
+    g, geom = side_opening(OCC)
+    res = core().update(g, geom, (1.0, 1.5))
+    assert ends_near(res, 4.0, 2.3) == [] and kinds(res) == {"end": 2, "branch": 0,
+                                                             "corner": 0}
+    # the rule off: pruned like any spur
+    g, geom = side_opening(UNK)
+    res = core(frontier_spur_length=0.0).update(g, geom, (1.0, 1.5))
+    assert ends_near(res, 4.0, 2.3) == []
+

@@ -81,6 +81,7 @@ class _Cand:
     path: Callable[[], np.ndarray]  # dense polyline from the entry / start cell to the target
     cells: np.ndarray | None = None  # frontier: the group's cell centres (identity matching)
     label: str = ""
+    partial: bool = False  # the path stops at a narrow passage before the target
 
 
 @dataclass
@@ -110,6 +111,7 @@ class _Target:
     arrived_t: float | None  # [s] since when the robot stands within goal_tolerance
     chosen_t: float  # [s]
     why: str
+    partial: bool = False  # the path was cut at a narrow passage (_Cand.partial when made)
 
 
 @dataclass
@@ -330,11 +332,25 @@ class PlannerCore:
         dist, pred = gr.search_from_entry(index, entry) if entry is not None else ({}, {})
         ev = _Eval(end_nodes=len(ends), reliable=len(reliable))
         unreachable, black = [], []
+        wide = None  # search through narrow edges too, made when first needed
         for i in open_ids:
             _, nx, ny = index.nodes[i]
+            label = f"end node {i} (P={prob(i):.2f})" if reliability else f"end node {i}"
             if i not in dist:
-                unreachable.append(i)
+                c = None
+                if p.approach_narrow and entry is not None and clearance_at is not None:
+                    if wide is None:
+                        wide = gr.search_from_entry(index, entry, through_narrow=True)
+                    c = self._approach(i, nx, ny, label, prob(i) if reliability else 0.0,
+                                       index, entry, wide, clearance_at, need, x, y)
+                if c is None:
+                    unreachable.append(i)
+                elif self._blacklisted(c):
+                    black.append(i)
+                else:
+                    ev.cands.append(c)
                 continue
+
             def path(i=i):
                 pts = gr.path_points(index, entry, pred, i)
                 if clearance_at is None:
@@ -342,8 +358,7 @@ class PlannerCore:
                 return gr.trim_narrow_tip(pts, clearance_at, need, p.tip_length)
 
             c = _Cand(i, nx, ny, dist[i], dist[i], 1.0, prob(i) if reliability else 0.0, path,
-                      label=(f"end node {i} (P={prob(i):.2f})" if reliability
-                             else f"end node {i}"))
+                      label=label)
             if self._blacklisted(c):
                 black.append(i)
                 continue
@@ -395,6 +410,31 @@ class PlannerCore:
 
         ev.path_ok = path_ok
         return ev
+
+    def _approach(self, i, nx, ny, label, prob, index, entry, wide, clearance_at, need, x, y
+                  ) -> _Cand | None:
+        """Candidate for open end node i behind a narrow edge: the path up to the narrow point.
+
+        Where the map is only half seen (a corridor glimpsed at an angle), its skeleton hugs the
+        seen wall and looks narrow although the corridor is wide; from the narrow point the
+        robot sees it. Cost = the whole path length (as if the passage were wide); None if no
+        path leads there even through narrow edges, or if the robot already stands within
+        goal_tolerance of the narrow point: it has looked, and the node counts as unreachable
+        until the map there changes.
+        """
+        dist, pred = wide
+        if i not in dist:
+            return None
+        full = gr.path_points(index, entry, pred, i)
+        pts = gr.cut_at_narrow(full, clearance_at, need)
+        if len(pts) < 2 or len(pts) == len(full):
+            return None
+        reach = float(gr.polyline_lengths(pts)[-1])
+        if math.hypot(pts[-1, 0] - x, pts[-1, 1] - y) <= self.p.goal_tolerance:
+            return None
+        to_entry = math.hypot(pts[0, 0] - x, pts[0, 1] - y)
+        return _Cand(i, nx, ny, dist[i], to_entry + reach, 1.0, prob, lambda: pts,
+                     label=f"{label} up to a narrow passage", partial=True)
 
     def _eval_frontier(self, x, y, topo, rel, grid, geom, p_free, p_occ) -> _Eval:
         p = self.p
@@ -530,7 +570,7 @@ class PlannerCore:
         self._target = _Target(c, c.x, c.y, wps, cum, 0, float(cum[-1]),
                                t if progress_t is None else progress_t, None,
                                t if progress_t is None or self._target is None
-                               else self._target.chosen_t, why)
+                               else self._target.chosen_t, why, c.partial)
         self._plan_id += 1
 
     def _remaining(self, tg: _Target, x: float, y: float) -> float:
@@ -634,6 +674,10 @@ class PlannerCore:
         ("same", progress_t) | ("switch", new candidate).
         """
         p = self.p
+        if c.partial != tg.partial:
+            notes.append(f"{c.label}: " + ("a passage on the way became narrow: new path"
+                                           if c.partial else "the way is wide now: new path"))
+            return "same", t
         moved = math.hypot(c.x - tg.plan_x, c.y - tg.plan_y) >= p.target_move
         rem = self._remaining(tg, x, y)
         if moved:

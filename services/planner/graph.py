@@ -56,15 +56,21 @@ class TopoIndex:
     narrow: list[Edge]  # edges too narrow for the robot (kept for reporting)
     adj: dict[int, list[tuple[int, float, int, bool]]] = field(default_factory=dict)
     # adj[u] = [(v, cost [m], edge idx, forward = traversed a->b), ...]
+    narrow_adj: dict[int, list[tuple[int, float, int, bool]]] = field(default_factory=dict)
+    # the same for narrow edges, with edge idx = -(narrow idx + 1)
+
+    def edge(self, ei: int) -> Edge:
+        """Edge by search index: ei >= 0 a traversable edge, ei < 0 narrow[-ei - 1]."""
+        return self.edges[ei] if ei >= 0 else self.narrow[-ei - 1]
 
     def end_ids(self) -> list[int]:
         return [i for i, (k, _, _) in self.nodes.items() if k == "end"]
 
     def all_points(self) -> np.ndarray:
-        """All traversable polyline points stacked, (n, 2) [m] (empty (0, 2) if none)."""
-        if not self.edges:
+        """All polyline points (traversable and narrow edges) stacked, (n, 2) [m]."""
+        if not self.edges and not self.narrow:
             return np.zeros((0, 2))
-        return np.concatenate([e.pts for e in self.edges])
+        return np.concatenate([e.pts for e in self.edges + self.narrow])
 
 
 @dataclass(frozen=True)
@@ -165,17 +171,20 @@ def build_index(topo: m.TopoGraph, min_clearance: float,
         clear = np.array([float(e.clearance) for e in kept])
     edges: list[Edge] = []
     narrow: list[Edge] = []
+    nadj: dict[int, list[tuple[int, float, int, bool]]] = {}
     for k, e in enumerate(kept):
         ok = bool(clear[k] + 1e-9 >= min_clearance)
         edge = Edge(len(edges) if ok else len(narrow), e.a, e.b, P[o[k]:o[k + 1]],
                     cum_all[o[k]:o[k + 1]], float(clear[k]))
         if not ok:
             narrow.append(edge)
+            nadj.setdefault(e.a, []).append((e.b, edge.length, -edge.idx - 1, True))
+            nadj.setdefault(e.b, []).append((e.a, edge.length, -edge.idx - 1, False))
             continue
         edges.append(edge)
         adj[e.a].append((e.b, edge.length, edge.idx, True))
         adj[e.b].append((e.a, edge.length, edge.idx, False))
-    return TopoIndex(nodes, edges, narrow, adj)
+    return TopoIndex(nodes, edges, narrow, adj, nadj)
 
 
 # --- line of sight on the grid ---------------------------------------------------------------
@@ -247,13 +256,16 @@ def find_entry(index: TopoIndex, x: float, y: float,
 # --- search ----------------------------------------------------------------------------------
 
 
-def search_from_entry(index: TopoIndex, entry: Entry
+def search_from_entry(index: TopoIndex, entry: Entry, through_narrow: bool = False
                       ) -> tuple[dict[int, float], dict[int, tuple[int, int, bool]]]:
     """Least path cost [m] from the robot (via the entry point) to every reachable node.
 
-    Cost = straight line robot -> entry + arc lengths along traversable edges (A* with h = 0).
-    Returns (cost by node id, predecessor by node id) with pred[v] = (u, edge idx, forward);
-    u == ENTRY for the two nodes of the entry edge reached directly from the entry point.
+    Cost = straight line robot -> entry + arc lengths along traversable edges (A* with h = 0);
+    with ``through_narrow`` the narrow edges count too (where the robot could get if the
+    passages were wide enough: see :func:`cut_at_narrow`).
+    Returns (cost by node id, predecessor by node id) with pred[v] = (u, edge idx, forward)
+    (edge idx as in :meth:`TopoIndex.edge`); u == ENTRY for the two nodes of the entry edge
+    reached directly from the entry point.
     """
     e = entry.edge
     dist: dict[int, float] = {}
@@ -270,6 +282,10 @@ def search_from_entry(index: TopoIndex, entry: Entry
         for w, wc, wi, wf in index.adj.get(v, ()):
             if w not in dist:
                 heapq.heappush(heap, (c + wc, w, v, wi, wf))
+        if through_narrow:
+            for w, wc, wi, wf in index.narrow_adj.get(v, ()):
+                if w not in dist:
+                    heapq.heappush(heap, (c + wc, w, v, wi, wf))
     return dist, pred
 
 
@@ -320,7 +336,7 @@ def path_points(index: TopoIndex, entry: Entry, pred: dict[int, tuple[int, int, 
         if u == ENTRY:
             break
         v = u
-        if len(chain) > len(index.edges) + 1:  # defensive: a broken predecessor map
+        if len(chain) > len(index.edges) + len(index.narrow) + 1:  # defensive
             raise GraphInputError("predecessor chain does not end at the entry point")
     chain.reverse()
     e = entry.edge
@@ -331,9 +347,21 @@ def path_points(index: TopoIndex, entry: Entry, pred: dict[int, tuple[int, int, 
     else:  # entry -> a
         parts = [start, e.pts[entry.seg::-1]]
     for ei, fwd in chain[1:]:
-        pts = index.edges[ei].pts
+        pts = index.edge(ei).pts
         parts.append((pts if fwd else pts[::-1])[1:])
     return np.concatenate(parts)
+
+
+def cut_at_narrow(pts: np.ndarray, clearance_at: Callable[[np.ndarray], np.ndarray],
+                  min_clearance: float) -> np.ndarray:
+    """The part of a path before its first point with clearance < min_clearance [m]: where
+    the robot can get on the way to a node behind a narrow passage (all of pts if none is
+    narrow; empty if the first point is)."""
+    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+    if len(pts) == 0:
+        return pts
+    bad = np.flatnonzero(np.asarray(clearance_at(pts)) + 1e-9 < min_clearance)
+    return pts if bad.size == 0 else pts[:int(bad[0])]
 
 
 def thin_polyline(pts: np.ndarray, spacing: float, max_deviation: float = 0.05) -> np.ndarray:

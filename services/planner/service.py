@@ -32,6 +32,7 @@ class PlannerService:
         self.last_status: m.ExploreStatus | None = None
         self.last_status_wall = 0.0
         self.last_key: tuple = ()
+        self.last_decision: tuple = ()
         self.out = None
         node.add_state(self.state)
 
@@ -73,6 +74,10 @@ class PlannerService:
             replans=out.replans)
         self.node.processed += 1
         key = (out.state, out.target_id, out.reason, tuple(out.blacklisted))
+        decision = (out.state, out.target_id, tuple(out.blacklisted))
+        if decision != self.last_decision:  # a new target, a blacklisting or the end: say why
+            log.info("t=%.1f s %s: %s", stamp, out.state, out.reason)
+            self.last_decision = decision
         self.maybe_status(force=self.node.lockstep or key != self.last_key)
         self.last_key = key
 

@@ -46,8 +46,9 @@ class ReliabilityService:
                         "map" if grid is None else "pose")
             return
         ends = [(n.id, n.x, n.y) for n in topo.nodes if n.kind == "end"]
+        edges = [(e.a, e.b, e.points) for e in topo.edges]
         nodes = self.core.update(ends, list(topo.gone), pose, m.grid_to_array(grid),
-                                 GridGeometry.of(grid), self.node.params.mapper.p_occ)
+                                 GridGeometry.of(grid), self.node.params.mapper.p_occ, edges)
         self.last = m.Reliability(
             header=self.node.header("reliability", topo.header.stamp, topo.header.src_seq),
             nodes=nodes)

@@ -190,6 +190,9 @@ class TopologyCore:
         spur_px = p.spur_length / res
         spur_max_px = max(p.spur_length, p.spur_max_length) / res
         gr = g.build_graph(skel, entry, seen, nodeid, buf)
+        front_cells = (int(math.ceil(p.frontier_spur_length / res - 1e-9))
+                       if p.frontier_spur_length > 0 else 0)
+        grid8 = np.ascontiguousarray(grid, dtype=np.int8)
         work = skel
         for _ in range(p.spur_rounds):
             node_pix, node_kind, ea, eb, off, pix, _nid, comp = gr
@@ -198,7 +201,8 @@ class TopologyCore:
             if work is skel:
                 work = skel.copy()
             cut = g.prune_spurs(work, node_pix, node_kind, ea, eb, off, pix, nodeid, dt,
-                                spur_px, p.spur_clearance_factor, spur_max_px)
+                                spur_px, p.spur_clearance_factor, spur_max_px, grid8,
+                                mask, p.frontier_spur_margin / res, front_cells)
             if cut == 0:
                 break
             g.reset_nodeid(nodeid, comp)

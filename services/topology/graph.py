@@ -350,8 +350,73 @@ def edge_lengths(pix, off, w):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
+def _unknown_at(grid, mask, r, c):  # pragma: no cover - compiled
+    """Grid cell (r, c) is unknown and not filled in by the cleaning (outside = unknown)."""
+    h, w = grid.shape
+    if r < 0 or c < 0 or r >= h or c >= w:
+        return True
+    return grid[r, c] < 0 and mask[r + 1, c + 1] == 0
+
+
+@njit(cache=True)
+def frontier_group_near(grid, mask, r0, c0, rad):  # pragma: no cover - compiled
+    """Size of the largest 8-connected group of frontier cells within rad cells of padded
+    pixel (r0, c0). Frontier = free in the cleaned mask and 4-adjacent to an unknown grid cell
+    that the cleaning did not fill (speckles inside free space are not frontier). ``grid`` is
+    the unpadded int8 map, ``mask`` the padded cleaned free mask.
+    """
+    h, w = grid.shape
+    ir = int(rad) + 1
+    n = 2 * ir + 1
+    front = np.zeros((n, n), np.uint8)
+    r2 = rad * rad
+    for i in range(n):
+        r = r0 - 1 - ir + i  # grid row
+        if r < 0 or r >= h:
+            continue
+        for j in range(n):
+            c = c0 - 1 - ir + j
+            if c < 0 or c >= w or (i - ir) ** 2 + (j - ir) ** 2 > r2:
+                continue
+            if mask[r + 1, c + 1] == 0:
+                continue
+            if (_unknown_at(grid, mask, r - 1, c) or _unknown_at(grid, mask, r + 1, c)
+                    or _unknown_at(grid, mask, r, c - 1) or _unknown_at(grid, mask, r, c + 1)):
+                front[i, j] = 1
+    best = 0
+    stack = np.empty(n * n, np.int64)
+    for i in range(n):
+        for j in range(n):
+            if front[i, j] != 1:
+                continue
+            front[i, j] = 2
+            top = 0
+            stack[top] = i * n + j
+            top += 1
+            size = 0
+            while top > 0:
+                top -= 1
+                q = stack[top]
+                qi = q // n
+                qj = q - qi * n
+                size += 1
+                for di in range(-1, 2):
+                    for dj in range(-1, 2):
+                        a = qi + di
+                        b = qj + dj
+                        if 0 <= a < n and 0 <= b < n and front[a, b] == 1:
+                            front[a, b] = 2
+                            stack[top] = a * n + b
+                            top += 1
+            if size > best:
+                best = size
+    return best
+
+
+@njit(cache=True)
 def prune_spurs(skel, node_pix, node_kind, ea, eb, off, pix, nodeid, dt,
-                spur_px, factor, spur_max_px):  # pragma: no cover - compiled
+                spur_px, factor, spur_max_px, grid, mask, front_px,
+                front_cells):  # pragma: no cover - compiled
     """One round of graph-based spur pruning, in place on ``skel``; returns the number cut.
 
     A leaf edge (end node of degree 1 -- branch node) is cut when its length [px] is below
@@ -359,6 +424,12 @@ def prune_spurs(skel, node_pix, node_kind, ea, eb, off, pix, nodeid, dt,
     edges (the longest is kept). The spur's pixels are erased except the branch pixel, then the
     branch cluster's dangling pixels and staircase pixels are cleaned so the skeleton stays
     one pixel wide.
+
+    Frontier spurs: a short leaf whose end pixel has a group of >= ``front_cells`` frontier
+    cells (:func:`frontier_group_near`) within dt[end] + front_px [px] is where the known map
+    opens into unknown space (a corridor bending out of sight, a door seen edge-on); it is
+    kept, at most one per branch node (the longest: an open end can fork into two spurs).
+    ``front_cells <= 0`` disables this.
     """
     h, w = skel.shape
     nn = node_pix.shape[0]
@@ -370,6 +441,7 @@ def prune_spurs(skel, node_pix, node_kind, ea, eb, off, pix, nodeid, dt,
     lens = edge_lengths(pix, off, w)
     cut = np.zeros(ne, np.bool_)
     ncut = np.zeros(nn, np.int64)
+    keep_front = np.full(nn, -1, np.int64)
     for e in range(ne):
         a = ea[e]
         b = eb[e]
@@ -383,8 +455,20 @@ def prune_spurs(skel, node_pix, node_kind, ea, eb, off, pix, nodeid, dt,
         thr = factor * dt[bp // w, bp - (bp // w) * w]
         thr = min(max(thr, spur_px), spur_max_px)
         if lens[e] < thr:
+            if front_cells > 0:
+                ep = node_pix[a + b - j]
+                er = ep // w
+                ec = ep - er * w
+                if frontier_group_near(grid, mask, er, ec,
+                                       dt[er, ec] + front_px) >= front_cells:
+                    if keep_front[j] < 0 or lens[e] > lens[keep_front[j]]:
+                        keep_front[j] = e
             cut[e] = True
             ncut[j] += 1
+    for j in range(nn):
+        if keep_front[j] >= 0:
+            cut[keep_front[j]] = False
+            ncut[j] -= 1
     for j in range(nn):
         if ncut[j] > 0 and ncut[j] >= deg[j]:
             best = -1
