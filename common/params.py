@@ -143,6 +143,8 @@ class PlannerParams(_P):
     waypoint_spacing: float = 0.25  # [m] path polylines thinned to about this spacing
     path_tolerance: float = 0.4  # [m] a remaining waypoint this far off the skeleton -> new path
     frontier_match_radius: float = 1.0  # [m] frontier group this close to the goal stays target
+    frontier_period: float = 1.0  # [s] frontier strategy: frontiers and costs recomputed at
+    # most this often while a target is being followed (explore_lite planner_frequency 1 Hz)
     done_confirm: int = 2  # consecutive updates without any candidate before reporting done
     tip_length: float = 0.3  # [m] last part of an edge into an end node that may be narrow
     approach_narrow: bool = True  # an open end node behind a narrow edge: go up to the
@@ -284,7 +286,7 @@ def _validate(p: Params) -> None:
     if pl.done_confirm < 1:
         raise ParamError("planner.done_confirm must be >= 1")
     for name in ("clearance_margin", "tie_tolerance", "min_frontier_size", "gain_scale",
-                 "tip_length"):
+                 "tip_length", "frontier_period"):
         v = getattr(pl, name)
         if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
             raise ParamError(f"planner.{name} must be a finite number >= 0 (got {v!r})")

@@ -513,3 +513,17 @@ def test_cut_at_narrow():
     assert gr.cut_at_narrow(pts, clear, 0.25).tolist() == [[0.0, 0.0], [1.0, 0.0]]
     assert len(gr.cut_at_narrow(pts, clear, 0.05)) == 4
     assert len(gr.cut_at_narrow(pts[2:], clear, 0.25)) == 0
+
+
+def test_frontier_search_runs_at_most_once_per_frontier_period_while_following():
+    g, geom = half_known_room()
+    core = PlannerCore(params(strategy="frontier", frontier_period=1.0))
+    out = core.update(0.0, (1.05, 3.05, 0.0), None, None, g, geom)
+    assert out.state == "exploring"
+    full = g.copy()
+    full[:, 30:] = 0  # the room is now known: no frontier left
+    full[0, :] = full[-1, :] = full[:, -1] = 100
+    out = core.update(0.4, (1.10, 3.05, 0.0), None, None, full, geom)
+    assert out.state == "exploring" and out.waypoints  # still the search made at t = 0
+    out = core.update(1.0, (1.15, 3.05, 0.0), None, None, full, geom)
+    assert out.state == "done" and "no frontier" in out.reason  # a new search at t >= 1 s

@@ -184,6 +184,8 @@ class PlannerCore:
         self._had_path = False
         self._last: PlanOutput | None = None
         self._updates = 0
+        self._frontier_ev: _Eval | None = None  # frontier strategy: last search ...
+        self._frontier_t = -math.inf  # ... and its time [s]
 
     # --- public ------------------------------------------------------------------------------
 
@@ -205,7 +207,13 @@ class PlannerCore:
             self._rel_updates += 1
         self._record(x, y)
         if self.p.strategy == "frontier":
-            ev = self._eval_frontier(x, y, topo, rel, grid_int8, geom, p_free, p_occ)
+            cached = self._frontier_ev
+            if (cached is not None and self._target is not None and cached.cands
+                    and 0.0 <= t - self._frontier_t < self.p.frontier_period):
+                ev = cached  # following a target: keep the last frontier search
+            else:
+                ev = self._eval_frontier(x, y, topo, rel, grid_int8, geom, p_free, p_occ)
+                self._frontier_ev, self._frontier_t = ev, t
         else:
             ev = self._eval_topo(x, y, topo, rel, grid_int8, geom, p_free, p_occ)
         if ev.waiting is not None:

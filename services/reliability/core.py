@@ -405,9 +405,7 @@ def frontier_owned(end_ids, edges: list[tuple[int, int, np.ndarray]], grid: np.n
     for e, chain in chains.items():
         for k in chain:
             owners.setdefault(k, []).append(e)
-    pts = np.concatenate([np.asarray(p, dtype=np.float64).reshape(-1, 2) for _, _, p in edges])
-    lab = np.concatenate([np.full(len(np.asarray(p).reshape(-1, 2)), k)
-                          for k, (_, _, p) in enumerate(edges)])
+    pts, lab = _stack_edges(edges)
     if len(pts) == 0:
         return {}
     x, y = geom.cell_to_world(cells[:, 0], cells[:, 1])
@@ -463,18 +461,36 @@ def new_viewpoint(last: tuple[float, float, float] | None, rx: float, ry: float,
     return math.hypot(rx - lx, ry - ly) >= params.view_distance or turned >= params.view_angle
 
 
-def _check_edges(edges) -> list[tuple[int, int, np.ndarray]]:
+def _stack_edges(edges) -> tuple[np.ndarray, np.ndarray]:
+    """All edge polyline points as one (n, 2) array [m] and the edge index of each point
+    (one conversion for all edges: per-edge arrays cost more than the rest of the update)."""
+    flat: list = []
+    lab: list[int] = []
+    for k, (_, _, p) in enumerate(edges):
+        if isinstance(p, np.ndarray):
+            p = p.reshape(-1, 2).tolist()
+        flat.extend(p)
+        lab.extend([k] * len(p))
+    try:
+        pts = np.asarray(flat, dtype=np.float64).reshape(-1, 2)
+    except (TypeError, ValueError):
+        raise ReliabilityError("edge points must be [x, y] pairs of numbers") from None
+    return pts, np.asarray(lab, dtype=np.int64)
+
+
+def _check_edges(edges) -> list[tuple[int, int, list]]:
     out = []
     for item in edges:
         try:
             a, b, pts = item
-            arr = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+            a, b = int(a), int(b)
         except (TypeError, ValueError):
             raise ReliabilityError(f"edge must be (a, b, (n, 2) points) (got {item!r:.80})"
                                    ) from None
-        if not np.all(np.isfinite(arr)):
-            raise ReliabilityError(f"edge {a}-{b} has a non-finite point")
-        out.append((int(a), int(b), arr))
+        out.append((a, b, pts))
+    pts, _ = _stack_edges(out)
+    if not np.all(np.isfinite(pts)):
+        raise ReliabilityError("an edge has a non-finite point")
     return out
 
 
