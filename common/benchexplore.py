@@ -822,6 +822,12 @@ def run_suite(cfg: Config, argv: Sequence[str]) -> int:
             bar.set_postfix_str(f"now {label}/{st}/{seed} | last {last}")
         return run_one(label, arg, st, seed, out, cfg.max_sim_time, cfg.max_wall_time)
 
+    def on_term(signum, frame):  # SIGTERM stops the suite like Ctrl-C: no run is left behind
+        raise KeyboardInterrupt
+
+    old_term = None
+    if threading.current_thread() is threading.main_thread():
+        old_term = signal.signal(signal.SIGTERM, on_term)
     try:
         if cfg.jobs == 1:
             for item in plan:
@@ -843,6 +849,8 @@ def run_suite(cfg: Config, argv: Sequence[str]) -> int:
         for p in active:
             _stop(p)
     finally:
+        if old_term is not None:
+            signal.signal(signal.SIGTERM, old_term)
         bar.close()
     write_all(out, doc)
     n_fin = sum(1 for r in doc["runs"] if r.get("finished"))

@@ -283,3 +283,40 @@ def test_bench_stages_times_every_core():
     assert all(f"{s}:" in table for s in benchstages.STAGES)
     with pytest.raises(ValueError):
         benchstages.bench_stages(sizes=(100,), stages=("nope",))
+
+
+def test_sigterm_stops_the_suite_and_its_running_stacks(tmp_path):
+    """SIGTERM (a CI timeout, systemd) ends the suite like Ctrl-C: exit 130, partial results
+    written, and no process of the run in flight is left."""
+    import signal
+    import time
+
+    out = tmp_path / "b"
+    p = subprocess.Popen([sys.executable, "-m", "common.cli", "bench", "explore", "--worlds",
+                          "office", "--strategies", "reliability", "--seeds", "1", "--out",
+                          str(out), "--no-progress"], cwd=REPO, stdout=subprocess.DEVNULL,
+                         stderr=subprocess.PIPE, text=True)
+    tag = f"bench{p.pid}"
+
+    def stack() -> list[str]:
+        r = subprocess.run(["pgrep", "-f", tag], capture_output=True, text=True)
+        return r.stdout.split()
+
+    try:
+        deadline = time.monotonic() + 60
+        while len(stack()) < 7 and time.monotonic() < deadline:  # runner + router + 6 services
+            time.sleep(0.5)
+        assert len(stack()) >= 7, "the run's stack did not start"
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=60)
+        assert p.returncode == 130, err
+        deadline = time.monotonic() + 10
+        while stack() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert stack() == []
+        assert json.loads((out / "results.json").read_text())["interrupted"] is True
+    finally:
+        if p.poll() is None:
+            p.kill()
+        for pid in stack():
+            os.kill(int(pid), 9)

@@ -125,7 +125,7 @@ def clearance_map(occupied: np.ndarray, resolution: float) -> np.ndarray:
     return cv2.distanceTransform(src, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * np.float32(resolution)
 
 
-@numba.njit(cache=False)
+@numba.njit(cache=True)
 def _dijkstra8(passable, mult, start, res):  # pragma: no cover - jitted
     """Exact 8-neighbour Dijkstra as Dial's bucket queue (bucket width = res).
 
