@@ -690,6 +690,17 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def _stop_active() -> None:
+    """Stop every run in flight, in parallel (each may take a while to stop its stack)."""
+    with _ACTIVE_LOCK:
+        active = list(_ACTIVE)
+    threads = [threading.Thread(target=_stop, args=(p,)) for p in active]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+
+
 def _stop(p: subprocess.Popen) -> None:
     """SIGTERM the run's process group (the runner stops its stack), SIGKILL if it lingers."""
     for sig, wait in ((signal.SIGTERM, 20), (signal.SIGKILL, 5)):
@@ -841,13 +852,11 @@ def run_suite(cfg: Config, argv: Sequence[str]) -> int:
                 except BaseException:
                     for f in futs:
                         f.cancel()
+                    _stop_active()  # before the pool's exit waits for the runs in flight
                     raise
     except KeyboardInterrupt:
         doc["interrupted"] = True
-        with _ACTIVE_LOCK:
-            active = list(_ACTIVE)
-        for p in active:
-            _stop(p)
+        _stop_active()
     finally:
         if old_term is not None:
             signal.signal(signal.SIGTERM, old_term)

@@ -285,17 +285,19 @@ def test_bench_stages_times_every_core():
         benchstages.bench_stages(sizes=(100,), stages=("nope",))
 
 
-def test_sigterm_stops_the_suite_and_its_running_stacks(tmp_path):
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_sigterm_stops_the_suite_and_its_running_stacks(tmp_path, jobs):
     """SIGTERM (a CI timeout, systemd) ends the suite like Ctrl-C: exit 130, partial results
-    written, and no process of the run in flight is left."""
+    written, and no process of the runs in flight is left (with --jobs 2 as well: the pool
+    must not wait for them)."""
     import signal
     import time
 
     out = tmp_path / "b"
     p = subprocess.Popen([sys.executable, "-m", "common.cli", "bench", "explore", "--worlds",
                           "office", "--strategies", "reliability", "--seeds", "1", "--out",
-                          str(out), "--no-progress"], cwd=REPO, stdout=subprocess.DEVNULL,
-                         stderr=subprocess.PIPE, text=True)
+                          str(out), "--no-progress", "--jobs", jobs], cwd=REPO,
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     tag = f"bench{p.pid}"
 
     def stack() -> list[str]:
