@@ -496,6 +496,14 @@ def test_approaches_a_node_behind_a_narrow_passage_once():
     pose = (float(stop[0]) - 0.2, float(stop[1]), 0.0)
     out = core.update(1.0, pose, tp, rel({1: 0.95, 2: 0.5}), g, geom)
     assert out.state == "done" and "unreachable" in out.reason and "(ids 2)" in out.reason
+    # ... and stays so once the robot has left (it used to shuttle back and forth), also when
+    # the node got a new id
+    tp2 = topo([node(1, "end", 0.5, 0.5), node(0, "branch", 1.0, 0.5), node(7, "end", 5.5, 0.5)],
+               [tp.edges[0], msgspec.structs.replace(tp.edges[1], b=7)])
+    for k, tpk in enumerate((tp, tp2)):
+        out = core.update(2.0 + k, (0.6, 0.5, 0.0), tpk, rel({1: 0.95, 2: 0.5, 7: 0.5}), g, geom)
+        assert out.state == "done" and "unreachable" in out.reason, out.reason
+    assert [b["id"] for b in core.snapshot()["looked"]] == [2]
     # the door opens while the robot approaches: a new path to the node itself
     core3 = PlannerCore(p)
     out = core3.update(0.0, (0.6, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), g, geom)

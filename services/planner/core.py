@@ -173,6 +173,7 @@ class PlannerCore:
         self._replans = 0
         self._blacklist: list[_Mark] = []
         self._attempts: list[_Mark] = []
+        self._looked: list[_Mark] = []  # narrow points the robot has stood at (approach_narrow)
         self._track: list[tuple[float, float]] = []
         self._track_arr = np.zeros((0, 2))
         self._rel_updates = 0  # updates that came with a reliability message
@@ -245,6 +246,7 @@ class PlannerCore:
                           for b in self._blacklist],
             "failures": [{"id": a.id, "x": a.x, "y": a.y, "count": a.count}
                          for a in self._attempts],
+            "looked": [{"id": b.id, "x": b.x, "y": b.y, "t": b.t} for b in self._looked],
             "visited_positions": len(self._track),
             "candidates": last.candidates if last else 0,
             "end_nodes": last.end_nodes if last else 0,
@@ -426,9 +428,12 @@ class PlannerCore:
         Where the map is only half seen (a corridor glimpsed at an angle), its skeleton hugs the
         seen wall and looks narrow although the corridor is wide; from the narrow point the
         robot sees it. Cost = the whole path length (as if the passage were wide); None if no
-        path leads there even through narrow edges, or if the robot already stands within
-        goal_tolerance of the narrow point: it has looked, and the node counts as unreachable
-        until the map there changes.
+        path leads there even through narrow edges, or once the robot has stood within
+        goal_tolerance of the narrow point: it has looked from there, and the node counts as
+        unreachable from then on unless the way becomes wide (a full, not partial, path) or its
+        narrow point lies more than blacklist_radius from every point looked from (by position:
+        node ids change as the skeleton is rebuilt). (Forgetting the look as soon as the
+        robot leaves made it shuttle between the narrow point and the next target.)
         """
         dist, pred = wide
         if i not in dist:
@@ -438,7 +443,12 @@ class PlannerCore:
         if len(pts) < 2 or len(pts) == len(full):
             return None
         reach = float(gr.polyline_lengths(pts)[-1])
-        if math.hypot(pts[-1, 0] - x, pts[-1, 1] - y) <= self.p.goal_tolerance:
+        px, py = float(pts[-1, 0]), float(pts[-1, 1])
+        if math.hypot(px - x, py - y) <= self.p.goal_tolerance:
+            if not self._has_looked(i, px, py):
+                self._looked.append(_Mark(i, px, py, reason="looked", t=self._last_t or 0.0))
+            return None
+        if self._has_looked(i, px, py):
             return None
         to_entry = math.hypot(pts[0, 0] - x, pts[0, 1] - y)
         return _Cand(i, nx, ny, dist[i], to_entry + reach, 1.0, prob, lambda: pts,
@@ -503,6 +513,10 @@ class PlannerCore:
         return ev
 
     # --- decision machine --------------------------------------------------------------------
+
+    def _has_looked(self, i: int, px: float, py: float) -> bool:
+        r2 = self.p.blacklist_radius ** 2
+        return any((b.x - px) ** 2 + (b.y - py) ** 2 <= r2 for b in self._looked)
 
     def _blacklisted(self, c: _Cand) -> bool:
         r2 = self.p.blacklist_radius ** 2
