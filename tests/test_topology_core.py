@@ -326,6 +326,20 @@ def test_incremental_matches_full_recompute_while_revealing():
     assert inc.snapshot()["window_thinnings"] > 0
 
 
+def test_incremental_change_inside_wide_free_space():
+    # an obstacle speck in the middle of a big room is cleared: the re-thinning crop around it
+    # is all free, where cv2's distance transform returns ~FLT_MAX (was an OverflowError)
+    g, geom = grid(12, 12)
+    rect(g, 0.5, 0.5, 11.5, 11.5)
+    rect(g, 5.8, 5.8, 6.2, 6.2, OCC)
+    inc, full = core(), core(incremental=False)
+    inc.update(g, geom, (2.0, 2.0))
+    rect(g, 5.8, 5.8, 6.2, 6.2)
+    a = inc.update(g, geom, (2.0, 2.0))
+    b = full.update(g, geom, (2.0, 2.0))
+    assert np.array_equal(a.skeleton, b.skeleton)
+
+
 def test_associate_ids_tiers():
     prev_kind = np.array([0, 1], np.int8)
     prev_xy = np.array([[5.0, 0.0], [0.0, 0.0]])

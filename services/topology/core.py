@@ -389,7 +389,10 @@ class TopologyCore:
             if dt is None or attempt:
                 sub = mask[crop0[0]:crop0[1], crop0[2]:crop0[3]]
                 dt = cv2.distanceTransform(sub, cv2.DIST_C, 3)
-            rad = int(dt.max()) + 3 if dt.size else 3
+            dmax = float(dt.max()) if dt.size else 0.0
+            if not dmax <= H + W:  # no non-free cell in the crop: cv2 returns ~FLT_MAX, and
+                return False, None  # the thinning reach is unbounded -> full update
+            rad = int(dmax) + 3
             wr0, wr1, wc0, wc1 = clip(r0 - rad, r1 + rad, c0 - rad, c1 + rad)
             ctx = int(rad * (2 + attempt)) + 6
             xr0, xr1, xc0, xc1 = clip(wr0 - ctx, wr1 + ctx, wc0 - ctx, wc1 + ctx)
