@@ -76,6 +76,8 @@ class MapperParams(_P):
     initial_size: float = 20.0  # [m] grid side at start, centred on the first pose
     grow_margin: float = 10.0  # [m] added on a side when a beam leaves the grid
     max_size: float = 400.0  # [m] refuse to grow beyond (bad pose protection)
+    map_every: int = 2  # publish the map for the first scan of every block of this many scans
+    # (every scan is integrated; 2 = 2.5 Hz at the paper's 5 Hz laser; 1 = every scan)
 
 
 class TopologyParams(_P):
@@ -245,6 +247,8 @@ def _validate(p: Params) -> None:
         raise ParamError("mapper.grow_margin must be >= 0")
     if mp.initial_size > mp.max_size:
         raise ParamError("mapper: initial_size must not exceed max_size")
+    if isinstance(mp.map_every, bool) or not 1 <= mp.map_every <= 100:
+        raise ParamError(f"mapper.map_every must be an integer in 1..100 (got {mp.map_every!r})")
     if not (0 < mp.p_free < 0.5 < mp.p_occ < 1):
         raise ParamError("mapper: need 0 < p_free < 0.5 < p_occ < 1")
     t = p.topology

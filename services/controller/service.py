@@ -1,7 +1,8 @@
 """Controller service: plan + odom + scan -> ``cmd_vel`` (pure pursuit with a safety stop).
 
-Runs once per scan; in lockstep it waits for the plan derived from that scan (``src_seq``),
-so the answer the simulator waits for is deterministic.
+Runs once per scan; in lockstep it waits for the plan derived from the latest scan that has a
+map (the mapper publishes for ``src_seq % mapper.map_every == 0``), so the answer the
+simulator waits for is deterministic.
 """
 
 from __future__ import annotations
@@ -32,8 +33,9 @@ class ControllerService:
 
     def ready(self, scan: m.LaserScan) -> bool:
         ok = self.odom.newest >= scan.header.stamp - 1e-6
-        if self.node.lockstep:  # the plan and status derived from this very scan
+        if self.node.lockstep:  # the plan and status of the latest scan that has a map
             k = scan.header.src_seq
+            k -= k % self.node.params.mapper.map_every
             inbox = self.node.inbox
             ok = ok and inbox.src_seq("plan") >= k and inbox.src_seq("explore/status") >= k
         return ok

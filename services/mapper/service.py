@@ -1,7 +1,9 @@
 """Mapper service: scan + odom -> log-odds occupancy grid -> ``map``.
 
 Each scan is integrated at the odometry pose interpolated to the scan stamp. The map is
-published after every scan (lockstep) or for the newest scan (real-time, conflated).
+published for the first scan of every block of ``mapper.map_every`` scans (scan ``src_seq //
+map_every`` changed), so in lockstep exactly the scans with ``src_seq % map_every == 0`` have a
+map, and in real time a dropped scan only moves the map to the next one of its block.
 Bad or inconsistent scans (wrong beam count, pose missing, rejected by the core) are counted
 and skipped. The state queryable answers with a summary and the full current map.
 """
@@ -29,6 +31,7 @@ class MapperService:
         node.subscribe("scan", queue=True)
         self.skipped: dict[str, int] = {}
         self.last_map: m.OccupancyGrid | None = None
+        self.last_block = -1  # src_seq // map_every of the last published map
         node.add_state(self.state)
 
     def skip(self, reason: str, detail: str) -> None:
@@ -56,9 +59,13 @@ class MapperService:
         except ScanError as exc:
             self.skip("rejected", str(exc))
             return
+        self.node.processed += 1
+        block = scan.header.src_seq // self.node.params.mapper.map_every
+        if block == self.last_block:
+            return  # integrated; this block's map went out already
+        self.last_block = block
         self.last_map = self.make_map(scan.header.stamp, scan.header.src_seq)
         self.pub_map.put(self.last_map)
-        self.node.processed += 1
 
     def make_map(self, stamp: float, src_seq: int) -> m.OccupancyGrid:
         g = self.core.geometry
