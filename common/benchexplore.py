@@ -65,6 +65,7 @@ LOW_COVERAGE = 0.95  # finished runs below this coverage are pointed out in the 
 DEFAULT_SEEDS = 2
 DEFAULT_MAX_SIM_TIME = 1800.0  # [s] simulated time per run
 DEFAULT_MAX_WALL_TIME = 1800.0  # [s] wall time per run (0: no limit)
+DEFAULT_JOBS = 2  # runs at a time
 CURVE_POINTS = 400  # points of the common distance grid of the mean curves
 PACKAGES = ("eclipse-zenoh", "numpy", "scipy", "opencv-python-headless", "pymunk", "msgspec",
             "msgpack", "scikit-image", "numba", "tqdm", "matplotlib", "topoexplore")
@@ -545,6 +546,8 @@ class Config:
     jobs: int
     progress: bool = True
     notes: list[str] = field(default_factory=list)
+    params: str | None = None  # --params FILE.toml for every run
+    overrides: list[str] = field(default_factory=list)  # --set section.name=value, every run
 
     @property
     def command(self) -> str:
@@ -552,8 +555,12 @@ class Config:
                 "--worlds", ",".join(t for _, _, t in self.worlds),
                 "--strategies", ",".join(self.strategies), "--seeds", str(self.seeds),
                 "--max-sim-time", f"{self.max_sim_time:g}",
-                "--max-wall-time", f"{self.max_wall_time:g}", "--jobs", str(self.jobs),
-                "--out", str(self.out if self.out.is_absolute() or Path.cwd().resolve() == REPO
+                "--max-wall-time", f"{self.max_wall_time:g}", "--jobs", str(self.jobs)]
+        if self.params:
+            args += ["--params", self.params]
+        for o in self.overrides:
+            args += ["--set", o]
+        args += ["--out", str(self.out if self.out.is_absolute() or Path.cwd().resolve() == REPO
                              else self.out.resolve())]
         return shlex.join(args)
 
@@ -575,7 +582,13 @@ def build_parser() -> argparse.ArgumentParser:
                     help="per run, simulated seconds [s]")
     ap.add_argument("--max-wall-time", type=float, default=DEFAULT_MAX_WALL_TIME,
                     help="per run, wall seconds [s] (0: no limit)")
-    ap.add_argument("--jobs", type=int, default=1, help="runs at a time (each is 7 processes)")
+    ap.add_argument("--jobs", type=int, default=DEFAULT_JOBS,
+                    help=f"runs at a time (each is 7 processes; default {DEFAULT_JOBS}: a "
+                         "lockstep run keeps about 1.4 of 2 cores busy)")
+    ap.add_argument("--params", default=None, metavar="FILE.toml",
+                    help="parameter file for every run (as `topoexplore run --params`)")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.NAME=VALUE",
+                    dest="overrides", help="parameter override for every run (repeatable)")
     ap.add_argument("--quick", action="store_true",
                     help=f"smoke suite: {','.join(QUICK_WORLDS)} x all strategies x 1 seed")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -671,9 +684,25 @@ def parse_config(argv: Sequence[str]) -> tuple[Config | None, argparse.Namespace
     out = Path(args.out or "runs/bench-explore")
     if out.exists() and not out.is_dir():
         raise BenchArgError(f"--out {out} is not a directory")
+    params = None
+    if args.params is not None or args.overrides:
+        from common.params import ParamError, load_params
+
+        if args.params is not None:
+            params = str(Path(args.params).resolve())
+        try:  # every run would fail the same way: say it once, before anything runs
+            load_params(params, list(args.overrides))
+        except ParamError as exc:
+            raise BenchArgError(str(exc)) from None
+        for o in args.overrides:
+            if o.split("=", 1)[0].strip() in ("planner.strategy", "sim.world", "sim.seed",
+                                              "sim.lockstep"):
+                raise BenchArgError(f"--set {o}: the suite sets this itself (use --worlds, "
+                                    "--strategies, --seeds)")
     return Config(worlds=worlds, strategies=strategies, seeds=seeds, out=out,
                   max_sim_time=float(args.max_sim_time), max_wall_time=float(args.max_wall_time),
-                  jobs=args.jobs, progress=not args.no_progress, notes=notes), args
+                  jobs=args.jobs, progress=not args.no_progress, notes=notes, params=params,
+                  overrides=list(args.overrides)), args
 
 
 # --------------------------------------------------------------------------------------------
@@ -717,7 +746,8 @@ def _stop(p: subprocess.Popen) -> None:
 
 
 def run_one(label: str, world_arg: str, strategy: str, seed: int, out: Path,
-            max_sim_time: float, max_wall_time: float) -> dict:
+            max_sim_time: float, max_wall_time: float, params: str | None = None,
+            overrides: Sequence[str] = ()) -> dict:
     """One ``topoexplore run --lockstep`` into ``out/runs/<label>-<strategy>-<seed>/``.
 
     Returns its report plus derived fields; a run that left no report gets a stub report
@@ -734,6 +764,10 @@ def run_one(label: str, world_arg: str, strategy: str, seed: int, out: Path,
            "--namespace", f"bench{os.getpid()}{re.sub('[^A-Za-z0-9]', '', label)[:12]}"
                           f"{STRATEGIES.index(strategy)}s{seed}",
            "--max-sim-time", f"{max_sim_time:g}", "--max-wall-time", f"{max_wall_time:g}"]
+    if params:
+        cmd += ["--params", params]
+    for o in overrides:
+        cmd += ["--set", o]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(
         filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
     # safety net above the runner's own wall limit: startup, shutdown and the final picture
@@ -779,6 +813,17 @@ def run_one(label: str, world_arg: str, strategy: str, seed: int, out: Path,
     return derive(run)
 
 
+def _world_area(world_arg: str) -> float:
+    """Bounding area of a world [m^2] (scheduling order only; 0 if it does not load)."""
+    from sim.world import WorldError, load_world
+
+    try:
+        w = load_world(world_arg)
+    except WorldError:
+        return 0.0
+    return float(w.size[0] * w.size[1])
+
+
 def _result_text(r: dict) -> str:
     if r.get("path_length_m") is None:
         return f"{r['strategy']}: no report"
@@ -804,6 +849,7 @@ def run_suite(cfg: Config, argv: Sequence[str]) -> int:
                    "world_labels": [w[0] for w in cfg.worlds], "strategies": cfg.strategies,
                    "seeds": cfg.seeds, "max_sim_time": cfg.max_sim_time,
                    "max_wall_time": cfg.max_wall_time, "jobs": cfg.jobs,
+                   "params": cfg.params, "overrides": cfg.overrides,
                    "planned_runs": len(plan)},
         "notes": list(cfg.notes),
         "interrupted": False,
@@ -831,7 +877,8 @@ def run_suite(cfg: Config, argv: Sequence[str]) -> int:
         (label, arg, _), seed, st = item
         if cfg.jobs == 1:
             bar.set_postfix_str(f"now {label}/{st}/{seed} | last {last}")
-        return run_one(label, arg, st, seed, out, cfg.max_sim_time, cfg.max_wall_time)
+        return run_one(label, arg, st, seed, out, cfg.max_sim_time, cfg.max_wall_time,
+                       cfg.params, cfg.overrides)
 
     def on_term(signum, frame):  # SIGTERM stops the suite like Ctrl-C: no run is left behind
         raise KeyboardInterrupt
@@ -845,7 +892,10 @@ def run_suite(cfg: Config, argv: Sequence[str]) -> int:
                 done(one(item))
         else:
             with ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
-                futs = [pool.submit(one, item) for item in plan]
+                # biggest worlds first, so that no long run starts when the others are done
+                area = {w[0]: _world_area(w[1]) for w in cfg.worlds}
+                futs = [pool.submit(one, item) for item in
+                        sorted(plan, key=lambda it: -area[it[0][0]])]
                 try:
                     for f in as_completed(futs):
                         done(f.result())

@@ -190,7 +190,9 @@ def test_from_results_writes_summary_csv_json_and_curves(tmp_path, capsys):
     ["--worlds", "no-such-world"], ["--strategies", "reliability,greedy"], ["--seeds", "0"],
     ["--jobs", "0"], ["--max-sim-time", "-5"], ["--worlds", "maps/none.yaml"], ["--bogus"],
     ["--worlds", "dead-end,dead-end"], ["--from-results", "/nonexistent-dir"],
-    ["--from-results", ".", "--seeds", "2"],
+    ["--from-results", ".", "--seeds", "2"], ["--set", "planner.no_such=1"],
+    ["--set", "controller.v_max=-1"], ["--set", "planner.strategy=frontier"],
+    ["--params", "/nonexistent.toml"],
 ])
 def test_bad_arguments_one_line_exit_2_before_anything(argv, tmp_path, capsys):
     out = tmp_path / "bench"
@@ -203,7 +205,7 @@ def test_bad_arguments_one_line_exit_2_before_anything(argv, tmp_path, capsys):
 def test_defaults_and_quick():
     cfg, _ = be.parse_config(["--quick"])
     assert [w[0] for w in cfg.worlds] == list(be.QUICK_WORLDS) and cfg.seeds == 1
-    assert cfg.strategies == list(be.STRATEGIES) and cfg.jobs == 1
+    assert cfg.strategies == list(be.STRATEGIES) and cfg.jobs == be.DEFAULT_JOBS
     cfg, _ = be.parse_config([])
     labels = [w[0] for w in cfg.worlds]
     assert {"paper-room", "dead-end", "junction", "corner", "office", "maze", "small-house",
@@ -213,6 +215,14 @@ def test_defaults_and_quick():
         assert "../shared/maps/lse_arena.yaml" in cfg.command
     else:
         assert any("lse_arena" in n for n in cfg.notes)
+
+
+def test_parameter_overrides_reach_every_run_and_the_command(tmp_path):
+    toml = tmp_path / "p.toml"
+    toml.write_text("[controller]\nv_max = 0.25\n")
+    cfg, _ = be.parse_config(["--quick", "--params", str(toml), "--set", "mapper.map_every=3"])
+    assert cfg.params == str(toml.resolve()) and cfg.overrides == ["mapper.map_every=3"]
+    assert "--params" in cfg.command and "--set mapper.map_every=3" in cfg.command
 
 
 # -- smoke run of the real suite -----------------------------------------------------------
