@@ -174,8 +174,8 @@ class PlannerCore:
         self._blacklist: list[_Mark] = []
         self._attempts: list[_Mark] = []
         self._looked: list[_Mark] = []  # narrow points the robot has stood at (approach_narrow)
-        self._track: list[tuple[float, float]] = []
-        self._track_arr = np.zeros((0, 2))
+        self._track_buf = np.zeros((256, 2))  # robot positions every TRACK_STEP [m]
+        self._track_n = 0
         self._rel_updates = 0  # updates that came with a reliability message
         self._rel_before = 0  # ... counted before the current update
         self._no_cand = 0  # consecutive updates without a candidate
@@ -247,7 +247,7 @@ class PlannerCore:
             "failures": [{"id": a.id, "x": a.x, "y": a.y, "count": a.count}
                          for a in self._attempts],
             "looked": [{"id": b.id, "x": b.x, "y": b.y, "t": b.t} for b in self._looked],
-            "visited_positions": len(self._track),
+            "visited_positions": self._track_n,
             "candidates": last.candidates if last else 0,
             "end_nodes": last.end_nodes if last else 0,
             "reliable": last.reliable if last else 0,
@@ -281,15 +281,18 @@ class PlannerCore:
 
     def _record(self, x: float, y: float) -> None:
         """Remember where the robot has been (all-end-nodes visit tracking)."""
-        if self._track:
-            lx, ly = self._track[-1]
+        n = self._track_n
+        if n:
+            lx, ly = self._track_buf[n - 1]
             if math.hypot(x - lx, y - ly) < TRACK_STEP:
                 return
-        self._track.append((x, y))
-        self._track_arr = np.asarray(self._track)
+        if n == len(self._track_buf):  # amortised doubling: O(1) per point over a long run
+            self._track_buf = np.concatenate([self._track_buf, np.zeros_like(self._track_buf)])
+        self._track_buf[n] = (x, y)
+        self._track_n = n + 1
 
     def _visited(self, x: float, y: float) -> bool:
-        a = self._track_arr
+        a = self._track_buf[:self._track_n]
         if len(a) == 0:
             return False
         d2 = (a[:, 0] - x) ** 2 + (a[:, 1] - y) ** 2
