@@ -166,6 +166,8 @@ class Path(msgspec.Struct, kw_only=True):
     target_y: float = 0.0  # [m]
     strategy: str = ""
     plan_id: int = 0  # changes only when the path is replaced (new target or re-plan)
+    goal_heading: float | None = None  # [rad] face this way at the end of the path (None:
+    #   any heading); the frontier goal faces the unknown space it is meant to reveal
 
 
 class ExploreStatus(msgspec.Struct, kw_only=True):
@@ -380,6 +382,8 @@ def _v_path(m: Path) -> None:
             _fail(m, "non-finite or absurd waypoint")
     _finite(m, "target_x", m.target_x)
     _finite(m, "target_y", m.target_y)
+    if m.goal_heading is not None:
+        _finite(m, "goal_heading", m.goal_heading, -1000.0, 1000.0)
     if len(m.strategy) > MAX_STR:
         _fail(m, "strategy too long")
 

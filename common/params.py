@@ -159,6 +159,8 @@ class ControllerParams(_P):
     lookahead: float = 0.4  # [m] pure pursuit
     rotate_angle: float = 0.8  # [rad] rotate in place above this heading error
     goal_tolerance: float = 0.15  # [m]
+    face_tolerance: float = 0.3  # [rad] at the path end, turn to the plan's goal_heading (if
+    #                             any) until within this
     slow_distance: float = 0.6  # [m] start slowing when the front is closer
     safety_distance: float = 0.3  # [m] hard stop when the front sector is closer
     front_half_angle: float = 1.2  # [rad] front sector half width (with the lateral corridor test)
@@ -296,8 +298,8 @@ def _validate(p: Params) -> None:
             raise ParamError(f"planner.{name} must be a finite number >= 0 (got {v!r})")
     c = p.controller
     for name in ("v_max", "w_max", "lookahead", "rotate_angle", "goal_tolerance",
-                 "safety_distance", "front_half_angle", "robot_radius", "stuck_time",
-                 "recovery_time", "recovery_speed", "heading_gain", "search_window",
+                 "face_tolerance", "safety_distance", "front_half_angle", "robot_radius",
+                 "stuck_time", "recovery_time", "recovery_speed", "heading_gain", "search_window",
                  "stuck_distance", "stuck_angle"):
         pos("controller", name, getattr(c, name))
     if c.slow_distance < c.safety_distance:

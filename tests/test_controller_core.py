@@ -77,6 +77,7 @@ def test_path_helpers():
     assert point_at(path, cum, 9.0).tolist() == [1.0, 1.0]
     s, d = project_on_path(path, cum, 0.4, -0.3, 0.0, 10.0)
     assert s == pytest.approx(0.4) and d == pytest.approx(0.3)
+    assert project_on_path(path, cum, 1.0, 1.0, 2.0, 2.0) == (2.0, 0.0)  # from the very end
     # never goes back: projection limited to s >= s_lo
     s, _ = project_on_path(path, cum, 0.2, 0.0, 0.5, 10.0)
     assert s == pytest.approx(0.5)
@@ -213,6 +214,29 @@ def test_starting_sideways_turns_then_follows():
     core = ControllerCore(P)
     poses, modes = simulate(core, L_PATH, (0.0, 0.0, -math.pi / 2), steps=600)
     assert modes[0] == "rotate" and modes[-1] == "arrived"
+
+
+def test_faces_the_goal_heading_before_arriving():
+    core = ControllerCore(P)
+    path = np.array([[0.0, 0.0], [1.0, 0.0]])
+    pose = (1.0, 0.0, 0.0)  # at the end, facing +x; the plan wants the robot to face -y
+    v, w, mode = core.update(0.0, pose, path, 1, False, free_scan(), goal_heading=-math.pi / 2)
+    assert mode == "face" and v == 0.0 and w < 0.0
+    th, t = 0.0, 0.0
+    for _ in range(50):
+        t += 0.2
+        th += w * 0.2
+        v, w, mode = core.update(t, (1.0, 0.0, th), path, 1, False, free_scan(),
+                                 goal_heading=-math.pi / 2)
+        if mode == "arrived":
+            break
+    assert mode == "arrived" and abs(th + math.pi / 2) <= P.face_tolerance + 0.2
+    # without a heading the same pose is arrived at once; a new heading re-opens the goal
+    core2 = ControllerCore(P)
+    assert core2.update(0.0, pose, path, 1, False, free_scan())[2] == "arrived"
+    assert core2.update(0.2, pose, path, 1, False, free_scan(), goal_heading=math.pi)[2] == "face"
+    with pytest.raises(ControllerError):
+        core2.update(0.4, pose, path, 1, False, free_scan(), goal_heading=math.nan)
 
 
 def test_new_plan_resets_progress_and_arrival():

@@ -370,6 +370,24 @@ def test_frontier_goal_at_the_frontier_with_grid_path_length():
     assert "frontier" in out.reason
 
 
+def test_frontier_goal_faces_the_unknown_it_is_meant_to_reveal():
+    g, geom = half_known_room()
+    out = PlannerCore(params(strategy="frontier")).update(0.0, (1.05, 3.05, 0.0), None, None,
+                                                         g, geom)
+    assert out.goal_heading is not None and abs(out.goal_heading) < 0.3  # unknown is at +x
+    # the frontier right behind a robot that has only seen ahead: turn around at the goal
+    g2 = np.full((60, 60), -1, dtype=np.int8)
+    g2[:, 20:] = 0
+    g2[0, 20:] = g2[-1, 20:] = g2[:, -1] = 100
+    out = PlannerCore(params(strategy="frontier")).update(0.0, (2.15, 3.05, 0.0), None, None,
+                                                         g2, geom)
+    assert out.goal_heading is not None and abs(abs(out.goal_heading) - math.pi) < 0.3
+    look = fr.look_point(np.zeros((60, 60), bool), geom, (30, 30), 1.0)
+    assert look is None  # nothing unknown near the goal: no heading
+    assert PlannerCore(params()).update(0.0, POSE, u_graph(), rel(OPEN), None,
+                                        None).goal_heading is None  # topological: none
+
+
 def test_frontier_path_goes_around_a_wall():
     g, geom = half_known_room()
     g[1:50, 15] = 100  # wall with a gap at the top (rows 50..58)

@@ -39,7 +39,7 @@ __all__ = [
     "ControllerCore",
 ]
 
-MODES = ("idle", "done", "rotate", "track", "slow", "blocked", "recovery", "arrived")
+MODES = ("idle", "done", "rotate", "track", "slow", "blocked", "recovery", "face", "arrived")
 _SAMPLE_STEP = 0.02  # [m] path sampling step of the lookahead search
 
 
@@ -125,7 +125,7 @@ def project_on_path(path: np.ndarray, cum: np.ndarray, x: float, y: float, s_lo:
     total = float(cum[-1])
     s_lo = min(max(s_lo, 0.0), total)
     s_hi = min(max(s_hi, s_lo), total)
-    i0 = max(int(np.searchsorted(cum, s_lo, side="right")) - 1, 0)
+    i0 = min(max(int(np.searchsorted(cum, s_lo, side="right")) - 1, 0), len(path) - 2)
     i1 = min(int(np.searchsorted(cum, s_hi, side="left")), len(path) - 1)
     i1 = max(i1, i0 + 1)
     a, b = path[i0:i1], path[i0 + 1:i1 + 1]
@@ -247,6 +247,7 @@ class ControllerCore:
         self.front = math.inf  # [m]
         self.target: tuple[float, float] | None = None
         self.heading_error = 0.0  # [rad]
+        self.goal_heading: float | None = None  # [rad] of the current path
 
     # -- helpers --
 
@@ -278,13 +279,14 @@ class ControllerCore:
     # -- public --
 
     def update(self, t: float, pose: tuple[float, float, float], waypoints, plan_id: int,
-               done: bool, scan) -> tuple[float, float, str]:
+               done: bool, scan, goal_heading: float | None = None) -> tuple[float, float, str]:
         """One control step at time t [s]. Returns (v [m/s], w [rad/s], mode).
 
         waypoints: (n, 2) path [m] (empty = stop); plan_id changes when a new path arrives
         (a changed waypoint list with the same id also counts as new); done: exploration over;
         scan: (ranges [m], angle_min [rad], angle_increment [rad]) of the latest scan in the
-        robot frame, or None.
+        robot frame, or None; goal_heading [rad]: at the end of the path, turn in place to
+        within face_tolerance of it (mode "face") before reporting "arrived" (None: any).
         """
         p = self.params
         t = _finite("t", t)
@@ -304,6 +306,8 @@ class ControllerCore:
             except TypeError:
                 raise ControllerError("scan must be (ranges, angle_min, angle_increment)") from None
         raw = _as_waypoints(waypoints)
+        if goal_heading is not None:
+            goal_heading = _finite("goal_heading", goal_heading)
         if t < self._t_last:  # clock went back (sim restart): forget timers
             self._ref = None
             self._recovery = None
@@ -311,8 +315,9 @@ class ControllerCore:
         self.front = front_distance(scan, p)
 
         if int(plan_id) != self.plan_id or raw.shape != self._raw.shape or not np.array_equal(
-                raw, self._raw):
+                raw, self._raw) or goal_heading != self.goal_heading:
             self._set_path(int(plan_id), raw)
+            self.goal_heading = goal_heading
         if bool(done):
             return self._out(0.0, 0.0, "done", False, t, pose)
         if len(self.path) == 0:
@@ -327,6 +332,11 @@ class ControllerCore:
         end = self.path[-1]
         if math.hypot(end[0] - x, end[1] - y) <= p.goal_tolerance and total - self.s <= (
                 p.search_window):
+            err = 0.0 if self.goal_heading is None else wrap_angle(self.goal_heading - th)
+            self.heading_error = err
+            if abs(err) > p.face_tolerance:  # at the end: face the goal heading first
+                w = math.copysign(max(abs(self._turn_w(err)), 0.5 * p.w_max), err)
+                return self._out(0.0, w, "face", True, t, pose)
             self.arrived = True
             return self._out(0.0, 0.0, "arrived", False, t, pose)
 
@@ -390,6 +400,7 @@ class ControllerCore:
             "arrived": self.arrived,
             "target": list(self.target) if self.target is not None else None,
             "heading_error": self.heading_error,
+            "goal_heading": self.goal_heading,
             "front": self.front if math.isfinite(self.front) else None,
             "recovery": self._recovery,
             "recoveries": self.recoveries,

@@ -57,7 +57,14 @@ class ControllerService:
             done = status is not None and status.state in ("done", "failed")
             v, w, mode = self.core.update(
                 scan.header.stamp, pose, waypoints, plan_id, done,
-                (np.asarray(scan.ranges, dtype=np.float64), scan.angle_min, scan.angle_increment))
+                (np.asarray(scan.ranges, dtype=np.float64), scan.angle_min, scan.angle_increment),
+                plan.goal_heading if plan is not None else None)
+        if mode != self.last_cmd[2] and mode in ("blocked", "recovery") and pose is not None:
+            c = self.core  # the safety stop or a stuck recovery took over: say where and why
+            log.info("t=%.1f s %s at (%.2f, %.2f, %.2f rad): front %.2f m, heading error "
+                     "%.2f rad, lookahead (%.2f, %.2f), recoveries %d", scan.header.stamp, mode,
+                     pose[0], pose[1], pose[2], c.front, c.heading_error, *(c.target or (math.nan, math.nan)),
+                     c.recoveries)
         self.last_cmd = (v, w, mode)
         self.pub.put(m.Twist(header=self.node.header("cmd_vel", scan.header.stamp,
                                                      scan.header.src_seq), v=v, w=w))

@@ -47,6 +47,8 @@ TRACK_STEP = 0.05  # [m] robot positions are recorded (visit tracking) every thi
 REMAINING_WINDOW = 1.5  # [m] the robot is located on the path within this arc ahead of it
 SOFT_RADIUS_FACTOR = 2.0  # frontier: cells with clearance < this x (radius + margin) cost more
 SOFT_PENALTY = 2.0  # ... up to (1 + this) x their length at the hard limit
+MAX_CROSSING_REPLANS = 2  # new paths per target when its path crosses a wall seen later
+FACE_MIN_DISTANCE = 0.05  # [m] a point to face closer than this to the path end sets no heading
 
 
 class PlannerInputError(ValueError):
@@ -67,6 +69,7 @@ class PlanOutput:
     replans: int
     target_p: float  # P of the target (reliability strategy), else 0
     plan_id: int  # increments whenever the path is replaced (new target / re-plan / stop)
+    goal_heading: float | None = None  # [rad] heading to take at the end of the path
 
 
 @dataclass
@@ -82,6 +85,7 @@ class _Cand:
     cells: np.ndarray | None = None  # frontier: the group's cell centres (identity matching)
     label: str = ""
     partial: bool = False  # the path stops at a narrow passage before the target
+    face: tuple[float, float] | None = None  # [m] point to face at the end of the path
 
 
 @dataclass
@@ -485,7 +489,7 @@ class PlannerCore:
             c = _Cand(-1, g.goal_xy[0], g.goal_xy[1], g.cost, g.path_length, p.potential_scale,
                       0.0, (lambda g=g: search.path_to(*g.goal_rc)), g.cells_xy,
                       label=f"frontier at ({g.goal_xy[0]:.2f}, {g.goal_xy[1]:.2f}) "
-                            f"size {g.size * geom.resolution:.1f} m")
+                            f"size {g.size * geom.resolution:.1f} m", face=g.look_xy)
             if self._blacklisted(c):
                 black += 1
                 continue
@@ -759,6 +763,11 @@ class PlannerCore:
         else:
             self._had_path = True
             c = tg.cand
+            heading = None
+            if c.face is not None:
+                ex, ey = tg.wps[-1]
+                if math.hypot(c.face[0] - ex, c.face[1] - ey) > FACE_MIN_DISTANCE:
+                    heading = math.atan2(c.face[1] - ey, c.face[0] - ex)
             out = PlanOutput([(float(a), float(b)) for a, b in tg.wps], c.id,
                              (float(c.x), float(c.y)), state, reason, ncand, ev.end_nodes,
                              ev.reliable, [b.id for b in self._blacklist], self._replans,

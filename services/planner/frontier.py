@@ -35,6 +35,7 @@ import numpy as np
 from common.grid import FREE, OCCUPIED, UNKNOWN, GridGeometry, classify
 
 SQRT2 = math.sqrt(2.0)
+LOOK_RADIUS = 1.0  # [m] unknown cells this close to a frontier goal set the heading to face
 
 
 class FrontierInputError(ValueError):
@@ -51,6 +52,8 @@ class FrontierGroup:
     goal_xy: tuple[float, float] | None  # [m]
     path_length: float  # [m] grid path length robot -> goal (inf if unreachable)
     cost: float  # potential_scale * path_length - gain_scale * size * resolution
+    look_xy: tuple[float, float] | None = None  # [m] mean of the unknown cells within
+    #   LOOK_RADIUS of the goal: where the robot should face on arrival (None: none there)
 
 
 @dataclass
@@ -254,6 +257,25 @@ def grid_search(grid: np.ndarray, geom: GridGeometry, x: float, y: float, robot_
     return GridSearch(geom, passable, clearance, start, dist, parent)
 
 
+def look_point(unknown: np.ndarray, geom: GridGeometry, rc: tuple[int, int],
+               radius: float) -> tuple[float, float] | None:
+    """Mean world position [m] of the `unknown` cells within `radius` [m] of cell rc (cells
+    outside the grid count as unknown, as in frontier_mask); None if there are none."""
+    row, col = rc
+    n = max(1, int(math.ceil(radius / geom.resolution)))
+    rr, cc = np.mgrid[row - n:row + n + 1, col - n:col + n + 1]
+    disk = (rr - row) ** 2 + (cc - col) ** 2 <= n * n
+    h, w = unknown.shape
+    inside = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
+    unk = np.ones(rr.shape, dtype=bool)
+    unk[inside] = unknown[rr[inside], cc[inside]]
+    sel = disk & unk
+    if not sel.any():
+        return None
+    x, y = geom.cell_to_world(rr[sel].astype(np.float64), cc[sel].astype(np.float64))
+    return float(np.mean(x)), float(np.mean(y))
+
+
 def find_frontiers(grid: np.ndarray, geom: GridGeometry, search: GridSearch,
                    min_frontier_size: float, potential_scale: float, gain_scale: float,
                    p_free: float = 0.35, p_occ: float = 0.65
@@ -265,7 +287,8 @@ def find_frontiers(grid: np.ndarray, geom: GridGeometry, search: GridSearch,
     """
     g = check_grid(grid, geom)
     free = classify(g, p_free, p_occ) == FREE
-    fmask = frontier_mask(free, unknown_mask(g, p_free, p_occ))
+    unknown = unknown_mask(g, p_free, p_occ)
+    fmask = frontier_mask(free, unknown)
     if not fmask.any():
         return [], 0
     n, labels, stats, cents = cv2.connectedComponentsWithStats(
@@ -296,8 +319,9 @@ def find_frontiers(grid: np.ndarray, geom: GridGeometry, search: GridSearch,
             goal_xy = (float(wx[j]), float(wy[j]))
             plen = float(d[j])
             cost = potential_scale * plen - gain_scale * size * res
+            look = look_point(unknown, geom, goal_rc, LOOK_RADIUS)
         else:
-            goal_rc, goal_xy, plen, cost = None, None, math.inf, math.inf
+            goal_rc, goal_xy, plen, cost, look = None, None, math.inf, math.inf, None
         groups.append(FrontierGroup(k, size, (float(cx), float(cy)), np.stack([wx, wy], axis=1),
-                                    goal_rc, goal_xy, plen, cost))
+                                    goal_rc, goal_xy, plen, cost, look))
     return groups, dropped

@@ -65,7 +65,7 @@ class PlannerService:
             header=self.node.header("plan", stamp, k),
             waypoints=[[float(x), float(y)] for x, y in out.waypoints], target_id=out.target_id,
             target_x=float(out.target_xy[0]), target_y=float(out.target_xy[1]),
-            strategy=self.p.strategy, plan_id=out.plan_id))
+            strategy=self.p.strategy, plan_id=out.plan_id, goal_heading=out.goal_heading))
         self.last_status = m.ExploreStatus(
             header=self.node.header("explore/status", stamp, k), state=out.state,
             reason=out.reason, strategy=self.p.strategy, target_id=out.target_id,
