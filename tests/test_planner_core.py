@@ -533,6 +533,61 @@ def test_approaches_a_node_behind_a_narrow_passage_once():
     assert np.hypot(*(np.asarray(out.waypoints[-1]) - (5.5, 0.5))) < 0.35
 
 
+def test_build_index_splits_an_edge_at_its_narrow_stretch():
+    """A long edge narrow only in its middle keeps its wide ends traversable up to "cut"
+    nodes (negative ids); only the middle is narrow."""
+    tp = topo([node(1, "end", 0.0, 0.5), node(2, "end", 6.0, 0.5)],
+              [edge(1, 2, [(0.0, 0.5), (6.0, 0.5)])])
+    clear = lambda p: np.where(np.abs(p[:, 0] - 3.0) < 0.3, 0.1, 0.5)  # noqa: E731
+    index = gr.build_index(tp, 0.25, clear, 0.3)
+    cuts = [i for i, n in index.nodes.items() if n[0] == "cut"]
+    assert len(cuts) == 2 and all(i < -1 for i in cuts)
+    assert len(index.edges) == 2 and len(index.narrow) == 1
+    mid = index.narrow[0]
+    assert {mid.a, mid.b} == set(cuts)
+    assert np.all(np.abs(mid.pts[1:-1, 0] - 3.0) < 0.3)
+    wide = {(e.a, e.b) for e in index.edges}
+    assert any(1 in ab for ab in wide) and any(2 in ab for ab in wide)
+    for e in index.edges:
+        assert e.clearance >= 0.25 and e.length == pytest.approx(e.cum[-1])
+    # narrow over its whole length: one narrow edge, nothing cut
+    index = gr.build_index(tp, 0.25, lambda p: np.full(len(p), 0.1), 0.3)
+    assert len(index.narrow) == 1 and not index.edges
+    assert not [i for i, n in index.nodes.items() if n[0] == "cut"]
+
+
+def test_crosses_an_occupied_cell():
+    g, geom = corridor_grid()
+    occ = g == 100
+    assert not gr.crosses(occ, geom, np.array([[0.5, 0.5], [5.5, 0.5]]))
+    assert gr.crosses(occ, geom, np.array([[0.5, 0.5], [0.5, 1.5]]))  # through the wall
+    assert not gr.crosses(occ, geom, np.array([[0.5, 0.5]]))
+    assert not gr.crosses(occ, geom, np.zeros((0, 2)))
+    assert not gr.crosses(occ, geom, np.array([[20.0, 20.0], [30.0, 20.0]]))  # off the grid
+
+
+def test_new_path_when_the_path_crosses_a_wall_seen_later():
+    geom = GridGeometry(0.1, -1.0, -1.0, 90, 40)
+    g = np.full((40, 90), 100, dtype=np.int8)
+    g[10:26, 10:70] = 0  # free: x in [0, 6), y in [0, 1.6)
+    tp = topo([node(1, "end", 0.5, 0.5), node(2, "end", 5.5, 0.5)],
+              [edge(1, 2, [(0.5, 0.5), (5.5, 0.5)])])
+    # a path tolerance wide enough that the old path still "follows" the new skeleton: only
+    # the crossing test can notice the wall
+    core = PlannerCore(params(path_tolerance=0.8))
+    out = core.update(0.0, (0.6, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), g, geom)
+    assert out.target_id == 2
+    first = out.plan_id
+    g[10:17, 39:41] = 100  # a wall piece across the old path: x in [2.9, 3.1), y < 0.7
+    tp2 = topo([node(1, "end", 0.5, 0.5), node(2, "end", 5.5, 0.5)],
+               [edge(1, 2, [(0.5, 0.5), (2.5, 0.5), (2.7, 1.1), (3.3, 1.1), (3.5, 0.5),
+                            (5.5, 0.5)])])
+    out = core.update(0.2, (0.7, 0.5, 0.0), tp2, rel({1: 0.95, 2: 0.5}), g, geom)
+    assert out.target_id == 2 and out.plan_id != first
+    assert "crosses an obstacle" in out.reason
+    assert not gr.crosses(g == 100, geom, np.asarray(out.waypoints))
+
+
 def test_cut_at_narrow():
     pts = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [3.0, 0.0]])
     clear = lambda p: np.where(np.abs(p[:, 0] - 2.0) < 0.1, 0.1, 0.5)  # noqa: E731

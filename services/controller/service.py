@@ -8,6 +8,7 @@ simulator waits for is deterministic.
 from __future__ import annotations
 
 import logging
+import math
 
 import numpy as np
 

@@ -100,6 +100,7 @@ class _Eval:
     done: str = ""  # summary when no candidate is left
     status_of: Callable[[_Cand], str] = lambda c: "is no longer a candidate"
     path_ok: Callable[[np.ndarray], bool] = lambda wps: True
+    path_clear: Callable[[np.ndarray], bool] = lambda wps: True  # no segment crosses a wall
 
 
 @dataclass
@@ -116,6 +117,7 @@ class _Target:
     chosen_t: float  # [s]
     why: str
     partial: bool = False  # the path was cut at a narrow passage (_Cand.partial when made)
+    crossings: int = 0  # new paths made because the path crossed an obstacle seen since
 
 
 @dataclass
@@ -426,6 +428,8 @@ class PlannerCore:
             return bool(np.all(np.isfinite(d)))
 
         ev.path_ok = path_ok
+        if grid is not None:
+            ev.path_clear = lambda wps: not gr.crosses(occ, geom, wps)
         return ev
 
     def _approach(self, i, nx, ny, label, prob, index, entry, wide, clearance_at, need, x, y
@@ -645,8 +649,9 @@ class PlannerCore:
                     best, why = self._choose(cands, x, y, th)
                     self._set_target(best, t, x, y, why if not self._same(best, c) else tg.why)
                     self._replans += 1
-                elif action == "same":
+                elif action in ("same", "cross"):
                     self._set_target(c, t, x, y, tg.why, progress_t=new)
+                    self._target.crossings = tg.crossings + (action == "cross")
                     self._replans += 1
                 elif action == "switch":
                     self._set_target(new, t, x, y, f"switched from {c.label}: cost "
@@ -739,6 +744,11 @@ class PlannerCore:
         if not ev.path_ok(tg.wps[tg.idx + 1:]):
             notes.append("the path left the current map: new path")
             return "same", tg.progress_t
+        if tg.crossings < MAX_CROSSING_REPLANS and not ev.path_clear(tg.wps[tg.idx:]):
+            # a wall seen after the path was made (a corridor side glimpsed through gaps): the
+            # waypoints may still lie near the skeleton on its far side, so path_ok passes
+            notes.append("the path crosses an obstacle seen since it was made: new path")
+            return "cross", tg.progress_t
         if t - self._last_eval_t >= p.replan_period:
             self._last_eval_t = t
             best, _ = self._choose(cands, x, y, th)
@@ -771,6 +781,6 @@ class PlannerCore:
             out = PlanOutput([(float(a), float(b)) for a, b in tg.wps], c.id,
                              (float(c.x), float(c.y)), state, reason, ncand, ev.end_nodes,
                              ev.reliable, [b.id for b in self._blacklist], self._replans,
-                             float(c.p), self._plan_id)
+                             float(c.p), self._plan_id, heading)
         self._last = out
         return out

@@ -51,7 +51,8 @@ class Edge:
 class TopoIndex:
     """Search structure built from one TopoGraph message."""
 
-    nodes: dict[int, tuple[str, float, float]]  # id -> (kind, x [m], y [m])
+    nodes: dict[int, tuple[str, float, float]]  # id -> (kind, x [m], y [m]); kind "cut" (id
+    #   < 0): where build_index split a narrow edge into its wide ends and narrow middle
     edges: list[Edge]  # traversable edges (clearance high enough), indexed by Edge.idx
     narrow: list[Edge]  # edges too narrow for the robot (kept for reporting)
     adj: dict[int, list[tuple[int, float, int, bool]]] = field(default_factory=dict)
@@ -127,6 +128,8 @@ def build_index(topo: m.TopoGraph, min_clearance: float,
     unknown cells, so every leaf edge ending at the edge of the known map would look narrow),
     and a skeleton tip in a dead-end corner is always close to the walls, yet the robot only
     needs to get near the end node (:func:`trim_narrow_tip` stops the path there).
+    With ``clearance_at``, a narrow edge is split where it is narrow: its wide ends stay
+    traversable up to "cut" nodes (negative ids) and only the stretch between them is narrow.
     Self-loops are dropped (never on a shortest path). Raises GraphInputError if an edge refers
     to a node that is not in the graph.
     """
@@ -156,6 +159,7 @@ def build_index(topo: m.TopoGraph, min_clearance: float,
     cum_all = np.concatenate([[0.0], np.cumsum(step)])
     base = np.repeat(cum_all[o[:-1]], np.diff(o))
     cum_all = cum_all - base  # arc length within each edge
+    bad_all = inner = c_all = None  # per point: inner and narrow / inner / clearance [m]
     if clearance_at is not None:
         length = cum_all[o[1:] - 1]
         lo = np.array([tip_length if nodes[e.a][0] == "end" else 0.0 for e in kept])
@@ -164,6 +168,7 @@ def build_index(topo: m.TopoGraph, min_clearance: float,
         inner = (cum_all >= np.repeat(lo, cnt) - 1e-9) & (cum_all <= np.repeat(hi, cnt) + 1e-9)
         c_all = np.asarray(clearance_at(P), dtype=np.float64)
         clear = np.minimum.reduceat(np.where(inner, c_all, np.inf), o[:-1])
+        bad_all = inner & (c_all + 1e-9 < min_clearance)
         for k in np.nonzero(~np.isfinite(clear) & (np.add.reduceat(inner, o[:-1]) == 0))[0]:
             seg = cum_all[o[k]:o[k + 1]]  # short edge: judge it by its middle point
             clear[k] = c_all[o[k] + int(np.argmin(np.abs(seg - 0.5 * seg[-1])))]
@@ -172,18 +177,49 @@ def build_index(topo: m.TopoGraph, min_clearance: float,
     edges: list[Edge] = []
     narrow: list[Edge] = []
     nadj: dict[int, list[tuple[int, float, int, bool]]] = {}
-    for k, e in enumerate(kept):
-        ok = bool(clear[k] + 1e-9 >= min_clearance)
-        edge = Edge(len(edges) if ok else len(narrow), e.a, e.b, P[o[k]:o[k + 1]],
-                    cum_all[o[k]:o[k + 1]], float(clear[k]))
-        if not ok:
+
+    def add(a: int, b: int, pts: np.ndarray, cum: np.ndarray, c: float, ok: bool) -> None:
+        cum = cum - cum[0]
+        if ok:
+            edge = Edge(len(edges), a, b, pts, cum, c)
+            edges.append(edge)
+            adj.setdefault(a, []).append((b, edge.length, edge.idx, True))
+            adj.setdefault(b, []).append((a, edge.length, edge.idx, False))
+        else:
+            edge = Edge(len(narrow), a, b, pts, cum, c)
             narrow.append(edge)
-            nadj.setdefault(e.a, []).append((e.b, edge.length, -edge.idx - 1, True))
-            nadj.setdefault(e.b, []).append((e.a, edge.length, -edge.idx - 1, False))
+            nadj.setdefault(a, []).append((b, edge.length, -edge.idx - 1, True))
+            nadj.setdefault(b, []).append((a, edge.length, -edge.idx - 1, False))
+
+    cut_id = ENTRY - 1  # cut nodes: -2, -3, ... (topology ids are >= 0; ENTRY is -1)
+    for k, e in enumerate(kept):
+        pts, cum = P[o[k]:o[k + 1]], cum_all[o[k]:o[k + 1]]
+        if clear[k] + 1e-9 >= min_clearance:
+            add(e.a, e.b, pts, cum, float(clear[k]), True)
             continue
-        edges.append(edge)
-        adj[e.a].append((e.b, edge.length, edge.idx, True))
-        adj[e.b].append((e.a, edge.length, edge.idx, False))
+        bad = np.flatnonzero(bad_all[o[k]:o[k + 1]]) if bad_all is not None else np.zeros(0)
+        if bad.size == 0:  # no per-point clearance, or a short edge judged by its middle
+            add(e.a, e.b, pts, cum, float(clear[k]), False)
+            continue
+        # split at the narrow stretch: the wide parts on either side stay traversable (a long
+        # corridor edge with one narrow spot far away is still where the robot can drive);
+        # a side that is only an end node's tip (allowed narrow) is not split off
+        inn, cc = inner[o[k]:o[k + 1]], c_all[o[k]:o[k + 1]]
+        i0, i1 = int(bad[0]) - 1, int(bad[-1]) + 1
+        before, after = bool(inn[:i0 + 1].any()), bool(inn[i1:].any())
+        ca, cb = e.a, e.b
+        if before:
+            ca, cut_id = cut_id, cut_id - 1
+            nodes[ca] = ("cut", float(pts[i0, 0]), float(pts[i0, 1]))
+            add(e.a, ca, pts[:i0 + 1], cum[:i0 + 1], float(cc[:i0 + 1][inn[:i0 + 1]].min()),
+                True)
+        if after:
+            cb, cut_id = cut_id, cut_id - 1
+            nodes[cb] = ("cut", float(pts[i1, 0]), float(pts[i1, 1]))
+        lo_i, hi_i = (i0 if before else 0), (i1 if after else len(pts) - 1)
+        add(ca, cb, pts[lo_i:hi_i + 1], cum[lo_i:hi_i + 1], float(clear[k]), False)
+        if after:
+            add(cb, e.b, pts[i1:], cum[i1:], float(cc[i1:][inn[i1:]].min()), True)
     return TopoIndex(nodes, edges, narrow, adj, nadj)
 
 
@@ -211,6 +247,31 @@ def line_of_sight(free: np.ndarray, geom: GridGeometry, x0: float, y0: float, x1
     if not np.all(inside):
         return False
     return bool(np.all(free[rows, cols]))
+
+
+def crosses(blocked: np.ndarray, geom: GridGeometry, pts: np.ndarray) -> bool:
+    """True if the polyline pts (n, 2) [m] passes through a cell set in `blocked`.
+
+    Samples every third of a cell along each segment; samples outside the grid are ignored
+    (the map may not have grown there yet).
+    """
+    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+    if len(pts) == 0:
+        return False
+    if len(pts) == 1:
+        xs, ys = pts[:, 0], pts[:, 1]
+    else:
+        d = np.hypot(*np.diff(pts, axis=0).T)
+        n = np.maximum(1, np.ceil(d / (geom.resolution / 3.0)).astype(np.int64))
+        seg = np.repeat(np.arange(len(d)), n)
+        start = np.repeat(np.cumsum(n) - n, n)
+        s = (np.arange(len(seg)) - start) / n[seg]
+        a, b = pts[seg], pts[seg + 1]
+        xs = np.append(a[:, 0] + s * (b[:, 0] - a[:, 0]), pts[-1, 0])
+        ys = np.append(a[:, 1] + s * (b[:, 1] - a[:, 1]), pts[-1, 1])
+    rows, cols = geom.world_to_cell(xs, ys)
+    inside = geom.inside(rows, cols)
+    return bool(np.any(blocked[rows[inside], cols[inside]]))
 
 
 # --- entry point -----------------------------------------------------------------------------
