@@ -119,6 +119,10 @@ class ReliabilityParams(_P):
     frontier_group: float = 0.4  # [m] ... nor of a node whose leaf chain is the nearest skeleton
     # to a frontier group of at least this length (core.frontier_owned); 0 disables
     p_free: float = 0.35  # known-free threshold for the frontier test (as mapper.p_free)
+    frontier_reset: bool = False  # a node whose leaf chain comes to own a frontier (above) is
+    # reset to p_init like a moved node (its belief was built before that space showed up)
+    pocket_area: float = 0.5  # [m^2] enclosed unknown pockets smaller than this are no frontier
+    # (the inside of an obstacle seen through a notch; core.open_unknown); 0 disables
     bearing_bin: float = math.radians(0.5)  # [rad] bearings stored one per bin (eq. 3)
 
 
@@ -161,6 +165,8 @@ class ControllerParams(_P):
     goal_tolerance: float = 0.15  # [m]
     face_tolerance: float = 0.3  # [rad] at the path end, turn to the plan's goal_heading (if
     #                             any) until within this
+    start_turn: float = 2 * math.pi  # [rad] turn in place this much before following the first
+    #   path: the start's surroundings are mapped before any choice (0 disables)
     slow_distance: float = 0.6  # [m] start slowing when the front is closer
     safety_distance: float = 0.3  # [m] hard stop when the front sector is closer
     front_half_angle: float = 1.2  # [rad] front sector half width (with the lateral corridor test)
@@ -273,8 +279,9 @@ def _validate(p: Params) -> None:
     for name in ("alpha_full", "move_tolerance", "fov", "range_max", "visit_radius",
                  "bearing_bin", "d_c"):
         pos("reliability", name, getattr(r, name))
-    if r.frontier_group < 0 or r.frontier_radius < 0:
-        raise ParamError("reliability: frontier_group and frontier_radius must be >= 0")
+    if r.frontier_group < 0 or r.frontier_radius < 0 or not r.pocket_area >= 0:
+        raise ParamError("reliability: frontier_group, frontier_radius and pocket_area must "
+                         "be >= 0")
     pl = p.planner
     if pl.strategy not in STRATEGIES:
         raise ParamError(f"planner.strategy must be one of {', '.join(STRATEGIES)} (got {pl.strategy!r})")
@@ -304,6 +311,8 @@ def _validate(p: Params) -> None:
         pos("controller", name, getattr(c, name))
     if c.slow_distance < c.safety_distance:
         raise ParamError("controller: need slow_distance >= safety_distance")
+    if not (math.isfinite(c.start_turn) and 0 <= c.start_turn <= 8 * math.pi):
+        raise ParamError(f"controller.start_turn must be in [0, 8 pi] rad (got {c.start_turn!r})")
     if not 0 < c.slow_min_scale <= 1 or c.lateral_margin < 0:
         raise ParamError("controller: need 0 < slow_min_scale <= 1 and lateral_margin >= 0")
     from common.keys import check_segment

@@ -23,7 +23,7 @@ from services.controller.core import (
     rear_blocked,
 )
 
-P = ControllerParams()
+P = ControllerParams(start_turn=0.0)  # path following from the first step (look: own test)
 STRAIGHT = np.array([[0.0, 0.0], [5.0, 0.0]])
 L_PATH = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0]])
 
@@ -216,6 +216,25 @@ def test_starting_sideways_turns_then_follows():
     assert modes[0] == "rotate" and modes[-1] == "arrived"
 
 
+def test_looks_around_once_at_the_start_then_follows():
+    core = ControllerCore(ControllerParams())  # default: one full turn first
+    th, t, turned, modes = 0.0, 0.0, 0.0, []
+    for _ in range(200):
+        v, w, mode = core.update(t, (0.0, 0.0, th), STRAIGHT, 1, False, free_scan())
+        modes.append(mode)
+        if mode != "look":
+            break
+        assert v == 0.0 and w > 0.0
+        th, t, turned = th + w * 0.2, t + 0.2, turned + w * 0.2
+    assert modes[0] == "look" and modes[-1] == "track"
+    assert 2 * math.pi - 0.05 <= turned <= 2 * math.pi + 0.25
+    # done once: a new plan does not look again; a clock reset (sim restart) does
+    assert core.update(t + 0.2, (0.0, 0.0, th), STRAIGHT, 2, False, free_scan())[2] == "track"
+    assert core.update(0.0, (0.0, 0.0, th), STRAIGHT, 2, False, free_scan())[2] == "look"
+    assert ControllerCore(P).update(0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False,
+                                    free_scan())[2] == "track"  # start_turn = 0: no look
+
+
 def test_faces_the_goal_heading_before_arriving():
     core = ControllerCore(P)
     path = np.array([[0.0, 0.0], [1.0, 0.0]])
@@ -256,7 +275,7 @@ def test_progress_never_goes_back():
     assert core.snapshot()["progress"] >= s1
 
 
-P_BACKUP = ControllerParams(recovery_backup=True)
+P_BACKUP = ControllerParams(recovery_backup=True, start_turn=0.0)
 
 
 def test_default_recovery_only_turns_in_place():

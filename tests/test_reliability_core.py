@@ -26,6 +26,7 @@ from services.reliability.core import (
     line_cells,
     line_of_sight,
     new_viewpoint,
+    open_unknown,
 )
 
 P = ReliabilityParams()
@@ -461,6 +462,18 @@ def test_frontier_cells_groups_and_grid_edge():
     assert len(frontier_cells(free_grid(), 0.35, 4)) == 4 * 200 - 4
 
 
+def test_open_unknown_drops_small_enclosed_pockets_only():
+    g = side_opening_grid()  # the 1 m x 1.5 m unknown room behind the opening: 150 cells
+    assert open_unknown(g, 50).sum() == (g < 0).sum() == 150  # big enough: kept
+    assert open_unknown(g, 200).sum() == 0  # a pocket below 200 cells: dropped
+    u = open_unknown(g, 200)
+    assert len(frontier_cells(g, 0.35, 4, u)) == 0 and len(frontier_cells(g, 0.35, 4)) == 10
+    g2 = free_grid()
+    g2[:, :3] = -1  # unknown touching the grid border: real unexplored space, whatever its size
+    assert open_unknown(g2, 10 ** 6).sum() == (g2 < 0).sum()
+    assert open_unknown(g, 0).sum() == 150  # 0 disables
+
+
 def test_leaf_chains_stop_at_branches_and_other_ends():
     edges = [(a, b) for a, b, _ in chain_edges()]
     ch = leaf_chains([1, 4, 5], edges)
@@ -476,6 +489,20 @@ def test_frontier_owned_by_the_leaf_chain_nearest_to_it():
     assert own == {1: 10}
     assert frontier_owned([1, 4, 5], edges, g, GEOM, 0.35, 4, 1.0) == {}  # 1.45 m away
     assert frontier_owned([1, 4, 5], edges, side_opening_grid(0.3), GEOM, 0.35, 4, 8.0) == {}
+
+
+def test_a_chain_between_two_end_nodes_is_split_between_them():
+    """The corridor's two ends 1 (x = -4.5) and 9 (x = -0.1) are joined by a chain with no
+    branch: the opening at x in [-3, -2) is nearer to end 1 along the chain, so only end 1
+    owns it (the far end of a lone chain used to own the frontier behind the robot too)."""
+    g = side_opening_grid()
+    edges = [(1, 2, np.array([(-4.5, 0.0), (-2.5, 0.0)])),
+             (2, 9, np.array([(-2.5, 0.0), (-0.1, 0.0)]))]
+    assert frontier_owned([1, 9], edges, g, GEOM, 0.35, 4, 8.0) == {1: 10}
+    edges2 = [(1, 9, np.array([(-2.8, 0.0), (-1.0, 0.0), (4.0, 0.0)]))]  # opening near end 1
+    assert frontier_owned([1, 9], edges2, g, GEOM, 0.35, 4, 8.0) == {1: 10}
+    edges3 = [(9, 1, np.array([(4.0, 0.0), (-1.0, 0.0), (-2.8, 0.0)]))]  # same, reversed
+    assert frontier_owned([1, 9], edges3, g, GEOM, 0.35, 4, 8.0) == {1: 10}
 
 
 def test_observations_of_a_node_owning_a_frontier_do_not_count():

@@ -39,7 +39,8 @@ __all__ = [
     "ControllerCore",
 ]
 
-MODES = ("idle", "done", "rotate", "track", "slow", "blocked", "recovery", "face", "arrived")
+MODES = ("idle", "done", "look", "rotate", "track", "slow", "blocked", "recovery", "face",
+         "arrived")
 _SAMPLE_STEP = 0.02  # [m] path sampling step of the lookahead search
 
 
@@ -248,6 +249,8 @@ class ControllerCore:
         self.target: tuple[float, float] | None = None
         self.heading_error = 0.0  # [rad]
         self.goal_heading: float | None = None  # [rad] of the current path
+        self._look_left = params.start_turn  # [rad] still to turn at the start (look around)
+        self._look_th: float | None = None  # [rad] heading at the previous look step
 
     # -- helpers --
 
@@ -308,9 +311,10 @@ class ControllerCore:
         raw = _as_waypoints(waypoints)
         if goal_heading is not None:
             goal_heading = _finite("goal_heading", goal_heading)
-        if t < self._t_last:  # clock went back (sim restart): forget timers
+        if t < self._t_last:  # clock went back (sim restart): forget timers, look again
             self._ref = None
             self._recovery = None
+            self._look_left, self._look_th = p.start_turn, None
         self._t_last = t
         self.front = front_distance(scan, p)
 
@@ -320,6 +324,15 @@ class ControllerCore:
             self.goal_heading = goal_heading
         if bool(done):
             return self._out(0.0, 0.0, "done", False, t, pose)
+        if self._look_left > 0.0:  # look around first: a forward laser sees nothing behind
+            th = pose[2]
+            if self._look_th is not None:
+                self._look_left -= abs(wrap_angle(th - self._look_th))
+            self._look_th = th
+            if self._look_left > 1e-3:
+                w = p.w_max if self._look_left > 0.5 else max(0.5 * p.w_max, self._look_left)
+                return self._out(0.0, w, "look", False, t, pose)
+            self._look_left = 0.0
         if len(self.path) == 0:
             return self._out(0.0, 0.0, "idle", False, t, pose)
         if self.arrived:

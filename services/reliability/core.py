@@ -264,14 +264,40 @@ def _in_fov_range(nx: float, ny: float, lx: float, ly: float, theta: float,
     return abs(rel) <= 0.5 * params.fov + 1e-12
 
 
+def open_unknown(grid: np.ndarray, pocket_cells: int = 0) -> np.ndarray:
+    """Never-observed cells (bool), without the enclosed pockets smaller than pocket_cells.
+
+    A pocket is an 8-connected unknown component that does not touch the grid border (the
+    mapper keeps a margin of unknown around everything it has seen, so real unexplored space
+    always does) and has fewer than pocket_cells cells: the inside of an obstacle glimpsed
+    through a notch (lse_arena's stair-step block), which no viewpoint can ever reveal.
+    pocket_cells <= 0 keeps every unknown cell.
+    """
+    g = np.asarray(grid)
+    unknown = g < 0
+    if pocket_cells <= 0 or not unknown.any():
+        return unknown
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(unknown.view(np.uint8), connectivity=8)
+    h, w = unknown.shape
+    x, y = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
+    bw, bh = stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]
+    border = (x == 0) | (y == 0) | (x + bw == w) | (y + bh == h)
+    pocket = ~border & (stats[:, cv2.CC_STAT_AREA] < pocket_cells)
+    pocket[0] = False  # label 0: the known cells
+    if not pocket.any():
+        return unknown
+    return unknown & ~pocket[labels]
+
+
 def near_frontier(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, radius: float,
-                  p_free: float = 0.35) -> bool:
+                  p_free: float = 0.35, unknown: np.ndarray | None = None) -> bool:
     """Is there a frontier cell (known free, 4-adjacent to unknown) within radius [m] of the node?
 
     Our interpretation of "the environment around the end node is examined" (paper §3.2): a
     node next to a frontier sits where the map simply stops, so an observation of it says
     nothing about whether it will stay (a wall hides the unknown behind it: occupied cells are
-    never frontier). radius <= 0 disables the test.
+    never frontier). radius <= 0 disables the test. unknown: the unknown mask to use
+    (:func:`open_unknown`; default: every never-observed cell).
     """
     if radius <= 0.0:
         return False
@@ -283,8 +309,8 @@ def near_frontier(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, ra
         return True  # node outside the map: nothing is known around it
     win = grid[r0:r1, c0:c1]
     free = (win >= 0) & (win < p_free * 100.0)
-    unknown = win < 0
-    pad = np.pad(unknown, 1, constant_values=False)
+    unk = win < 0 if unknown is None else unknown[r0:r1, c0:c1]
+    pad = np.pad(unk, 1, constant_values=False)
     touch = pad[:-2, 1:-1] | pad[2:, 1:-1] | pad[1:-1, :-2] | pad[1:-1, 2:]
     front = free & touch
     if not front.any():
@@ -297,13 +323,15 @@ def near_frontier(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, ra
 _CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
 
 
-def frontier_cells(grid: np.ndarray, p_free: float = 0.35, min_cells: int = 1) -> np.ndarray:
+def frontier_cells(grid: np.ndarray, p_free: float = 0.35, min_cells: int = 1,
+                   unknown: np.ndarray | None = None) -> np.ndarray:
     """(n, 2) int (row, col) of the frontier cells (known free, 4-adjacent to unknown) that lie
     in 8-connected frontier groups of at least min_cells cells (single holes in a wall seen at a
-    grazing angle are not a way into the unknown)."""
+    grazing angle are not a way into the unknown). unknown: the unknown mask to use
+    (:func:`open_unknown`; default: every never-observed cell)."""
     g = np.asarray(grid)
     free = (g >= 0) & (g < p_free * 100.0)
-    unknown = (g < 0).view(np.uint8)
+    unknown = (g < 0 if unknown is None else np.asarray(unknown, bool)).view(np.uint8)
     # 4-neighbourhood "touches unknown" (cells outside the grid count as unknown)
     touch = cv2.dilate(unknown, _CROSS, borderType=cv2.BORDER_CONSTANT, borderValue=1)
     front = (free & touch.view(bool)).view(np.uint8)
@@ -384,10 +412,11 @@ def leaf_chains(end_ids, edges: list[tuple[int, int]]) -> dict[int, list[int]]:
 
 
 def frontier_owned(end_ids, edges: list[tuple[int, int, np.ndarray]], grid: np.ndarray,
-                   geom: GridGeometry, p_free: float, min_cells: int, max_dist: float
-                   ) -> dict[int, int]:
+                   geom: GridGeometry, p_free: float, min_cells: int, max_dist: float,
+                   unknown: np.ndarray | None = None) -> dict[int, int]:
     """Frontier cells each end node "owns": cells of frontier groups >= min_cells whose nearest
-    skeleton point (any edge polyline point, within max_dist [m]) is on the node's leaf chain.
+    skeleton point (any edge polyline point, within max_dist [m]) is on the node's leaf chain;
+    where a chain joins two end nodes (no branch between them), each owns its nearer half.
 
     Our interpretation of "the environment around the end node is examined" (paper §3.2) for
     frontiers beside an edge rather than at its tip (a room whose side opens into the unknown):
@@ -397,26 +426,43 @@ def frontier_owned(end_ids, edges: list[tuple[int, int, np.ndarray]], grid: np.n
     """
     if not edges or min_cells <= 0:
         return {}
-    cells = frontier_cells(grid, p_free, min_cells)
+    cells = frontier_cells(grid, p_free, min_cells, unknown)
     if len(cells) == 0:
         return {}
-    chains = leaf_chains(end_ids, [(a, b) for a, b, _ in edges])
-    owners: dict[int, list[int]] = {}
-    for e, chain in chains.items():
-        for k in chain:
-            owners.setdefault(k, []).append(e)
+    pairs = [(a, b) for a, b, _ in edges]
+    chains = leaf_chains(end_ids, pairs)
     pts, lab = _stack_edges(edges)
     if len(pts) == 0:
         return {}
+    # per skeleton point: the owning end node, the one nearest along its chain (a chain that
+    # joins two end nodes without a branch is split between them where they are equally far)
+    step = np.hypot(*np.diff(pts, axis=0).T)
+    step[lab[1:] != lab[:-1]] = 0.0
+    cum = np.concatenate([[0.0], np.cumsum(step)])
+    first = np.searchsorted(lab, np.arange(len(edges)))
+    last = np.searchsorted(lab, np.arange(len(edges)), side="right")
+    along = cum - cum[np.minimum(first, len(pts) - 1)][lab]  # arc length from the edge's a
+    length = np.where(last > first, cum[np.maximum(last - 1, 0)] - cum[np.minimum(
+        first, len(pts) - 1)], 0.0)
+    owner = np.full(len(pts), -1, np.int64)
+    best = np.full(len(pts), np.inf)
+    ids = sorted(chains)
+    for j, e in enumerate(ids):
+        cur, off = e, 0.0
+        for k in chains[e]:
+            sl = slice(int(first[k]), int(last[k]))
+            a, b = pairs[k]
+            d = off + (along[sl] if a == cur else length[k] - along[sl])
+            closer = d < best[sl]
+            owner[sl] = np.where(closer, j, owner[sl])
+            best[sl] = np.where(closer, d, best[sl])
+            off += float(length[k])
+            cur = b if a == cur else a
     x, y = geom.cell_to_world(cells[:, 0], cells[:, 1])
     d, i = cKDTree(pts).query(np.column_stack([x, y]), k=1, distance_upper_bound=max_dist)
-    hit = np.isfinite(d)
-    counts = np.bincount(lab[i[hit]], minlength=len(edges))
-    out: dict[int, int] = {}
-    for k in np.flatnonzero(counts):
-        for e in owners.get(int(k), ()):
-            out[e] = out.get(e, 0) + int(counts[k])
-    return out
+    own = owner[i[np.isfinite(d)]]
+    counts = np.bincount(own[own >= 0], minlength=len(ids))
+    return {ids[j]: int(counts[j]) for j in np.flatnonzero(counts)}
 
 
 def is_observed(node_xy, pose, grid_int8: np.ndarray, geom: GridGeometry,
@@ -586,10 +632,13 @@ class ReliabilityCore:
         occ = _check_p_occ(p_occ) * 100.0
         nodes = self._parse_nodes(end_nodes)
         owned: dict[int, int] = {}
+        unknown = None
+        if pr.frontier_group > 0 or pr.frontier_radius > 0:
+            unknown = open_unknown(grid, int(pr.pocket_area / geom.resolution ** 2))
         if edges and pr.frontier_group > 0:
             min_cells = max(1, int(math.ceil(pr.frontier_group / geom.resolution - 1e-9)))
             owned = frontier_owned(list(nodes), _check_edges(edges), grid, geom, pr.p_free,
-                                   min_cells, pr.range_max)
+                                   min_cells, pr.range_max, unknown)
         for gid in gone:
             if self._tracks.pop(int(gid), None) is not None:
                 self._dropped += 1
@@ -605,8 +654,11 @@ class ReliabilityCore:
             tr = self._tracks.get(nid)
             if tr is None:
                 tr = self._tracks[nid] = self._new_track(nx, ny)
-            elif math.hypot(nx - tr.anchor_x, ny - tr.anchor_y) > pr.move_tolerance:
-                resets = tr.resets + 1  # movement resets belief (DESIGN §4)
+            elif (math.hypot(nx - tr.anchor_x, ny - tr.anchor_y) > pr.move_tolerance
+                  or (pr.frontier_reset and nid in owned and tr.p > pr.p_init)):
+                # movement resets belief (DESIGN §4); so does unknown space opening from the
+                # node's leaf chain after its belief grew (the node will likely move there)
+                resets = tr.resets + 1
                 tr = self._tracks[nid] = self._new_track(nx, ny)
                 tr.resets = resets
                 self._resets += 1
@@ -626,7 +678,7 @@ class ReliabilityCore:
                 bearing = math.atan2(ny - ry, nx - rx)
                 if (new_viewpoint(tr.view, rx, ry, bearing, pr) and nid not in owned
                         and not near_frontier(nx, ny, grid, geom, pr.frontier_radius,
-                                              pr.p_free)):
+                                              pr.p_free, unknown)):
                     tr.view = (rx, ry, bearing)
                     tr.p = min(bayes_update(tr.p, reliability_index(tr.d, tr.a)), pr.p_max)
             out.append(NodeReliability(
