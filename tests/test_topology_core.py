@@ -426,3 +426,19 @@ def test_a_short_branch_into_unknown_space_is_kept():
     res = core(frontier_spur_length=0.0).update(g, geom, (1.0, 1.5))
     assert ends_near(res, 4.0, 2.3) == []
 
+
+
+def test_a_branch_blob_at_a_skeleton_tip_is_an_end_node():
+    """A corridor ending in a small bulge and a side pocket: thinning leaves a blob of
+    >= 3-neighbour pixels at the tip, which used to come out as a 'branch' with one edge, so
+    the corridor's end had no end node (seen on lse_arena: its second room went unexplored)."""
+    g, geom = grid(6, 4)
+    g[15:25, 5:40] = FREE  # corridor 1 m wide, x in [0.5, 4)
+    g[16:21, 40:44] = FREE  # a bulge at its end
+    g[12:15, 35:40] = FREE  # a side pocket below it
+    res = core().update(g, geom, (1.0, 2.0), 0.35, 0.65)
+    check_wellformed(res, geom)
+    G = graph_of(res)
+    assert all(G.nodes[n]["kind"] == "end" for n in G.nodes if G.degree(n) <= 1)
+    far = max(res.nodes, key=lambda n: n.x)
+    assert far.kind == "end" and far.x > 3.0

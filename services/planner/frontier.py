@@ -32,7 +32,7 @@ import cv2
 import numba
 import numpy as np
 
-from common.grid import FREE, OCCUPIED, UNKNOWN, GridGeometry, classify
+from common.grid import FREE, OCCUPIED, GridGeometry, classify, unknown_mask
 
 SQRT2 = math.sqrt(2.0)
 LOOK_RADIUS = 1.0  # [m] unknown cells this close to a frontier goal set the heading to face
@@ -96,21 +96,6 @@ def check_grid(grid: np.ndarray, geom: GridGeometry) -> np.ndarray:
     if not (math.isfinite(geom.resolution) and geom.resolution > 0):
         raise FrontierInputError(f"grid resolution must be > 0 (got {geom.resolution})")
     return g
-
-
-def unknown_mask(grid: np.ndarray, p_free: float = 0.35, p_occ: float = 0.65) -> np.ndarray:
-    """Never-observed cells plus undecided cells 8-connected to never-observed ones (bool)."""
-    g = np.asarray(grid)
-    never = g == -1
-    undecided = (classify(g, p_free, p_occ) == UNKNOWN) & ~never
-    if not undecided.any() or not never.any():
-        return never
-    both = (never | undecided).astype(np.uint8)
-    n, labels = cv2.connectedComponents(both, connectivity=8)
-    keep = np.zeros(n, dtype=bool)
-    keep[np.unique(labels[never])] = True
-    keep[0] = False
-    return keep[labels]
 
 
 def frontier_mask(free: np.ndarray, unknown: np.ndarray) -> np.ndarray:
@@ -278,7 +263,7 @@ def look_point(unknown: np.ndarray, geom: GridGeometry, rc: tuple[int, int],
 
 def find_frontiers(grid: np.ndarray, geom: GridGeometry, search: GridSearch,
                    min_frontier_size: float, potential_scale: float, gain_scale: float,
-                   p_free: float = 0.35, p_occ: float = 0.65
+                   p_free: float = 0.35, p_occ: float = 0.65, unknown: np.ndarray | None = None
                    ) -> tuple[list[FrontierGroup], int]:
     """Frontier groups (size >= min_frontier_size [m]) with goal, path length and cost.
 
@@ -287,7 +272,10 @@ def find_frontiers(grid: np.ndarray, geom: GridGeometry, search: GridSearch,
     """
     g = check_grid(grid, geom)
     free = classify(g, p_free, p_occ) == FREE
-    unknown = unknown_mask(g, p_free, p_occ)
+    if unknown is None:
+        unknown = unknown_mask(g, p_free, p_occ)
+    elif np.shape(unknown) != g.shape:
+        raise FrontierInputError(f"unknown mask shape {np.shape(unknown)} != grid {g.shape}")
     fmask = frontier_mask(free, unknown)
     if not fmask.any():
         return [], 0

@@ -32,7 +32,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from common import messages as m
-from common.grid import GridGeometry, free_mask, occupied_mask
+from common.grid import GridGeometry, free_mask, occupied_mask, unknown_mask
 from common.params import TopologyParams
 from services.topology import graph as g
 from services.topology import skeleton as sk
@@ -193,6 +193,9 @@ class TopologyCore:
         front_cells = (int(math.ceil(p.frontier_spur_length / res - 1e-9))
                        if p.frontier_spur_length > 0 else 0)
         grid8 = np.ascontiguousarray(grid, dtype=np.int8)
+        if front_cells > 0:  # frontier spurs see the undecided band at the laser's reach as
+            grid8 = grid8.copy()  # unexplored too (common.grid.unknown_mask, as the frontier
+            grid8[unknown_mask(grid8, p_free, p_occ)] = -1  # baseline and reliability do)
         work = skel
         for _ in range(p.spur_rounds):
             node_pix, node_kind, ea, eb, off, pix, _nid, comp = gr
@@ -462,6 +465,11 @@ class TopologyCore:
         H, W = mask.shape
         res = geom.resolution
         p = self.p
+        deg = np.bincount(np.concatenate((ea, eb)), minlength=len(node_pix))
+        leaf = (node_kind == g.BRANCH) & (deg <= 1)
+        if leaf.any():  # a blob of >= 3-neighbour pixels at a skeleton tip (left by pruning
+            node_kind = node_kind.copy()  # or a staircase) is a leaf: an end node, not a
+            node_kind[leaf] = g.END  # branch (lse_arena: its room went unexplored)
         splits = g.split_corners(mask, ea, eb, off, pix, W, p.corner_min_deviation / res,
                                  bool(p.corner_nodes))
         sa, sb, s0, s1, ln, cl = g.assemble(ea, eb, off, pix, splits, len(node_pix), dt, W)
@@ -474,7 +482,6 @@ class TopologyCore:
         pr, pc = np.divmod(pix, W)
         px, py = geom.cell_to_world(pr - 1, pc - 1)
         pts = np.column_stack((px, py))
-        deg = np.bincount(np.concatenate((ea, eb)), minlength=len(node_pix))
         chains: dict[int, np.ndarray] = {}
         for e in range(len(ea)):
             a, b = int(ea[e]), int(eb[e])
