@@ -7,6 +7,7 @@ lower-left corner ``origin + (j, i) * resolution``.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -59,6 +60,42 @@ class GridGeometry:
         )
 
 
+def crop_known(grid: np.ndarray, geom: GridGeometry, margin: int = 1
+               ) -> tuple[np.ndarray, GridGeometry]:
+    """The part of the grid (a view) that holds every observed cell (value != -1), grown by
+    margin cells (clipped at the grid's edge), and its geometry. Outside it everything is
+    never observed, so with margin >= 1 a ring of unknown cells is kept: distances to occupied
+    cells, frontiers, unknown connectivity and paths through known space come out the same as
+    on the whole grid. Nothing observed: the grid itself. The mapper's grid keeps a wide
+    margin of unknown around what it has seen (mapper.grow_margin), so this is often half of it.
+    """
+    g = np.asarray(grid)
+    win = known_window(g, margin)
+    if win is None:
+        return g, geom
+    rs, cs = win
+    res = geom.resolution
+    return g[win], GridGeometry(res, geom.origin_x + cs.start * res,
+                                geom.origin_y + rs.start * res, cs.stop - cs.start,
+                                rs.stop - rs.start)
+
+
+def known_window(grid: np.ndarray, margin: int = 1) -> tuple[slice, slice] | None:
+    """(rows, cols) slices of the bounding box of the observed cells grown by margin cells
+    (clipped at the grid's edge); None when that is the whole grid or nothing is observed."""
+    g = np.asarray(grid)
+    known = g != -1
+    rows = np.flatnonzero(known.any(axis=1))
+    if len(rows) == 0:
+        return None
+    cols = np.flatnonzero(known[rows[0]:rows[-1] + 1].any(axis=0))
+    r0, r1 = max(0, int(rows[0]) - margin), min(g.shape[0], int(rows[-1]) + 1 + margin)
+    c0, c1 = max(0, int(cols[0]) - margin), min(g.shape[1], int(cols[-1]) + 1 + margin)
+    if (r0, c0, r1, c1) == (0, 0, g.shape[0], g.shape[1]):
+        return None
+    return slice(r0, r1), slice(c0, c1)
+
+
 def classify(data: np.ndarray, p_free: float = 0.35, p_occ: float = 0.65) -> np.ndarray:
     """int8 occupancy -> uint8 classes UNKNOWN / FREE / OCCUPIED.
 
@@ -66,9 +103,21 @@ def classify(data: np.ndarray, p_free: float = 0.35, p_occ: float = 0.65) -> np.
     (including -1) is unknown.
     """
     d = np.asarray(data)
+    if d.dtype == np.int8:  # the wire type: one table lookup per cell
+        return _class_table(float(p_free), float(p_occ))[d.view(np.uint8)]
     out = np.zeros(d.shape, dtype=np.uint8)
     out[(d >= 0) & (d < p_free * 100.0)] = FREE
     out[d > p_occ * 100.0] = OCCUPIED
+    return out
+
+
+@functools.lru_cache(maxsize=16)
+def _class_table(p_free: float, p_occ: float) -> np.ndarray:
+    """classify() for every int8 value, indexed by the value's uint8 bit pattern."""
+    v = np.arange(256, dtype=np.uint8).view(np.int8).astype(np.float64)
+    out = np.zeros(256, dtype=np.uint8)
+    out[(v >= 0) & (v < p_free * 100.0)] = FREE
+    out[v > p_occ * 100.0] = OCCUPIED
     return out
 
 
@@ -81,22 +130,37 @@ def occupied_mask(data: np.ndarray, p_occ: float = 0.65) -> np.ndarray:
     return np.asarray(data) > p_occ * 100.0
 
 
+_KERNEL3 = np.ones((3, 3), np.uint8)
+
+
 def unknown_mask(grid: np.ndarray, p_free: float = 0.35, p_occ: float = 0.65) -> np.ndarray:
     """Unexplored cells (bool): never observed (-1), plus the undecided cells (between p_free
     and p_occ) 8-connected to never-observed space: the band of once-seen cells at the edge of
     the laser's reach is still unexplored, while undecided specks along walls (hit/miss noise,
     enclosed by known cells) are not."""
     g = np.asarray(grid)
+    win = known_window(g)
+    if win is not None:  # outside the observed cells' box (+ a ring) all is never observed
+        out = np.ones(g.shape, dtype=bool)
+        out[win] = unknown_mask(g[win], p_free, p_occ)
+        return out
     never = g == -1
     undecided = (classify(g, p_free, p_occ) == UNKNOWN) & ~never
     if not undecided.any() or not never.any():
         return never
-    both = (never | undecided).astype(np.uint8)
-    n, labels = cv2.connectedComponents(both, connectivity=8)
+    # an undecided component joins never-observed space iff one of its cells is 8-adjacent to
+    # a never-observed cell (two undecided components are never adjacent): label only the
+    # undecided cells, which are few, instead of the whole unknown area
+    n, labels = cv2.connectedComponents(undecided.view(np.uint8), connectivity=8)
+    touch = cv2.dilate(never.view(np.uint8), _KERNEL3).view(bool) & undecided
     keep = np.zeros(n, dtype=bool)
-    keep[np.unique(labels[never])] = True
+    keep[labels[touch]] = True
     keep[0] = False
-    return keep[labels]
+    if not keep.any():
+        return never
+    if keep[1:].all():
+        return never | undecided
+    return never | keep[labels]
 
 
 def open_unknown(grid: np.ndarray, pocket_cells: int = 0, p_free: float = 0.35,
@@ -111,7 +175,13 @@ def open_unknown(grid: np.ndarray, pocket_cells: int = 0, p_free: float = 0.35,
     through a notch (lse_arena's stair-step block), which no viewpoint can ever reveal.
     pocket_cells <= 0 keeps every unknown cell.
     """
-    unknown = unknown_mask(grid, p_free, p_occ)
+    g = np.asarray(grid)
+    win = known_window(g) if pocket_cells > 0 else None
+    if win is not None:  # a pocket lies inside the observed cells' box; the ring of unknown
+        out = np.ones(g.shape, dtype=bool)  # kept around it joins everything outside
+        out[win] = open_unknown(g[win], pocket_cells, p_free, p_occ)
+        return out
+    unknown = unknown_mask(g, p_free, p_occ)
     if pocket_cells <= 0 or not unknown.any():
         return unknown
     n, labels, stats, _ = cv2.connectedComponentsWithStats(unknown.view(np.uint8), connectivity=8)
@@ -123,4 +193,8 @@ def open_unknown(grid: np.ndarray, pocket_cells: int = 0, p_free: float = 0.35,
     pocket[0] = False  # label 0: the known cells
     if not pocket.any():
         return unknown
-    return unknown & ~pocket[labels]
+    out = unknown.copy()
+    for k in np.flatnonzero(pocket):  # pockets are small: clear each in its bounding box
+        sl = np.s_[y[k]:y[k] + bh[k], x[k]:x[k] + bw[k]]
+        out[sl] &= labels[sl] != k
+    return out

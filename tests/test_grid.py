@@ -1,0 +1,80 @@
+"""common.grid: classification, unexplored space and the observed-cells crop."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from common.grid import (
+    UNKNOWN,
+    GridGeometry,
+    classify,
+    crop_known,
+    known_window,
+    open_unknown,
+    unknown_mask,
+)
+
+
+def ref_unknown(g: np.ndarray) -> np.ndarray:
+    """The definition, on the whole grid: never observed, plus undecided cells in the same
+    8-connected component of (never | undecided) as a never-observed cell."""
+    never = g == -1
+    both = never | (classify(g.astype(np.int16)) == UNKNOWN)
+    _, labels = cv2.connectedComponents(both.view(np.uint8), connectivity=8)
+    keep = np.zeros(labels.max() + 1, dtype=bool)
+    keep[np.unique(labels[never])] = True
+    keep[0] = False
+    return keep[labels]
+
+
+def ref_open(g: np.ndarray, pocket_cells: int) -> np.ndarray:
+    u = ref_unknown(g)
+    _, labels, st, _ = cv2.connectedComponentsWithStats(u.view(np.uint8), connectivity=8)
+    h, w = u.shape
+    border = ((st[:, 0] == 0) | (st[:, 1] == 0) | (st[:, 0] + st[:, 2] == w)
+              | (st[:, 1] + st[:, 3] == h))
+    pocket = ~border & (st[:, 4] < pocket_cells)
+    pocket[0] = False
+    return u & ~pocket[labels]
+
+
+def random_grids(n: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    values = np.array([-1, 0, 20, 50, 100], np.int8)
+    for _ in range(n):
+        h, w = rng.integers(3, 40, 2)
+        g = np.full((h, w), -1, np.int8)  # an observed box somewhere, unknown around it
+        r0, c0 = rng.integers(0, h), rng.integers(0, w)
+        r1, c1 = rng.integers(r0, h + 1), rng.integers(c0, w + 1)
+        g[r0:r1, c0:c1] = rng.choice(values, size=(r1 - r0, c1 - c0), p=rng.dirichlet([1] * 5))
+        yield g
+
+
+def test_classify_table_matches_the_thresholds_for_every_int8_value():
+    v = np.arange(-128, 128).astype(np.int8)
+    for pf, po in [(0.35, 0.65), (0.2, 0.8), (0.5, 0.5)]:
+        assert np.array_equal(classify(v, pf, po), classify(v.astype(np.int16), pf, po))
+
+
+def test_unknown_mask_and_open_unknown_match_their_definition_on_the_whole_grid():
+    for g in random_grids(400):
+        assert np.array_equal(unknown_mask(g), ref_unknown(g))
+        for pocket in (0, 3, 20):
+            assert np.array_equal(open_unknown(g, pocket), ref_open(g, pocket))
+
+
+def test_crop_known_keeps_a_ring_of_unknown_and_world_coordinates():
+    geom = GridGeometry(0.1, -5.0, -2.0, 100, 60)
+    g = np.full((60, 100), -1, np.int8)
+    g[10:20, 30:45] = 0
+    win = known_window(g)
+    assert win == (slice(9, 21), slice(29, 46))
+    sub, sg = crop_known(g, geom)
+    assert sub.shape == (12, 17) and (sg.width, sg.height) == (17, 12)
+    assert sg.cell_to_world(1, 1) == pytest.approx(geom.cell_to_world(10, 30))
+    assert (sub[0] == -1).all() and (sub[:, -1] == -1).all()
+    assert crop_known(np.full((5, 5), -1, np.int8), geom)[0].shape == (5, 5)  # nothing seen
+    g[0, 0] = g[-1, -1] = 0  # observed cells at both corners: the whole grid
+    assert known_window(g) is None and crop_known(g, geom)[1] is geom
