@@ -116,11 +116,11 @@ class ReliabilityParams(_P):
     view_distance: float = 0.25  # [m] robot travel that makes an observation new evidence
     view_angle: float = math.radians(5.0)  # [rad] ... or change of bearing to the node
     frontier_radius: float = 0.5  # [m] observations of a node this close to a frontier don't count
-    frontier_group: float = 0.4  # [m] ... nor of a node whose leaf chain is the nearest skeleton
+    frontier_group: float = 0.0  # [m] ... nor of a node whose leaf chain is the nearest skeleton
     # to a frontier group of at least this length (core.frontier_owned); 0 disables
+    recall_radius: float = 0.25  # [m] a new or moved end node within this of where a node was
+    # reliable starts from that P (the place was examined; core._recall); 0 disables
     p_free: float = 0.35  # known-free threshold for the frontier test (as mapper.p_free)
-    frontier_reset: bool = False  # a node whose leaf chain comes to own a frontier (above) is
-    # reset to p_init like a moved node (its belief was built before that space showed up)
     pocket_area: float = 0.5  # [m^2] enclosed unknown pockets smaller than this are no frontier
     # (the inside of an obstacle seen through a notch; core.open_unknown); 0 disables
     bearing_bin: float = math.radians(0.5)  # [rad] bearings stored one per bin (eq. 3)
@@ -130,7 +130,8 @@ class PlannerParams(_P):
     strategy: str = "reliability"  # reliability | all-end-nodes | frontier
     p_reliable: float = 0.9
     robot_radius: float = 0.2  # [m]
-    clearance_margin: float = 0.05  # [m] edges need clearance >= radius + margin
+    clearance_margin: float = 0.1  # [m] edges need clearance >= radius + margin (the controller
+    # stops for returns within radius + 0.05 m of its path; docs/design.md)
     visit_radius: float = 0.5  # [m] all-end-nodes: visited when this close
     goal_tolerance: float = 0.3  # [m]
     progress_timeout: float = 20.0  # [s] sim time without progress -> blacklist target
@@ -153,6 +154,16 @@ class PlannerParams(_P):
     # most this often while a target is being followed (explore_lite planner_frequency 1 Hz)
     done_confirm: int = 2  # consecutive updates without any candidate before reporting done
     tip_length: float = 0.3  # [m] last part of an edge into an end node that may be narrow
+    frontier_completion: bool = True  # reliability / all-end-nodes: once no end node is left
+    # to visit, go to the frontier groups that remain (core._completion); done = map complete
+    completion_min_size: float = 1.0  # [m] ... those at least this long (and min_frontier_size):
+    # a leftover speck at a wall gap is not worth a trip across the building at the end...
+    completion_near: float = 4.0  # [m] ... unless its path is this short (the shorter groups
+    # down to min_frontier_size: a narrow gap next to the robot may hide a whole room)
+    completion_pocket_area: float = 1.5  # [m^2] ... and not bordering an enclosed unknown pocket
+    # smaller than this (a box's inside, seen through gaps in its outline; common.grid.open_unknown)
+    stop_when_mapped: bool = True  # reliability: done as soon as no frontier is left by the
+    # completion rules, even with end nodes below p_reliable (DESIGN departure; docs/design.md)
     approach_narrow: bool = True  # an open end node behind a narrow edge: go up to the
     # narrow point and look (the map there is often only narrow because it is half seen)
 
@@ -279,9 +290,10 @@ def _validate(p: Params) -> None:
     for name in ("alpha_full", "move_tolerance", "fov", "range_max", "visit_radius",
                  "bearing_bin", "d_c"):
         pos("reliability", name, getattr(r, name))
-    if r.frontier_group < 0 or r.frontier_radius < 0 or not r.pocket_area >= 0:
-        raise ParamError("reliability: frontier_group, frontier_radius and pocket_area must "
-                         "be >= 0")
+    if (r.frontier_group < 0 or r.frontier_radius < 0 or not r.pocket_area >= 0
+            or not r.recall_radius >= 0):
+        raise ParamError("reliability: frontier_group, frontier_radius, pocket_area and "
+                         "recall_radius must be >= 0")
     pl = p.planner
     if pl.strategy not in STRATEGIES:
         raise ParamError(f"planner.strategy must be one of {', '.join(STRATEGIES)} (got {pl.strategy!r})")
@@ -299,7 +311,8 @@ def _validate(p: Params) -> None:
     if pl.done_confirm < 1:
         raise ParamError("planner.done_confirm must be >= 1")
     for name in ("clearance_margin", "tie_tolerance", "min_frontier_size", "gain_scale",
-                 "tip_length", "frontier_period"):
+                 "tip_length", "frontier_period", "completion_min_size", "completion_near",
+                 "completion_pocket_area"):
         v = getattr(pl, name)
         if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
             raise ParamError(f"planner.{name} must be a finite number >= 0 (got {v!r})")

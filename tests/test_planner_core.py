@@ -50,8 +50,11 @@ def rel(pmap):
 
 
 def params(**kw):
-    """Planner params; done is reported at once (done_confirm=1) unless a test says otherwise."""
-    return msgspec.structs.replace(PlannerParams(), **{"done_confirm": 1, **kw})
+    """Planner params; done is reported at once (done_confirm=1) and the reliability strategy
+    does not stop on a complete map (stop_when_mapped: the hand-made grids here are complete
+    maps) unless a test says otherwise."""
+    return msgspec.structs.replace(PlannerParams(), **{"done_confirm": 1,
+                                                       "stop_when_mapped": False, **kw})
 
 
 def u_graph(narrow_to_4=False):
@@ -608,3 +611,64 @@ def test_frontier_search_runs_at_most_once_per_frontier_period_while_following()
     assert out.state == "exploring" and out.waypoints  # still the search made at t = 0
     out = core.update(1.0, (1.15, 3.05, 0.0), None, None, full, geom)
     assert out.state == "done" and "no frontier" in out.reason  # a new search at t >= 1 s
+
+
+# --- frontier completion (reliability / all-end-nodes) ----------------------------------------
+
+
+def known_left_half_topo():
+    """Two end nodes in the known left half of half_known_room, joined by one edge."""
+    return topo([node(1, "end", 0.6, 3.05), node(2, "end", 2.5, 3.05)],
+                [edge(1, 2, [(0.6, 3.05), (2.5, 3.05)])])
+
+
+@pytest.mark.parametrize("strategy", ["reliability", "all-end-nodes"])
+def test_completion_goes_to_the_frontier_left_once_no_end_node_is_left(strategy):
+    g, geom = half_known_room()
+    done = {1: 0.95, 2: 0.95}
+    core = PlannerCore(params(strategy=strategy))
+    if strategy == "all-end-nodes":  # visit both first
+        for k, pose in enumerate([(0.6, 3.05, 0.0), (2.5, 3.05, 0.0)]):
+            core.update(0.2 * k, pose, known_left_half_topo(), rel(done), g, geom)
+    out = core.update(1.0, (1.05, 3.05, 0.0), known_left_half_topo(), rel(done), g, geom)
+    assert out.state == "exploring" and out.target_id == -1, out.reason
+    assert "completion" in out.reason and out.target_xy[0] == pytest.approx(2.95)
+    off = PlannerCore(params(strategy="reliability", frontier_completion=False))
+    out = off.update(1.0, (1.05, 3.05, 0.0), known_left_half_topo(), rel(done), g, geom)
+    assert out.state == "done" and "reliable" in out.reason
+
+
+def test_completion_ignores_short_groups_unless_near():
+    g, geom = half_known_room()
+    g[1:59, 29] = 100  # wall the right side off ...
+    g[28:35, 29] = 0  # ... except a 0.7 m gap: a group >= min_frontier_size, < 1 m
+    done = {1: 0.95, 2: 0.95}
+    near = PlannerCore(params())
+    out = near.update(0.0, (1.05, 3.05, 0.0), known_left_half_topo(), rel(done), g, geom)
+    assert out.state == "exploring" and "completion" in out.reason, out.reason
+    far = PlannerCore(params(completion_near=0.5))
+    out = far.update(0.0, (1.05, 3.05, 0.0), known_left_half_topo(), rel(done), g, geom)
+    assert out.state == "done" and "shorter than 1 m ignored, unless within 0.5 m" in out.reason
+    tiny = PlannerCore(params())  # below min_frontier_size: never, near or not
+    g[28:35, 29] = 100
+    g[30:33, 29] = 0
+    out = tiny.update(0.0, (1.05, 3.05, 0.0), known_left_half_topo(), rel(done), g, geom)
+    assert out.state == "done", out.reason
+
+
+def test_stop_when_mapped_ends_with_open_end_nodes_once_no_frontier_is_left():
+    g, geom = corridor_grid()  # all known: no frontier anywhere
+    tp = topo([node(1, "end", 0.5, 0.5), node(2, "end", 5.5, 0.5)],
+              [edge(1, 2, [(0.5, 0.5), (5.5, 0.5)])])
+    core = PlannerCore(params(stop_when_mapped=True))
+    out = core.update(0.0, (0.5, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), g, geom)
+    assert out.state == "done" and out.target_id == -1
+    assert "the map is complete" in out.reason and "1 end node(s) below P 0.9" in out.reason
+    g2, _ = corridor_grid()
+    g2[9:21, 60:71] = -1  # the far end not seen yet (walls included): a frontier, so go on
+    core = PlannerCore(params(stop_when_mapped=True))
+    out = core.update(0.0, (0.5, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), g2, geom)
+    assert out.state == "exploring" and out.target_id == 2, out.reason
+    allend = PlannerCore(params(strategy="all-end-nodes", stop_when_mapped=True))
+    out = allend.update(0.0, (0.5, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), g, geom)
+    assert out.state == "exploring" and out.target_id == 2  # the baselines are unchanged

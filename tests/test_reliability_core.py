@@ -9,7 +9,7 @@ import msgspec
 import numpy as np
 import pytest
 
-from common.grid import GridGeometry
+from common.grid import GridGeometry, open_unknown
 from common.messages import Header, NodeReliability, Reliability, decode, encode
 from common.params import ReliabilityParams
 from services.reliability.core import (
@@ -26,7 +26,6 @@ from services.reliability.core import (
     line_cells,
     line_of_sight,
     new_viewpoint,
-    open_unknown,
 )
 
 P = ReliabilityParams()
@@ -355,6 +354,28 @@ def test_reset_on_movement():
     assert n.p == pytest.approx(bayes_update(0.5, distance_index(n.r_min, P)))
 
 
+def test_a_new_node_where_a_node_was_reliable_starts_from_that_belief():
+    """recall_radius: a skeleton end that gets a new id (or flips back) at a place already
+    examined does not send the robot back there; farther away, or with recall off, p_init."""
+    core = ReliabilityCore(P_EVERY_SCAN)
+    for _ in range(5):
+        n = core.update([(1, 2.0, 0.0)], [], (0.0, 0.0, 0.0), free_grid(), GEOM)[0]
+    assert n.p > 0.9
+    behind = (0.0, 0.0, math.pi)  # the robot looks away: no new observation below
+    out = by_id(core.update([(2, 2.1, 0.05), (3, 2.0, 1.0)], [1], behind, free_grid(), GEOM))
+    assert out[2].p == pytest.approx(n.p) and out[2].n_obs == 0
+    assert out[3].p == P.p_init
+    assert core.snapshot()["examined_places"] == 1
+    # a node that moves beyond move_tolerance from its anchor is reset, recall or not
+    out = by_id(core.update([(2, 2.1, 0.5), (3, 2.0, 1.0)], [], behind, free_grid(), GEOM))
+    assert out[2].p == P.p_init
+    off = ReliabilityCore(msgspec.structs.replace(P_EVERY_SCAN, recall_radius=0.0))
+    for _ in range(5):
+        off.update([(1, 2.0, 0.0)], [], (0.0, 0.0, 0.0), free_grid(), GEOM)
+    out = by_id(off.update([(2, 2.1, 0.05)], [1], behind, free_grid(), GEOM))
+    assert out[2].p == P.p_init
+
+
 def test_gone_and_missing_ids_dropped():
     core = ReliabilityCore(P)
     nodes = [(1, 2.0, 0.0), (2, 2.0, 1.0), (3, 2.0, -1.0)]
@@ -506,9 +527,10 @@ def test_a_chain_between_two_end_nodes_is_split_between_them():
 
 
 def test_observations_of_a_node_owning_a_frontier_do_not_count():
+    """Rule 3 (reliability.frontier_group > 0; off by default, docs/design.md)."""
     g = side_opening_grid()
     edges = chain_edges()
-    core = ReliabilityCore(P)
+    core = ReliabilityCore(msgspec.structs.replace(P, frontier_group=0.4))
     ends = [(1, -4.5, 0.0), (4, -0.5, -0.8)]
     out = None
     for k in range(8):  # the robot drives along the corridor looking at both nodes

@@ -35,7 +35,14 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from common import messages as m
-from common.grid import OCCUPIED, GridGeometry, classify, free_mask
+from common.grid import (
+    OCCUPIED,
+    GridGeometry,
+    classify,
+    crop_known,
+    free_mask,
+    open_unknown,
+)
 from common.params import PlannerParams
 from services.planner import frontier as fr
 from services.planner import graph as gr
@@ -193,6 +200,9 @@ class PlannerCore:
         self._updates = 0
         self._frontier_ev: _Eval | None = None  # frontier strategy: last search ...
         self._frontier_t = -math.inf  # ... and its time [s]
+        self._mapped_t = -math.inf  # stop_when_mapped: time [s] of the last frontier check
+        self._mapped_ok = False  # ... its answer
+        self._mapped_why = ""
 
     # --- public ------------------------------------------------------------------------------
 
@@ -223,6 +233,15 @@ class PlannerCore:
                 self._frontier_ev, self._frontier_t = ev, t
         else:
             ev = self._eval_topo(x, y, topo, rel, grid_int8, geom, p_free, p_occ)
+            if (self.p.stop_when_mapped and self.p.strategy == "reliability" and ev.cands
+                    and grid_int8 is not None
+                    and self._mapped(t, x, y, topo, rel, grid_int8, geom, p_free, p_occ)):
+                ev = _Eval(end_nodes=ev.end_nodes, reliable=ev.reliable, done=(
+                    f"the map is complete ({self._mapped_why}); {len(ev.cands)} end node(s) "
+                    f"below P {self.p.p_reliable:g} left unvisited"))
+            elif (self.p.frontier_completion and not ev.cands and ev.waiting is None
+                    and ev.failed is None and grid_int8 is not None):
+                ev = self._completion(t, x, y, ev, topo, rel, grid_int8, geom, p_free, p_occ)
         if ev.waiting is not None:
             self._target = None
             self._no_cand = 0
@@ -316,6 +335,7 @@ class PlannerCore:
         need = p.robot_radius + p.clearance_margin
         clearance_at = None
         if grid is not None:
+            grid, geom = crop_known(grid, geom)  # the same answers on a smaller array
             occ = classify(grid, p_free, p_occ) == OCCUPIED
             clearance_at = gr.grid_clearance(fr.clearance_map(occ, geom.resolution), geom)
         try:
@@ -432,6 +452,42 @@ class PlannerCore:
             ev.path_clear = lambda wps: not gr.crosses(occ, geom, wps)
         return ev
 
+    def _completion(self, t, x, y, ev: _Eval, topo, rel, grid, geom, p_free, p_occ) -> _Eval:
+        """No end node is left to visit: the frontier groups still on the map are the
+        candidates (as for the frontier strategy), so that "done" means the map is complete
+        and not only that every end node is reliable. An opening seen at the side of a room
+        or corridor may give no end node at all (a corridor that bends away as the maze's).
+        The frontier search is repeated at most every frontier_period s while following."""
+        cached = self._frontier_ev
+        if (cached is not None and self._target is not None and self._target.cand.id < 0
+                and cached.cands and 0.0 <= t - self._frontier_t < self.p.frontier_period):
+            fe = cached
+        else:
+            fe = self._eval_frontier(x, y, topo, rel, grid, geom, p_free, p_occ,
+                                     max(self.p.min_frontier_size, self.p.completion_min_size),
+                                     self.p.completion_pocket_area, self.p.completion_near)
+            self._frontier_ev, self._frontier_t = fe, t
+        if fe.failed is not None:
+            return ev
+        for c in fe.cands:
+            c.label = f"{c.label} (completion: no end node left)"
+        fe.end_nodes, fe.reliable = ev.end_nodes, ev.reliable
+        fe.done = f"{ev.done}; {fe.done}"
+        return fe
+
+    def _mapped(self, t, x, y, topo, rel, grid, geom, p_free, p_occ) -> bool:
+        """stop_when_mapped: is no frontier left by the completion rules (so that the
+        completion phase would find nothing either)? Searched at most every frontier_period s."""
+        if 0.0 <= t - self._mapped_t < self.p.frontier_period:
+            return self._mapped_ok
+        fe = self._eval_frontier(x, y, topo, rel, grid, geom, p_free, p_occ,
+                                 max(self.p.min_frontier_size, self.p.completion_min_size),
+                                 self.p.completion_pocket_area, self.p.completion_near)
+        self._mapped_t = t
+        self._mapped_ok = fe.failed is None and not fe.cands
+        self._mapped_why = fe.done
+        return self._mapped_ok
+
     def _approach(self, i, nx, ny, label, prob, index, entry, wide, clearance_at, need, x, y
                   ) -> _Cand | None:
         """Candidate for open end node i behind a narrow edge: the path up to the narrow point.
@@ -465,10 +521,19 @@ class PlannerCore:
         return _Cand(i, nx, ny, dist[i], to_entry + reach, 1.0, prob, lambda: pts,
                      label=f"{label} up to a narrow passage", partial=True)
 
-    def _eval_frontier(self, x, y, topo, rel, grid, geom, p_free, p_occ) -> _Eval:
+    def _eval_frontier(self, x, y, topo, rel, grid, geom, p_free, p_occ,
+                       min_size: float | None = None, pocket_area: float = 0.0,
+                       near: float = 0.0) -> _Eval:
+        """Frontier groups as candidates: those at least min_size [m] long (default
+        min_frontier_size), and the shorter ones (down to min_frontier_size) whose path is at
+        most near [m]; with pocket_area > 0 [m^2], not those bordering a smaller enclosed
+        unknown pocket."""
         p = self.p
+        min_size = p.min_frontier_size if min_size is None else min_size
+        floor = min(min_size, p.min_frontier_size) if near > 0 else min_size
         if grid is None:
             return _Eval(waiting="waiting for map")
+        grid, geom = crop_known(grid, geom)  # the same answers on a smaller array
         ev = _Eval()
         if topo is not None:  # informational only
             ends = [n.id for n in topo.nodes if n.kind == "end"]
@@ -483,10 +548,17 @@ class PlannerCore:
             ev.failed = "the robot is not near known free space (no start cell for the search)"
             ev.done = ev.failed
             return ev
-        groups, dropped = fr.find_frontiers(grid, geom, search, p.min_frontier_size,
-                                            p.potential_scale, p.gain_scale, p_free, p_occ)
+        unknown = (open_unknown(grid, int(pocket_area / geom.resolution ** 2), p_free, p_occ)
+                   if pocket_area > 0 else None)
+        groups, dropped = fr.find_frontiers(grid, geom, search, floor,
+                                            p.potential_scale, p.gain_scale, p_free, p_occ,
+                                            unknown)
         unreachable, black = 0, 0
         for g in groups:
+            if g.size * geom.resolution < min_size - 1e-9 and not (
+                    g.goal_xy is not None and g.path_length <= near):
+                dropped += 1
+                continue
             if g.goal_xy is None:
                 unreachable += 1
                 continue
@@ -500,7 +572,8 @@ class PlannerCore:
             ev.cands.append(c)
         done = "no frontier left"
         if dropped:
-            done += f" ({dropped} group(s) shorter than {p.min_frontier_size:g} m ignored)"
+            done += f" ({dropped} group(s) shorter than {min_size:g} m ignored" + (
+                f", unless within {near:g} m)" if near > 0 and floor < min_size else ")")
         if black:
             done += f"; {black} blacklisted"
         if unreachable:

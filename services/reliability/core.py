@@ -30,7 +30,7 @@ import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
-from common.grid import GridGeometry
+from common.grid import GridGeometry, open_unknown
 from common.messages import NodeReliability
 from common.params import ReliabilityParams
 
@@ -262,31 +262,6 @@ def _in_fov_range(nx: float, ny: float, lx: float, ly: float, theta: float,
         return True
     rel = _wrap(math.atan2(ny - ly, nx - lx) - theta)
     return abs(rel) <= 0.5 * params.fov + 1e-12
-
-
-def open_unknown(grid: np.ndarray, pocket_cells: int = 0) -> np.ndarray:
-    """Never-observed cells (bool), without the enclosed pockets smaller than pocket_cells.
-
-    A pocket is an 8-connected unknown component that does not touch the grid border (the
-    mapper keeps a margin of unknown around everything it has seen, so real unexplored space
-    always does) and has fewer than pocket_cells cells: the inside of an obstacle glimpsed
-    through a notch (lse_arena's stair-step block), which no viewpoint can ever reveal.
-    pocket_cells <= 0 keeps every unknown cell.
-    """
-    g = np.asarray(grid)
-    unknown = g < 0
-    if pocket_cells <= 0 or not unknown.any():
-        return unknown
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(unknown.view(np.uint8), connectivity=8)
-    h, w = unknown.shape
-    x, y = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
-    bw, bh = stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]
-    border = (x == 0) | (y == 0) | (x + bw == w) | (y + bh == h)
-    pocket = ~border & (stats[:, cv2.CC_STAT_AREA] < pocket_cells)
-    pocket[0] = False  # label 0: the known cells
-    if not pocket.any():
-        return unknown
-    return unknown & ~pocket[labels]
 
 
 def near_frontier(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, radius: float,
@@ -578,6 +553,7 @@ class ReliabilityCore:
         self._nbins = max(1, int(math.ceil(TWO_PI / params.bearing_bin - 1e-9)))
         self._bin_width = TWO_PI / self._nbins  # [rad]
         self._tracks: dict[int, _Track] = {}
+        self._places: list[tuple[float, float, float]] = []  # x, y [m], P of reliable nodes
         self._updates = 0
         self._resets = 0
         self._dropped = 0
@@ -585,8 +561,33 @@ class ReliabilityCore:
     # -- internals --
 
     def _new_track(self, x: float, y: float) -> _Track:
-        return _Track(anchor_x=x, anchor_y=y, x=x, y=y, p=self.params.p_init,
+        return _Track(anchor_x=x, anchor_y=y, x=x, y=y, p=self._recall(x, y),
                       bins=np.full(self._nbins, np.nan))
+
+    def _recall(self, x: float, y: float) -> float:
+        """Initial P at (x, y) [m]: p_init, or the P a node reached while it stood within
+        recall_radius of here (the place was examined already: a skeleton end that flips
+        between two corners of a room, or gets a new id, does not send the robot back).
+        recall_radius < move_tolerance, so a node that moves away from where it was reliable
+        is still reset (DESIGN §4)."""
+        r = self.params.recall_radius
+        if r <= 0.0 or not self._places:
+            return self.params.p_init
+        a = np.asarray(self._places)
+        near = (a[:, 0] - x) ** 2 + (a[:, 1] - y) ** 2 <= r * r
+        return float(max(self.params.p_init, a[near, 2].max())) if near.any() else \
+            self.params.p_init
+
+    def _remember(self, tr: _Track) -> None:
+        """Keep the place of a reliable node (one entry per recall_radius)."""
+        r = self.params.recall_radius
+        if r <= 0.0 or tr.p < self.params.p_reliable:
+            return
+        for k, (px, py, pp) in enumerate(self._places):
+            if (px - tr.x) ** 2 + (py - tr.y) ** 2 <= r * r:
+                self._places[k] = (px, py, max(pp, tr.p))
+                return
+        self._places.append((tr.x, tr.y, tr.p))
 
     def _add_bearing(self, tr: _Track, bearing: float) -> None:
         b = bearing % TWO_PI
@@ -634,10 +635,12 @@ class ReliabilityCore:
         owned: dict[int, int] = {}
         unknown = None
         if pr.frontier_group > 0 or pr.frontier_radius > 0:
-            unknown = open_unknown(grid, int(pr.pocket_area / geom.resolution ** 2))
-        if edges and pr.frontier_group > 0:
+            unknown = open_unknown(grid, int(pr.pocket_area / geom.resolution ** 2), pr.p_free,
+                                   p_occ)
+        checked = _check_edges(edges) if edges else []  # validated even when unused
+        if checked and pr.frontier_group > 0:
             min_cells = max(1, int(math.ceil(pr.frontier_group / geom.resolution - 1e-9)))
-            owned = frontier_owned(list(nodes), _check_edges(edges), grid, geom, pr.p_free,
+            owned = frontier_owned(list(nodes), checked, grid, geom, pr.p_free,
                                    min_cells, pr.range_max, unknown)
         for gid in gone:
             if self._tracks.pop(int(gid), None) is not None:
@@ -654,11 +657,8 @@ class ReliabilityCore:
             tr = self._tracks.get(nid)
             if tr is None:
                 tr = self._tracks[nid] = self._new_track(nx, ny)
-            elif (math.hypot(nx - tr.anchor_x, ny - tr.anchor_y) > pr.move_tolerance
-                  or (pr.frontier_reset and nid in owned and tr.p > pr.p_init)):
-                # movement resets belief (DESIGN §4); so does unknown space opening from the
-                # node's leaf chain after its belief grew (the node will likely move there)
-                resets = tr.resets + 1
+            elif math.hypot(nx - tr.anchor_x, ny - tr.anchor_y) > pr.move_tolerance:
+                resets = tr.resets + 1  # movement resets belief (DESIGN §4)
                 tr = self._tracks[nid] = self._new_track(nx, ny)
                 tr.resets = resets
                 self._resets += 1
@@ -681,6 +681,7 @@ class ReliabilityCore:
                                               pr.p_free, unknown)):
                     tr.view = (rx, ry, bearing)
                     tr.p = min(bayes_update(tr.p, reliability_index(tr.d, tr.a)), pr.p_max)
+                    self._remember(tr)
             out.append(NodeReliability(
                 id=nid, x=nx, y=ny, p=tr.p, d=tr.d, a=tr.a, r_min=tr.r_min,
                 alpha_max=tr.alpha_max, visible=tr.visible, n_obs=tr.n_obs, visited=tr.visited,
@@ -707,6 +708,7 @@ class ReliabilityCore:
             "end_nodes": len(self._tracks),
             "reliable": sum(1 for t in self._tracks.values() if t.p >= self.params.p_reliable),
             "resets": self._resets,
+            "examined_places": len(self._places),
             "dropped": self._dropped,
             "nodes": nodes,
         }
