@@ -672,3 +672,16 @@ def test_stop_when_mapped_ends_with_open_end_nodes_once_no_frontier_is_left():
     allend = PlannerCore(params(strategy="all-end-nodes", stop_when_mapped=True))
     out = allend.update(0.0, (0.5, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), g, geom)
     assert out.state == "exploring" and out.target_id == 2  # the baselines are unchanged
+
+
+def test_reach_only_search_reaches_the_same_cells_as_the_dijkstra():
+    rng = np.random.default_rng(3)
+    geom = GridGeometry(0.1, 0.0, 0.0, 40, 30)
+    for _ in range(60):
+        g = rng.choice(np.array([-1, 0, 0, 0, 100], np.int8), size=(30, 40))
+        x, y = rng.uniform(0.0, 4.0), rng.uniform(0.0, 3.0)
+        full = fr.grid_search(g, geom, x, y, 0.1, soft_radius=0.3, soft_penalty=2.0)
+        quick = fr.grid_search(g, geom, x, y, 0.1, soft_radius=0.3, soft_penalty=2.0,
+                               reach_only=True, clearance=full.clearance)
+        assert quick.start == full.start
+        assert np.array_equal(np.isfinite(quick.dist), np.isfinite(full.dist))

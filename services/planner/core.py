@@ -203,6 +203,9 @@ class PlannerCore:
         self._mapped_t = -math.inf  # stop_when_mapped: time [s] of the last frontier check
         self._mapped_ok = False  # ... its answer
         self._mapped_why = ""
+        self._clear_key: tuple | None = None  # clearance map of the current input grid
+        self._clear_src: np.ndarray | None = None
+        self._clear_val: np.ndarray | None = None
 
     # --- public ------------------------------------------------------------------------------
 
@@ -220,6 +223,7 @@ class PlannerCore:
                 self._target.arrived_t = None
         self._last_t = t
         self._rel_before = self._rel_updates
+        self._clear_key = self._clear_src = self._clear_val = None  # valid for one update only
         if rel is not None:
             self._rel_updates += 1
         self._record(x, y)
@@ -335,9 +339,11 @@ class PlannerCore:
         need = p.robot_radius + p.clearance_margin
         clearance_at = None
         if grid is not None:
+            source = grid
             grid, geom = crop_known(grid, geom)  # the same answers on a smaller array
             occ = classify(grid, p_free, p_occ) == OCCUPIED
-            clearance_at = gr.grid_clearance(fr.clearance_map(occ, geom.resolution), geom)
+            clearance_at = gr.grid_clearance(
+                self._clearance_of(source, grid, geom, p_free, p_occ, occ), geom)
         try:
             index = gr.build_index(topo, need, clearance_at, p.tip_length)
         except gr.GraphInputError as exc:
@@ -477,16 +483,36 @@ class PlannerCore:
 
     def _mapped(self, t, x, y, topo, rel, grid, geom, p_free, p_occ) -> bool:
         """stop_when_mapped: is no frontier left by the completion rules (so that the
-        completion phase would find nothing either)? Searched at most every frontier_period s."""
+        completion phase would find nothing either)? Checked at most every frontier_period s.
+        First a cheap pass: a reachable group of completion_min_size or more (connected
+        components, no path costs) means no; only without one is the full search run (path
+        lengths for the shorter groups within completion_near). On large-office the full
+        search every second was 40 % of the planner's time."""
         if 0.0 <= t - self._mapped_t < self.p.frontier_period:
             return self._mapped_ok
-        fe = self._eval_frontier(x, y, topo, rel, grid, geom, p_free, p_occ,
-                                 max(self.p.min_frontier_size, self.p.completion_min_size),
-                                 self.p.completion_pocket_area, self.p.completion_near)
         self._mapped_t = t
+        size = max(self.p.min_frontier_size, self.p.completion_min_size)
+        quick = self._eval_frontier(x, y, topo, rel, grid, geom, p_free, p_occ, size,
+                                    self.p.completion_pocket_area, 0.0, reach_only=True)
+        if quick.failed is None and quick.cands:
+            self._mapped_ok = False
+            return False
+        fe = self._eval_frontier(x, y, topo, rel, grid, geom, p_free, p_occ, size,
+                                 self.p.completion_pocket_area, self.p.completion_near)
         self._mapped_ok = fe.failed is None and not fe.cands
         self._mapped_why = fe.done
         return self._mapped_ok
+
+    def _clearance_of(self, source, grid, geom, p_free, p_occ, occ=None) -> np.ndarray:
+        """Distance [m] to the nearest occupied cell on the cropped grid, computed once per
+        input grid (the topological and frontier evaluations of one update share it)."""
+        key = (id(source), geom, p_free, p_occ)
+        if self._clear_key != key or self._clear_src is not source:
+            if occ is None:
+                occ = classify(grid, p_free, p_occ) == OCCUPIED
+            self._clear_val = fr.clearance_map(occ, geom.resolution)
+            self._clear_key, self._clear_src = key, source
+        return self._clear_val
 
     def _approach(self, i, nx, ny, label, prob, index, entry, wide, clearance_at, need, x, y
                   ) -> _Cand | None:
@@ -523,7 +549,7 @@ class PlannerCore:
 
     def _eval_frontier(self, x, y, topo, rel, grid, geom, p_free, p_occ,
                        min_size: float | None = None, pocket_area: float = 0.0,
-                       near: float = 0.0) -> _Eval:
+                       near: float = 0.0, reach_only: bool = False) -> _Eval:
         """Frontier groups as candidates: those at least min_size [m] long (default
         min_frontier_size), and the shorter ones (down to min_frontier_size) whose path is at
         most near [m]; with pocket_area > 0 [m^2], not those bordering a smaller enclosed
@@ -533,6 +559,7 @@ class PlannerCore:
         floor = min(min_size, p.min_frontier_size) if near > 0 else min_size
         if grid is None:
             return _Eval(waiting="waiting for map")
+        source = grid
         grid, geom = crop_known(grid, geom)  # the same answers on a smaller array
         ev = _Eval()
         if topo is not None:  # informational only
@@ -543,7 +570,9 @@ class PlannerCore:
                 ev.reliable = sum(1 for i in ends if pm.get(i, 0.0) >= p.p_reliable)
         hard = p.robot_radius + p.clearance_margin
         search = fr.grid_search(grid, geom, x, y, hard, p_free, p_occ,
-                                soft_radius=SOFT_RADIUS_FACTOR * hard, soft_penalty=SOFT_PENALTY)
+                                soft_radius=SOFT_RADIUS_FACTOR * hard, soft_penalty=SOFT_PENALTY,
+                                reach_only=reach_only,
+                                clearance=self._clearance_of(source, grid, geom, p_free, p_occ))
         if search.start is None:
             ev.failed = "the robot is not near known free space (no start cell for the search)"
             ev.done = ev.failed

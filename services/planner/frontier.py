@@ -202,7 +202,8 @@ def nearest_cell(mask: np.ndarray, row: int, col: int, radius_cells: int) -> tup
 
 def grid_search(grid: np.ndarray, geom: GridGeometry, x: float, y: float, robot_radius: float,
                 p_free: float = 0.35, p_occ: float = 0.65, start_radius: float = 1.0,
-                soft_radius: float = 0.0, soft_penalty: float = 0.0) -> GridSearch:
+                soft_radius: float = 0.0, soft_penalty: float = 0.0, reach_only: bool = False,
+                clearance: np.ndarray | None = None) -> GridSearch:
     """Dijkstra path costs [m] from the robot at (x, y) [m] over traversable cells.
 
     Traversable: known free with clearance >= robot_radius [m]. A cell with clearance below
@@ -212,13 +213,21 @@ def grid_search(grid: np.ndarray, geom: GridGeometry, x: float, y: float, robot_
     cell if traversable, else from the nearest traversable cell within `start_radius` [m],
     else from the nearest known free cell (the robot may start on a cell still marked unknown
     or occupied). start is None if none exists.
+
+    reach_only: no path costs, only which cells the search reaches (dist 0 there, inf
+    elsewhere), from connected components: the same set as the Dijkstra's, since a diagonal
+    step needs both cells beside it traversable (so 4-connectivity decides), at a fraction of
+    the cost. clearance: the clearance map of this grid if the caller has it already.
     """
     g = check_grid(grid, geom)
     if not (robot_radius >= 0 and soft_radius >= 0 and soft_penalty >= 0):
         raise FrontierInputError("robot_radius, soft_radius and soft_penalty must be >= 0")
     cls = classify(g, p_free, p_occ)
     free = cls == FREE
-    clearance = clearance_map(cls == OCCUPIED, geom.resolution)
+    if clearance is None:
+        clearance = clearance_map(cls == OCCUPIED, geom.resolution)
+    elif np.shape(clearance) != g.shape:
+        raise FrontierInputError(f"clearance shape {np.shape(clearance)} != grid {g.shape}")
     passable = free & (clearance + 1e-6 >= robot_radius)
     mult = np.ones(g.shape, dtype=np.float64)
     if soft_penalty > 0 and soft_radius > robot_radius:
@@ -236,7 +245,19 @@ def grid_search(grid: np.ndarray, geom: GridGeometry, x: float, y: float, robot_
         start = nearest_cell(passable, row, col, rad)
     if start is None:
         start = nearest_cell(free, row, col, rad)
-    if start is not None:
+    if start is not None and reach_only:
+        _, labels = cv2.connectedComponents(passable.view(np.uint8), connectivity=4)
+        r0, c0 = start
+        if passable[r0, c0]:
+            comps = {int(labels[r0, c0])}
+        else:  # a start off the traversable cells steps to its 4-neighbours
+            comps = {int(labels[r, c]) for r, c in ((r0 - 1, c0), (r0 + 1, c0), (r0, c0 - 1),
+                                                     (r0, c0 + 1))
+                     if 0 <= r < h and 0 <= c < w and passable[r, c]}
+        reach = np.isin(labels, list(comps)) if comps else np.zeros(g.shape, dtype=bool)
+        reach[r0, c0] = True
+        dist = np.where(reach, 0.0, np.inf)
+    elif start is not None:
         d, parent = _dijkstra8(passable, mult, start[0] * w + start[1], float(geom.resolution))
         dist = d.reshape(h, w)
     return GridSearch(geom, passable, clearance, start, dist, parent)
