@@ -2,6 +2,7 @@
 
     topoexplore bench stages [--sizes 100,300,1000] [--json] [--bus] [--worlds paper-room,office]
     topoexplore bench explore [--worlds ...] [--strategies ...] [--seeds N] [--out DIR]
+    topoexplore bench inproc [--worlds ...] [--strategies ...] [--seeds N] [--set k=v ...]
 
 ``stages`` measures the compute of each stage on synthetic office maps (mapper, topology, ...),
 and with ``--bus`` the bus too, with real processes on loopback: one-way latency of a scan
@@ -309,12 +310,16 @@ def format_bus(bus: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or argv[0] not in ("stages", "explore"):
-        print("usage: topoexplore bench {stages,explore} [options]  (-h for help)",
+    if not argv or argv[0] not in ("stages", "explore", "inproc"):
+        print("usage: topoexplore bench {stages,explore,inproc} [options]  (-h for help)",
               file=sys.stderr)
         return 2
     if argv[0] == "stages":
         return stages_main(argv[1:])
+    if argv[0] == "inproc":
+        from common import inproc
+
+        return inproc.main(argv[1:])
     from common import benchexplore
 
     return benchexplore.main(argv[1:])

@@ -6,7 +6,7 @@
     topoexplore keys     inspect live keys: list | echo KEY | hz KEY | get SERVICE
     topoexplore map      save the live map as a ROS map_server PGM + YAML pair
     topoexplore render   make a PNG from a saved run directory or a running stack
-    topoexplore bench    benchmarks: stages | explore
+    topoexplore bench    benchmarks: stages | explore | inproc
     topoexplore router   run a Zenoh router
 
 Every error in the command line, a file or a parameter prints one line and exits non-zero.
@@ -133,7 +133,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("router", help="run a Zenoh router", add_help=False)
     sub.add_parser("render", help="PNG from a saved run directory or a running stack",
                    add_help=False)
-    sub.add_parser("bench", help="benchmarks: stages | explore", add_help=False)
+    sub.add_parser("bench", help="benchmarks: stages | explore | inproc", add_help=False)
 
     mp = sub.add_parser("map", help="map tools")
     msub = mp.add_subparsers(dest="map_command", metavar="ACTION")

@@ -68,6 +68,10 @@ def test_bad_world_file_one_line(tmp_path, content):
     ["run", "--speed", "0"],
     ["up", "--profile", "/nonexistent.toml"],
     ["bench", "stages", "--sizes", "abc"],
+    ["bench", "inproc", "--worlds", "no-such-world"],
+    ["bench", "inproc", "--set", "planner.clearance_margin=-1"],
+    ["bench", "inproc", "--set", "sim.seed=3"],
+    ["bench", "inproc", "--strategies", "random"],
     ["map", "save", "/tmp/x.yaml", "--connect", "tcp/127.0.0.1:1", "--timeout", "0.5"],
 ])
 def test_bad_arguments_one_line(args, tmp_path):

@@ -64,3 +64,17 @@ def test_reliability_travels_less_than_all_end_nodes(world):
     assert rel["path_length_m"] < allend["path_length_m"], (rel, allend)
     if world == "junction":  # the side arms of the T are accepted from the junction
         assert rel["end_nodes_accepted_remote"] >= 1, rel
+
+
+def test_in_process_pipeline_reproduces_the_bus_run():
+    """`topoexplore bench inproc` (the tuning tool) calls the cores in the order the services
+    run them in lockstep: the same path, sim time and coverage as the real processes."""
+    from common import inproc
+
+    bus = explore("dead-end")
+    local = inproc.run("dead-end", "reliability", 0, (), 1500.0)
+    assert local["finished"] and bus["finished"]
+    assert local["path_length_m"] == pytest.approx(bus["path_length_m"], abs=0.01)
+    assert local["sim_time_s"] == pytest.approx(bus["sim_time_s"], abs=0.01)
+    assert local["coverage"] == pytest.approx(bus["coverage"], abs=1e-3)
+    assert local["stop_reason"] in bus["stop_reason"]

@@ -1,0 +1,209 @@
+"""The exploration pipeline in one process, for tuning: ``topoexplore bench inproc``.
+
+    topoexplore bench inproc [--worlds a,b] [--strategies ...] [--seeds N] [--set k=v ...]
+                             [--jobs 2] [--max-sim-time S] [--json OUT]
+
+The six cores (sim, mapper, topology, reliability, planner, controller) are called in one
+loop in the order the services run them in lockstep: every scan is integrated; on the first
+scan of every ``mapper.map_every`` block the map goes through topology, reliability and
+planner; the controller answers every scan with the newest plan. No bus and no processes, so
+a parameter sweep over the suite costs the compute alone (about 1/3 of the wall time of
+``bench explore``). A run gives the same path, sim time and coverage as the bus run of the
+same world, strategy, seed and parameters (``tests/test_explore_e2e.py`` checks it); the
+figures to publish still come from ``bench explore``, which runs the real processes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from common import messages as m
+from common.benchexplore import (
+    STRATEGIES,
+    BenchArgError,
+    default_worlds,
+    pair_ratios,
+    resolve_world,
+)
+from common.metrics import coverage
+from common.params import ParamError, load_params
+
+RESERVED = ("sim.world", "sim.seed", "sim.lockstep", "planner.strategy")
+
+
+def _hdr(stamp: float, k: int) -> m.Header:
+    return m.Header(seq=k, stamp=stamp, frame="map", src_seq=k)
+
+
+def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence[str] = (),
+        max_sim_time: float = 1800.0, on_update: Callable[..., Any] | None = None
+        ) -> dict[str, Any]:
+    """One exploration, in process. ``sets``: ``section.key=value`` overrides (TOML values).
+    ``on_update(t, pose, topo, reliability, plan, grid, geom)`` is called after every plan;
+    it may raise to stop the run. Returns the run's figures."""
+    from services.controller.core import ControllerCore
+    from services.mapper.core import MapperCore
+    from services.planner.core import PlannerCore
+    from services.reliability.core import ReliabilityCore
+    from services.topology.core import TopologyCore
+    from sim.core import SimCore
+    from sim.world import load_world, truth_free_reachable
+
+    P = load_params(None, [f"sim.world={json.dumps(world)}", f"sim.seed={int(seed)}",
+                           f"planner.strategy={json.dumps(strategy)}", "sim.lockstep=true",
+                           *sets])
+    w = load_world(P.sim.world)
+    sim = SimCore(w, P.sim, np.random.default_rng(P.sim.seed))
+    mp = P.mapper
+    mapper, topo_c = MapperCore(mp), TopologyCore(P.topology)
+    rel_c, plan_c, ctl = ReliabilityCore(P.reliability), PlannerCore(P.planner), \
+        ControllerCore(P.controller)
+    steps = max(1, round(P.sim.physics_hz / P.sim.scan_hz))
+    plan = grid = geom = None
+    state, k, t0 = "exploring", -1, time.monotonic()
+    while True:
+        k += 1
+        t, pose, ranges = sim.time, sim.odom_pose(), sim.scan()
+        mapper.integrate(pose, ranges, sim.angle_min, sim.angle_increment, P.sim.range_min,
+                         P.sim.range_max, laser_offset=P.sim.laser_offset)
+        if k % mp.map_every == 0:
+            grid, geom = mapper.occupancy(copy=True), mapper.geometry
+            res = topo_c.update(grid, geom, (pose[0], pose[1]), mp.p_free, mp.p_occ)
+            topo = m.TopoGraph(header=_hdr(t, k), nodes=res.nodes, edges=res.edges,
+                               gone=res.gone)
+            ends = [(n.id, n.x, n.y) for n in topo.nodes if n.kind == "end"]
+            edges = [(e.a, e.b, e.points) for e in topo.edges]
+            nodes = rel_c.update(ends, list(topo.gone), pose, grid, geom, mp.p_occ, edges)
+            rel = m.Reliability(header=_hdr(t, k), nodes=nodes)
+            plan = plan_c.update(t, pose, topo, rel, grid, geom, mp.p_free, mp.p_occ)
+            state = plan.state
+            if on_update is not None:
+                on_update(t, pose, topo, rel, plan, grid, geom)
+            if state in ("done", "failed"):
+                break
+        wps = np.asarray(plan.waypoints, dtype=np.float64).reshape(-1, 2)
+        v, wv, _mode = ctl.update(t, pose, wps, plan.plan_id, False,
+                                  (ranges, sim.angle_min, sim.angle_increment),
+                                  plan.goal_heading)
+        sim.command(v, wv)
+        for _ in range(steps):
+            sim.step()
+        if sim.time >= max_sim_time:
+            state = "timeout"
+            break
+    free, fx, fy = truth_free_reachable(w, mp.resolution)
+    cov = coverage(grid, geom, free, (fx, fy), mp.resolution, mp.p_free, mp.p_occ)
+    return {"world": world, "strategy": strategy, "seed": int(seed), "state": state,
+            "finished": state == "done", "stop_reason": plan.reason if plan else "",
+            "path_length_m": round(sim.path_length, 2), "sim_time_s": round(sim.time, 1),
+            "coverage": round(float(cov), 4), "collisions": int(sim.collisions),
+            "wall_s": round(time.monotonic() - t0, 1)}
+
+
+def _one(item: tuple) -> dict[str, Any]:
+    label, world, strategy, seed, sets, tmax = item
+    try:
+        r = run(world, strategy, seed, sets, tmax)
+    except Exception as exc:  # noqa: BLE001 - one failed run must not end the sweep
+        r = {"world": world, "strategy": strategy, "seed": seed, "state": "error",
+             "finished": False, "stop_reason": f"{type(exc).__name__}: {exc}",
+             "path_length_m": None, "sim_time_s": None, "coverage": None, "collisions": None,
+             "wall_s": None}
+    r["world_label"] = label
+    return r
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit 2, no usage dump
+        print(f"topoexplore bench inproc: {message}", file=sys.stderr)
+        raise SystemExit(2)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = _Parser(prog="topoexplore bench inproc", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--worlds", help="comma-separated names or map files (default: the "
+                                     "bench explore suite without large-office)")
+    ap.add_argument("--strategies", default=",".join(STRATEGIES))
+    ap.add_argument("--seeds", type=int, default=2, help="seeds 0..N-1 (default 2)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="parameter override for every run (repeatable)")
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--max-sim-time", type=float, default=1800.0, help="per run [s]")
+    ap.add_argument("--json", type=Path, help="write the runs and ratios here")
+    return ap
+
+
+def parse(argv: Sequence[str]) -> tuple[list[tuple], argparse.Namespace]:
+    a = build_parser().parse_args(list(argv))
+    if a.worlds:
+        names = [w.strip() for w in a.worlds.split(",") if w.strip()]
+    else:
+        names = [w for w in default_worlds()[0] if w != "large-office"]
+    worlds = [resolve_world(w)[:2] for w in names]
+    strategies = [s.strip() for s in a.strategies.split(",") if s.strip()]
+    bad = [s for s in strategies if s not in STRATEGIES]
+    if bad or not strategies:
+        raise BenchArgError(f"--strategies: unknown {', '.join(bad) or '(none)'}; "
+                            f"choose from {', '.join(STRATEGIES)}")
+    if a.seeds < 1 or a.jobs < 1:
+        raise BenchArgError("--seeds and --jobs must be >= 1")
+    if not (math.isfinite(a.max_sim_time) and a.max_sim_time > 0):
+        raise BenchArgError("--max-sim-time must be a positive number")
+    for s in a.set:
+        key = s.split("=", 1)[0].strip()
+        if key in RESERVED:
+            raise BenchArgError(f"--set {key}: set by the sweep itself")
+    try:
+        load_params(None, list(a.set))
+    except ParamError as exc:
+        raise BenchArgError(str(exc)) from None
+    items = [(label, world, st, seed, tuple(a.set), a.max_sim_time)
+             for label, world in worlds for st in strategies for seed in range(a.seeds)]
+    return items, a
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    try:
+        items, a = parse(sys.argv[1:] if argv is None else argv)
+    except BenchArgError as exc:
+        print(f"topoexplore bench inproc: {exc}", file=sys.stderr)
+        return 2
+    t0 = time.monotonic()
+    with ProcessPoolExecutor(min(a.jobs, len(items))) as pool:
+        runs = list(pool.map(_one, items))
+    for r in runs:
+        cov = "-" if r["coverage"] is None else f"{r['coverage']:.3f}"
+        print(f"{r['world_label']:14s} {r['strategy']:14s} s{r['seed']} {r['state']:8s} "
+              f"path {r['path_length_m']} m  sim {r['sim_time_s']} s  coverage {cov}  "
+              f"collisions {r['collisions']}  wall {r['wall_s']} s")
+    strategies = sorted({r["strategy"] for r in runs}, key=STRATEGIES.index)
+    ratios = {}
+    for den in ("frontier", "all-end-nodes"):
+        if "reliability" in strategies and den in strategies:
+            rr = pair_ratios(runs, "reliability", den, "path_length_m")
+            ratios[f"reliability/{den}"] = rr
+            gm = "-" if rr["geomean"] is None else f"{rr['geomean']:.3f}"
+            print(f"path reliability/{den}: geometric mean {gm} over {rr['n_included']} "
+                  f"pair(s), {rr['n_excluded']} excluded")
+    low = [f"{r['world_label']}/{r['strategy']}/s{r['seed']} {r['coverage']}" for r in runs
+           if r["coverage"] is not None and r["coverage"] < 0.95]
+    print(f"coverage < 0.95: {', '.join(low) or 'none'}; "
+          f"wall {time.monotonic() - t0:.0f} s for {len(runs)} run(s)")
+    if a.json:
+        a.json.write_text(json.dumps({"sets": list(a.set), "runs": runs, "ratios": ratios},
+                                     indent=1))
+    return 0 if all(r["state"] != "error" for r in runs) else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
