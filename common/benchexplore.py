@@ -638,6 +638,26 @@ def default_worlds() -> tuple[list[str], list[str]]:
     return worlds, notes
 
 
+RESERVED_KEYS = ("planner.strategy", "sim.world", "sim.seed", "sim.lockstep")  # set per run
+
+
+def check_overrides(params_file: str | None, overrides: Sequence[str]) -> None:
+    """--params / --set for every run of a suite: every run would fail the same way, so say
+    it once before anything runs (BenchArgError); the keys the suite sets itself are refused."""
+    if params_file is None and not overrides:
+        return
+    from common.params import ParamError, load_params
+
+    try:
+        load_params(params_file, list(overrides))
+    except ParamError as exc:
+        raise BenchArgError(str(exc)) from None
+    for o in overrides:
+        if o.split("=", 1)[0].strip() in RESERVED_KEYS:
+            raise BenchArgError(f"--set {o}: the suite sets this itself (use --worlds, "
+                                "--strategies, --seeds)")
+
+
 def parse_config(argv: Sequence[str]) -> tuple[Config | None, argparse.Namespace]:
     """Parse and check everything (worlds load, strategies, numbers, output dir) or raise
     :class:`BenchArgError`. Returns ``(None, args)`` for ``--from-results``."""
@@ -684,21 +704,8 @@ def parse_config(argv: Sequence[str]) -> tuple[Config | None, argparse.Namespace
     out = Path(args.out or "runs/bench-explore")
     if out.exists() and not out.is_dir():
         raise BenchArgError(f"--out {out} is not a directory")
-    params = None
-    if args.params is not None or args.overrides:
-        from common.params import ParamError, load_params
-
-        if args.params is not None:
-            params = str(Path(args.params).resolve())
-        try:  # every run would fail the same way: say it once, before anything runs
-            load_params(params, list(args.overrides))
-        except ParamError as exc:
-            raise BenchArgError(str(exc)) from None
-        for o in args.overrides:
-            if o.split("=", 1)[0].strip() in ("planner.strategy", "sim.world", "sim.seed",
-                                              "sim.lockstep"):
-                raise BenchArgError(f"--set {o}: the suite sets this itself (use --worlds, "
-                                    "--strategies, --seeds)")
+    params = None if args.params is None else str(Path(args.params).resolve())
+    check_overrides(params, args.overrides)
     return Config(worlds=worlds, strategies=strategies, seeds=seeds, out=out,
                   max_sim_time=float(args.max_sim_time), max_wall_time=float(args.max_wall_time),
                   jobs=args.jobs, progress=not args.no_progress, notes=notes, params=params,

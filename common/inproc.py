@@ -31,14 +31,13 @@ from common import messages as m
 from common.benchexplore import (
     STRATEGIES,
     BenchArgError,
+    check_overrides,
     default_worlds,
     pair_ratios,
     resolve_world,
 )
 from common.metrics import coverage
-from common.params import ParamError, load_params
-
-RESERVED = ("sim.world", "sim.seed", "sim.lockstep", "planner.strategy")
+from common.params import load_params
 
 
 def _hdr(stamp: float, k: int) -> m.Header:
@@ -159,14 +158,7 @@ def parse(argv: Sequence[str]) -> tuple[list[tuple], argparse.Namespace]:
         raise BenchArgError("--seeds and --jobs must be >= 1")
     if not (math.isfinite(a.max_sim_time) and a.max_sim_time > 0):
         raise BenchArgError("--max-sim-time must be a positive number")
-    for s in a.set:
-        key = s.split("=", 1)[0].strip()
-        if key in RESERVED:
-            raise BenchArgError(f"--set {key}: set by the sweep itself")
-    try:
-        load_params(None, list(a.set))
-    except ParamError as exc:
-        raise BenchArgError(str(exc)) from None
+    check_overrides(None, a.set)
     items = [(label, world, st, seed, tuple(a.set), a.max_sim_time)
              for label, world in worlds for st in strategies for seed in range(a.seeds)]
     return items, a

@@ -122,7 +122,7 @@ class ReliabilityParams(_P):
     # reliable starts from that P (the place was examined; core._recall); 0 disables
     p_free: float = 0.35  # known-free threshold for the frontier test (as mapper.p_free)
     pocket_area: float = 0.5  # [m^2] enclosed unknown pockets smaller than this are no frontier
-    # (the inside of an obstacle seen through a notch; core.open_unknown); 0 disables
+    # (the inside of an obstacle seen through a notch; common.grid.open_unknown); 0 disables
     bearing_bin: float = math.radians(0.5)  # [rad] bearings stored one per bin (eq. 3)
 
 

@@ -203,9 +203,8 @@ class PlannerCore:
         self._mapped_t = -math.inf  # stop_when_mapped: time [s] of the last frontier check
         self._mapped_ok = False  # ... its answer
         self._mapped_why = ""
-        self._clear_key: tuple | None = None  # clearance map of the current input grid
-        self._clear_src: np.ndarray | None = None
-        self._clear_val: np.ndarray | None = None
+        self._clear: tuple[GridGeometry, np.ndarray] | None = None  # this update's (crop
+        #   geometry, clearance map); the grid is the same throughout one update
 
     # --- public ------------------------------------------------------------------------------
 
@@ -223,7 +222,7 @@ class PlannerCore:
                 self._target.arrived_t = None
         self._last_t = t
         self._rel_before = self._rel_updates
-        self._clear_key = self._clear_src = self._clear_val = None  # valid for one update only
+        self._clear = None  # valid for one update only
         if rel is not None:
             self._rel_updates += 1
         self._record(x, y)
@@ -339,11 +338,10 @@ class PlannerCore:
         need = p.robot_radius + p.clearance_margin
         clearance_at = None
         if grid is not None:
-            source = grid
             grid, geom = crop_known(grid, geom)  # the same answers on a smaller array
             occ = classify(grid, p_free, p_occ) == OCCUPIED
             clearance_at = gr.grid_clearance(
-                self._clearance_of(source, grid, geom, p_free, p_occ, occ), geom)
+                self._clearance_of(grid, geom, p_free, p_occ, occ), geom)
         try:
             index = gr.build_index(topo, need, clearance_at, p.tip_length)
         except gr.GraphInputError as exc:
@@ -469,9 +467,7 @@ class PlannerCore:
                 and cached.cands and 0.0 <= t - self._frontier_t < self.p.frontier_period):
             fe = cached
         else:
-            fe = self._eval_frontier(x, y, topo, rel, grid, geom, p_free, p_occ,
-                                     max(self.p.min_frontier_size, self.p.completion_min_size),
-                                     self.p.completion_pocket_area, self.p.completion_near)
+            fe = self._eval_completion(x, y, topo, rel, grid, geom, p_free, p_occ)
             self._frontier_ev, self._frontier_t = fe, t
         if fe.failed is not None:
             return ev
@@ -491,28 +487,34 @@ class PlannerCore:
         if 0.0 <= t - self._mapped_t < self.p.frontier_period:
             return self._mapped_ok
         self._mapped_t = t
-        size = max(self.p.min_frontier_size, self.p.completion_min_size)
-        quick = self._eval_frontier(x, y, topo, rel, grid, geom, p_free, p_occ, size,
-                                    self.p.completion_pocket_area, 0.0, reach_only=True)
+        quick = self._eval_completion(x, y, topo, rel, grid, geom, p_free, p_occ, quick=True)
         if quick.failed is None and quick.cands:
             self._mapped_ok = False
             return False
-        fe = self._eval_frontier(x, y, topo, rel, grid, geom, p_free, p_occ, size,
-                                 self.p.completion_pocket_area, self.p.completion_near)
+        fe = self._eval_completion(x, y, topo, rel, grid, geom, p_free, p_occ)
         self._mapped_ok = fe.failed is None and not fe.cands
         self._mapped_why = fe.done
         return self._mapped_ok
 
-    def _clearance_of(self, source, grid, geom, p_free, p_occ, occ=None) -> np.ndarray:
-        """Distance [m] to the nearest occupied cell on the cropped grid, computed once per
-        input grid (the topological and frontier evaluations of one update share it)."""
-        key = (id(source), geom, p_free, p_occ)
-        if self._clear_key != key or self._clear_src is not source:
+    def _eval_completion(self, x, y, topo, rel, grid, geom, p_free, p_occ,
+                         quick: bool = False) -> _Eval:
+        """The frontier groups the completion rules count (completion_min_size, or shorter
+        within completion_near, no enclosed pockets below completion_pocket_area). quick:
+        only the long groups, and only whether they are reachable (no path costs)."""
+        p = self.p
+        return self._eval_frontier(x, y, topo, rel, grid, geom, p_free, p_occ,
+                                   max(p.min_frontier_size, p.completion_min_size),
+                                   p.completion_pocket_area, 0.0 if quick else p.completion_near,
+                                   reach_only=quick)
+
+    def _clearance_of(self, grid, geom, p_free, p_occ, occ=None) -> np.ndarray:
+        """Distance [m] to the nearest occupied cell on the cropped grid of this update,
+        computed once (the topological and frontier evaluations of one update share it)."""
+        if self._clear is None or self._clear[0] != geom:
             if occ is None:
                 occ = classify(grid, p_free, p_occ) == OCCUPIED
-            self._clear_val = fr.clearance_map(occ, geom.resolution)
-            self._clear_key, self._clear_src = key, source
-        return self._clear_val
+            self._clear = (geom, fr.clearance_map(occ, geom.resolution))
+        return self._clear[1]
 
     def _approach(self, i, nx, ny, label, prob, index, entry, wide, clearance_at, need, x, y
                   ) -> _Cand | None:
@@ -559,7 +561,6 @@ class PlannerCore:
         floor = min(min_size, p.min_frontier_size) if near > 0 else min_size
         if grid is None:
             return _Eval(waiting="waiting for map")
-        source = grid
         grid, geom = crop_known(grid, geom)  # the same answers on a smaller array
         ev = _Eval()
         if topo is not None:  # informational only
@@ -572,7 +573,7 @@ class PlannerCore:
         search = fr.grid_search(grid, geom, x, y, hard, p_free, p_occ,
                                 soft_radius=SOFT_RADIUS_FACTOR * hard, soft_penalty=SOFT_PENALTY,
                                 reach_only=reach_only,
-                                clearance=self._clearance_of(source, grid, geom, p_free, p_occ))
+                                clearance=self._clearance_of(grid, geom, p_free, p_occ))
         if search.start is None:
             ev.failed = "the robot is not near known free space (no start cell for the search)"
             ev.done = ev.failed
