@@ -26,7 +26,7 @@ from typing import Any
 import msgspec
 import zenoh
 
-from common import messages as m
+from topoexplore.common import messages as m
 
 log = logging.getLogger("topoexplore.bus")
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from common import messages as m
+from topoexplore.common import messages as m
 
 UNKNOWN = 0
 FREE = 1

@@ -9,7 +9,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from common import messages as m
+from topoexplore.common import messages as m
 
 DEFAULT_NAMESPACE = "topoexplore"
 DEFAULT_ROBOT = "robot1"

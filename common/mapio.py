@@ -35,7 +35,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from common.grid import FREE, OCCUPIED, GridGeometry, classify
+from topoexplore.common.grid import FREE, OCCUPIED, GridGeometry, classify
 
 __all__ = [
     "MapIOError",

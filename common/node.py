@@ -26,10 +26,10 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
-from common import messages as m
-from common.bus import DEFAULT_ENDPOINT, Bus, BusError, Publisher, init_logging
-from common.keys import TOPICS, Keys
-from common.params import ParamError, Params, load_params, params_to_dict
+from topoexplore.common import messages as m
+from topoexplore.common.bus import DEFAULT_ENDPOINT, Bus, BusError, Publisher, init_logging
+from topoexplore.common.keys import TOPICS, Keys
+from topoexplore.common.params import ParamError, Params, load_params, params_to_dict
 
 log = logging.getLogger("topoexplore")
 

@@ -328,7 +328,7 @@ def _validate(p: Params) -> None:
         raise ParamError(f"controller.start_turn must be in [0, 8 pi] rad (got {c.start_turn!r})")
     if not 0 < c.slow_min_scale <= 1 or c.lateral_margin < 0:
         raise ParamError("controller: need 0 < slow_min_scale <= 1 and lateral_margin >= 0")
-    from common.keys import check_segment
+    from topoexplore.common.keys import check_segment
 
     for ep in p.bus.connect.split(","):
         check_endpoint(ep.strip())

@@ -12,8 +12,8 @@ import math
 import numpy as np
 import pymunk
 
-from common.params import SimParams
-from sim.world import World
+from topoexplore.common.params import SimParams
+from topoexplore.sim.world import World
 
 __all__ = ["SimError", "SimCore", "box_vertices", "beam_angles"]
 

@@ -16,10 +16,10 @@ import time
 
 import numpy as np
 
-from common import messages as m
-from common.node import Node, run_service
-from sim.core import SimCore
-from sim.world import WorldError, load_world
+from topoexplore.common import messages as m
+from topoexplore.common.node import Node, run_service
+from topoexplore.sim.core import SimCore
+from topoexplore.sim.world import WorldError, load_world
 
 log = logging.getLogger("topoexplore.sim")
 

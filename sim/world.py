@@ -44,7 +44,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from common.mapio import MapIOError, read_map_server
+from topoexplore.common.mapio import MapIOError, read_map_server
 
 __all__ = [
     "WorldError",

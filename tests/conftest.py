@@ -44,7 +44,6 @@ class Procs:
 
     def start(self, args: list[str], **kw) -> subprocess.Popen:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
-        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
         kw.setdefault("stdout", subprocess.PIPE)
         kw.setdefault("stderr", subprocess.STDOUT)
         p = subprocess.Popen(args, env=env, cwd=REPO, start_new_session=True, text=True, **kw)
@@ -55,7 +54,7 @@ class Procs:
         return self.start([sys.executable, "-u", *args], **kw)
 
     def router(self, endpoint: str) -> subprocess.Popen:
-        return self.python("-m", "common.router", "--listen", endpoint)
+        return self.python("-m", "topoexplore.tools.router", "--listen", endpoint)
 
     def cleanup(self) -> None:
         for p in self.procs:

@@ -7,9 +7,9 @@ import time
 import msgpack
 import pytest
 
-from common.bus import Bus
-from common.keys import Keys
-from common.livestate import fetch_state
+from topoexplore.common.bus import Bus
+from topoexplore.common.keys import Keys
+from topoexplore.tools.livestate import fetch_state
 
 SUBSCRIBED = {
     "sim": ["cmd_vel"],
@@ -31,7 +31,7 @@ GARBAGE = [
 @pytest.mark.parametrize("service", list(SUBSCRIBED))
 def test_garbage_on_every_key_is_counted_and_survived(procs, endpoint, namespace, service):
     procs.router(endpoint)
-    module = "sim.service" if service == "sim" else f"services.{service}.service"
+    module = "topoexplore.sim.service" if service == "sim" else f"topoexplore.services.{service}.service"
     p = procs.python("-m", module, "--connect", endpoint, "--namespace", namespace)
     keys = Keys(namespace, "robot1")
     with Bus.client(endpoint, wait_for_router=True) as bus:

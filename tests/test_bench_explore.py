@@ -12,8 +12,8 @@ import sys
 import numpy as np
 import pytest
 
-from common import benchexplore as be
 from tests.conftest import REPO, SHARED
+from topoexplore.tools.bench import explore as be
 
 
 def rep(world, strategy, seed, path, sim, finished=True, coverage=1.0, timeline=None):
@@ -235,7 +235,7 @@ def test_smoke_suite_files_and_ratio_arithmetic(tmp_path):
     results.json equals the one recomputed from the runs' own report.json files."""
     out = tmp_path / "bench"
     worlds = ["dead-end", "corner"]
-    r = subprocess.run([sys.executable, "-m", "common.cli", "bench", "explore", "--worlds",
+    r = subprocess.run([sys.executable, "-m", "topoexplore.tools.cli", "bench", "explore", "--worlds",
                         ",".join(worlds), "--seeds", "1", "--max-sim-time", "50",
                         "--max-wall-time", "12", "--jobs", "2", "--no-progress", "--out", str(out)],
                        cwd=REPO, capture_output=True, text=True, timeout=400,
@@ -281,7 +281,7 @@ def test_smoke_suite_files_and_ratio_arithmetic(tmp_path):
 
 def test_bench_stages_times_every_core():
     """`bench stages` (compute part) on the smallest map: a figure for every service core."""
-    from common import benchstages
+    from topoexplore.tools.bench import stages as benchstages
 
     res = benchstages.bench_stages(sizes=(100,), repeats=1)
     for stage in benchstages.STAGES:
@@ -304,7 +304,7 @@ def test_sigterm_stops_the_suite_and_its_running_stacks(tmp_path, jobs):
     import time
 
     out = tmp_path / "b"
-    p = subprocess.Popen([sys.executable, "-m", "common.cli", "bench", "explore", "--worlds",
+    p = subprocess.Popen([sys.executable, "-m", "topoexplore.tools.cli", "bench", "explore", "--worlds",
                           "office", "--strategies", "reliability", "--seeds", "1", "--out",
                           str(out), "--no-progress", "--jobs", jobs], cwd=REPO,
                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)

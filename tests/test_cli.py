@@ -11,15 +11,15 @@ import time
 import numpy as np
 import pytest
 
-from common.bus import Bus
-from common.grid import classify
-from common.keys import Keys
-from common.mapio import read_map_server
 from tests.conftest import REPO
+from topoexplore.common.bus import Bus
+from topoexplore.common.grid import classify
+from topoexplore.common.keys import Keys
+from topoexplore.common.mapio import read_map_server
 
 
 def cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "common.cli", *args], cwd=REPO,
+    return subprocess.run([sys.executable, "-m", "topoexplore.tools.cli", *args], cwd=REPO,
                           capture_output=True, text=True, timeout=timeout,
                           env=dict(os.environ, PYTHONPATH=str(REPO)))
 
@@ -79,7 +79,7 @@ def test_bad_arguments_one_line(args, tmp_path):
 
 
 def test_map_save_and_render_live_then_saved_dir(procs, endpoint, namespace, tmp_path):
-    procs.python("-m", "common.cli", "up", "--profile", "mapping", "--connect", endpoint,
+    procs.python("-m", "topoexplore.tools.cli", "up", "--profile", "mapping", "--connect", endpoint,
                  "--namespace", namespace)
     keys = Keys(namespace, "robot1")
     with Bus.client(endpoint, wait_for_router=True) as bus:

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from common.params import ControllerParams, Params, load_params
-from services.controller.core import (
+from topoexplore.common.params import ControllerParams, Params, load_params
+from topoexplore.services.controller.core import (
     MODES,
     ControllerCore,
     ControllerError,

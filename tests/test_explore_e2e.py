@@ -26,7 +26,7 @@ DETERMINISTIC = ["finished", "stop_reason", "sim_time_s", "path_length_m", "cove
 @cache
 def explore(world: str, strategy: str = "reliability", seed: int = 0, repeat: int = 0) -> dict:
     out = OUT / f"{world}-{strategy}-{seed}-{repeat}"
-    cmd = [sys.executable, "-m", "common.cli", "run", "--world", world, "--strategy", strategy,
+    cmd = [sys.executable, "-m", "topoexplore.tools.cli", "run", "--world", world, "--strategy", strategy,
            "--seed", str(seed), "--lockstep", "--quiet", "--out", str(out),
            "--connect", f"tcp/127.0.0.1:{free_port()}", "--namespace", f"e2e{os.getpid()}",
            "--max-sim-time", "1500"]
@@ -69,7 +69,7 @@ def test_reliability_travels_less_than_all_end_nodes(world):
 def test_in_process_pipeline_reproduces_the_bus_run():
     """`topoexplore bench inproc` (the tuning tool) calls the cores in the order the services
     run them in lockstep: the same path, sim time and coverage as the real processes."""
-    from common import inproc
+    from topoexplore.tools.bench import inproc
 
     bus = explore("dead-end")
     local = inproc.run("dead-end", "reliability", 0, (), 1500.0)

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from common.grid import (
+from topoexplore.common.grid import (
     UNKNOWN,
     GridGeometry,
     classify,

@@ -1,4 +1,4 @@
-"""Tests of common/keytools.py (``topoexplore keys list|echo|hz|get``).
+"""Tests of tools/keys.py (``topoexplore keys list|echo|hz|get``).
 
 Pure helpers are unit-tested directly. The commands run as real processes against a real Zenoh
 router process and a real publisher process on loopback (a free port and a namespace per test;
@@ -22,8 +22,8 @@ from pathlib import Path
 
 import pytest
 
-from common.keys import Keys
-from common.keytools import (
+from topoexplore.common.keys import Keys
+from topoexplore.tools.keys import (
     FieldError,
     KeyToolError,
     RateStats,
@@ -42,7 +42,7 @@ from common.keytools import (
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
-TOOL = "from common.keytools import main; raise SystemExit(main())"
+TOOL = "from topoexplore.tools.keys import main; raise SystemExit(main())"
 
 # --- pure helpers --------------------------------------------------------------------------
 
@@ -158,9 +158,9 @@ def test_rate_stats_explicit_timestamps():
 
 PUBLISHER = textwrap.dedent('''
     import math, signal, sys, threading, time
-    from common import messages as m
-    from common.bus import Bus
-    from common.keys import Keys
+    from topoexplore.common import messages as m
+    from topoexplore.common.bus import Bus
+    from topoexplore.common.keys import Keys
     endpoint, ns = sys.argv[1], sys.argv[2]
     keys = Keys(ns, "robot1")
     stop = threading.Event()
@@ -241,7 +241,7 @@ class Stack:
         self.procs: list[subprocess.Popen] = []
         script = tmp_path / "fake_publisher.py"
         script.write_text(PUBLISHER)
-        router = self._popen([sys.executable, "-m", "common.router", "--listen", self.endpoint])
+        router = self._popen([sys.executable, "-m", "topoexplore.tools.router", "--listen", self.endpoint])
         _wait_line(router, "router listening")
         if with_publisher:
             pub = self._popen([sys.executable, str(script), self.endpoint, self.ns])

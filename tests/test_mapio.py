@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from common.grid import FREE, OCCUPIED, UNKNOWN, GridGeometry, classify
-from common.mapio import (
+from topoexplore.common.grid import FREE, OCCUPIED, UNKNOWN, GridGeometry, classify
+from topoexplore.common.mapio import (
     PIX_FREE,
     PIX_OCCUPIED,
     PIX_UNKNOWN,

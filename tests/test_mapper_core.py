@@ -11,9 +11,9 @@ import msgspec
 import numpy as np
 import pytest
 
-from common.grid import FREE, OCCUPIED, GridGeometry, classify
-from common.params import MapperParams
-from services.mapper.core import (
+from topoexplore.common.grid import FREE, OCCUPIED, GridGeometry, classify
+from topoexplore.common.params import MapperParams
+from topoexplore.services.mapper.core import (
     MapLoadError,
     MapperCore,
     ScanError,

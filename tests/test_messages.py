@@ -9,7 +9,7 @@ import msgspec
 import numpy as np
 import pytest
 
-from common import messages as m
+from topoexplore.common import messages as m
 
 
 def hdr(**kw) -> m.Header:

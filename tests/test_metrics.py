@@ -5,9 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.grid import GridGeometry
-from common.metrics import MetricsError, accuracy_counts, coverage, map_accuracy, sample_classes
-from sim.world import parse_world, rasterize, truth_free_reachable
+from topoexplore.common.grid import GridGeometry
+from topoexplore.sim.world import parse_world, rasterize, truth_free_reachable
+from topoexplore.tools.metrics import (
+    MetricsError,
+    accuracy_counts,
+    coverage,
+    map_accuracy,
+    sample_classes,
+)
 
 FREE, OCC, UNK = 0, 100, -1
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import threading
 
-from common.node import Inbox, OdomBuffer
+from topoexplore.common.node import Inbox, OdomBuffer
 
 
 def test_odom_exact_and_interpolated():

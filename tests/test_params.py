@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from common.params import ParamError, load_params
+from topoexplore.common.params import ParamError, load_params
 
 
 def test_paper_defaults():

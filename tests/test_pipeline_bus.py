@@ -6,13 +6,13 @@ from __future__ import annotations
 import threading
 import time
 
-from common import messages as m
-from common.bus import Bus
-from common.grid import OCCUPIED, GridGeometry, classify
-from common.keys import Keys
-from services.supervisor.core import load_profile
-from services.supervisor.service import Supervisor, profile_path
-from sim.world import load_world, rasterize
+from topoexplore.common import messages as m
+from topoexplore.common.bus import Bus
+from topoexplore.common.grid import OCCUPIED, GridGeometry, classify
+from topoexplore.common.keys import Keys
+from topoexplore.sim.world import load_world, rasterize
+from topoexplore.tools.launch.core import load_profile
+from topoexplore.tools.launch.supervisor import Supervisor, profile_path
 
 
 def test_sim_mapper_topology_over_the_bus(endpoint, namespace):

@@ -8,12 +8,12 @@ import msgspec
 import numpy as np
 import pytest
 
-from common import messages as m
-from common.grid import GridGeometry
-from common.params import PlannerParams
-from services.planner import frontier as fr
-from services.planner import graph as gr
-from services.planner.core import PlannerCore, PlannerInputError
+from topoexplore.common import messages as m
+from topoexplore.common.grid import GridGeometry
+from topoexplore.common.params import PlannerParams
+from topoexplore.services.planner import frontier as fr
+from topoexplore.services.planner import graph as gr
+from topoexplore.services.planner.core import PlannerCore, PlannerInputError
 
 # --- builders --------------------------------------------------------------------------------
 

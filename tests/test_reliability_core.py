@@ -9,10 +9,10 @@ import msgspec
 import numpy as np
 import pytest
 
-from common.grid import GridGeometry, open_unknown
-from common.messages import Header, NodeReliability, Reliability, decode, encode
-from common.params import ReliabilityParams
-from services.reliability.core import (
+from topoexplore.common.grid import GridGeometry, open_unknown
+from topoexplore.common.messages import Header, NodeReliability, Reliability, decode, encode
+from topoexplore.common.params import ReliabilityParams
+from topoexplore.services.reliability.core import (
     ReliabilityCore,
     ReliabilityError,
     angle_index,

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from common import messages as m
-from common.grid import GridGeometry
-from common.render import (
+from topoexplore.common import messages as m
+from topoexplore.common.grid import GridGeometry
+from topoexplore.tools.draw import (
     COL_BRANCH,
     COL_CORNER,
     COL_EDGE,

@@ -6,14 +6,14 @@ from __future__ import annotations
 import math
 import threading
 
-from common import messages as m
-from common.bus import Bus
-from common.keys import Keys
+from topoexplore.common import messages as m
+from topoexplore.common.bus import Bus
+from topoexplore.common.keys import Keys
 
 
 def test_sim_process_driven_over_the_bus(procs, endpoint, namespace):
     procs.router(endpoint)
-    sim = procs.python("-m", "sim.service", "--connect", endpoint, "--namespace", namespace,
+    sim = procs.python("-m", "topoexplore.sim.service", "--connect", endpoint, "--namespace", namespace,
                        "--set", "sim.lockstep=true", "--set", "sim.lockstep_wait_for=[]",
                        "--set", 'sim.world="dead-end"', "--set", "sim.range_noise=0.0")
     keys = Keys(namespace, "robot1")

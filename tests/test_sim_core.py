@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from common.params import SimParams
-from sim.core import SimCore, SimError, beam_angles
-from sim.world import World, clearance, load_world, parse_world
+from topoexplore.common.params import SimParams
+from topoexplore.sim.core import SimCore, SimError, beam_angles
+from topoexplore.sim.world import World, clearance, load_world, parse_world
 
 DT = 1.0 / 50.0  # [s] default physics step
 

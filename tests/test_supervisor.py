@@ -7,11 +7,11 @@ import os
 import signal
 import time
 
-from common.bus import Bus
-from common.keys import Keys
-from services.supervisor.core import ProcSpec, Profile, RestartPolicy
-from services.supervisor.service import Supervisor
 from tests.conftest import pid_alive
+from topoexplore.common.bus import Bus
+from topoexplore.common.keys import Keys
+from topoexplore.tools.launch.core import ProcSpec, Profile, RestartPolicy
+from topoexplore.tools.launch.supervisor import Supervisor
 
 
 def wait_for(pred, timeout: float, period: float = 0.05) -> bool:
@@ -25,8 +25,8 @@ def wait_for(pred, timeout: float, period: float = 0.05) -> bool:
 
 def test_killed_child_comes_back(endpoint, namespace):
     profile = Profile(name="t", description="", router=True, processes=(
-        ProcSpec(name="mapper", module="services.mapper.service"),
-        ProcSpec(name="reliability", module="services.reliability.service"),
+        ProcSpec(name="mapper", module="topoexplore.services.mapper.service"),
+        ProcSpec(name="reliability", module="topoexplore.services.reliability.service"),
     ))
     keys = Keys(namespace, "robot1")
     lines: list[str] = []
@@ -53,14 +53,14 @@ def test_killed_child_comes_back(endpoint, namespace):
 
 
 def test_ctrl_c_leaves_no_process_behind(procs, endpoint, namespace, tmp_path):
-    up = procs.python("-m", "common.cli", "up", "--profile", "mapping", "--connect", endpoint,
+    up = procs.python("-m", "topoexplore.tools.cli", "up", "--profile", "mapping", "--connect", endpoint,
                       "--namespace", namespace)
     keys = Keys(namespace, "robot1")
     time.sleep(0.5)
     with Bus.client(endpoint, wait_for_router=True) as bus:
         want = {keys.alive(s) for s in ("mapper", "topology", "sim", "supervisor")}
         assert wait_for(lambda: want <= set(bus.alive(keys.alive_all())), 60)
-        from common.livestate import fetch_state
+        from topoexplore.tools.livestate import fetch_state
 
         table = fetch_state(bus, keys, "supervisor")
     pids = [p["pid"] for p in table["processes"].values()]

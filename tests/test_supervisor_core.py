@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from services.supervisor.core import (
+from topoexplore.tools.launch.core import (
     ProcSpec,
     ProcState,
     ProfileError,

@@ -8,10 +8,10 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from common import messages as m
-from common.grid import GridGeometry
-from common.params import TopologyParams
-from services.topology.core import TopologyCore, TopologyError, associate_ids
+from topoexplore.common import messages as m
+from topoexplore.common.grid import GridGeometry
+from topoexplore.common.params import TopologyParams
+from topoexplore.services.topology.core import TopologyCore, TopologyError, associate_ids
 
 RES = 0.1  # [m]
 FREE, OCC, UNK = 0, 100, -1

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from sim.world import (
+from topoexplore.sim.world import (
     ROBOT_RADIUS,
     START_CLEARANCE,
     World,

@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 
-from common.params import ControllerParams
+from topoexplore.common.params import ControllerParams
 
 __all__ = [
     "ControllerError",

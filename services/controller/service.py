@@ -12,9 +12,9 @@ import math
 
 import numpy as np
 
-from common import messages as m
-from common.node import Node, OdomBuffer, run_service
-from services.controller.core import ControllerCore
+from topoexplore.common import messages as m
+from topoexplore.common.node import Node, OdomBuffer, run_service
+from topoexplore.services.controller.core import ControllerCore
 
 log = logging.getLogger("topoexplore.controller")
 

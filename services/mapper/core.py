@@ -34,8 +34,8 @@ import math
 import numpy as np
 from numba import njit
 
-from common.grid import GridGeometry
-from common.params import MapperParams
+from topoexplore.common.grid import GridGeometry
+from topoexplore.common.params import MapperParams
 
 __all__ = [
     "ScanError",

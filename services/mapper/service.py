@@ -14,9 +14,9 @@ import logging
 
 import numpy as np
 
-from common import messages as m
-from common.node import Node, OdomBuffer, run_service
-from services.mapper.core import MapperCore, ScanError
+from topoexplore.common import messages as m
+from topoexplore.common.node import Node, OdomBuffer, run_service
+from topoexplore.services.mapper.core import MapperCore, ScanError
 
 log = logging.getLogger("topoexplore.mapper")
 

@@ -34,8 +34,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from common import messages as m
-from common.grid import (
+from topoexplore.common import messages as m
+from topoexplore.common.grid import (
     OCCUPIED,
     GridGeometry,
     classify,
@@ -43,9 +43,9 @@ from common.grid import (
     free_mask,
     open_unknown,
 )
-from common.params import PlannerParams
-from services.planner import frontier as fr
-from services.planner import graph as gr
+from topoexplore.common.params import PlannerParams
+from topoexplore.services.planner import frontier as fr
+from topoexplore.services.planner import graph as gr
 
 STRATEGIES = ("reliability", "all-end-nodes", "frontier")
 P_UNSEEN = 0.5  # P of an end node the reliability message does not list yet (paper: initial P)

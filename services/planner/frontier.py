@@ -32,7 +32,7 @@ import cv2
 import numba
 import numpy as np
 
-from common.grid import FREE, OCCUPIED, GridGeometry, classify, unknown_mask
+from topoexplore.common.grid import FREE, OCCUPIED, GridGeometry, classify, unknown_mask
 
 SQRT2 = math.sqrt(2.0)
 LOOK_RADIUS = 1.0  # [m] unknown cells this close to a frontier goal set the heading to face

@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from common import messages as m
-from common.grid import GridGeometry
+from topoexplore.common import messages as m
+from topoexplore.common.grid import GridGeometry
 
 ENTRY = -1  # pseudo node id of the entry point in predecessor chains
 

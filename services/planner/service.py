@@ -9,10 +9,10 @@ from __future__ import annotations
 import logging
 import time
 
-from common import messages as m
-from common.grid import GridGeometry
-from common.node import Node, OdomBuffer, run_service
-from services.planner.core import PlannerCore
+from topoexplore.common import messages as m
+from topoexplore.common.grid import GridGeometry
+from topoexplore.common.node import Node, OdomBuffer, run_service
+from topoexplore.services.planner.core import PlannerCore
 
 log = logging.getLogger("topoexplore.planner")
 

@@ -30,9 +30,9 @@ import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
-from common.grid import GridGeometry, open_unknown
-from common.messages import NodeReliability
-from common.params import ReliabilityParams
+from topoexplore.common.grid import GridGeometry, open_unknown
+from topoexplore.common.messages import NodeReliability
+from topoexplore.common.params import ReliabilityParams
 
 __all__ = [
     "ReliabilityError",

@@ -31,11 +31,11 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from common import messages as m
-from common.grid import GridGeometry, free_mask, occupied_mask, unknown_mask
-from common.params import TopologyParams
-from services.topology import graph as g
-from services.topology import skeleton as sk
+from topoexplore.common import messages as m
+from topoexplore.common.grid import GridGeometry, free_mask, occupied_mask, unknown_mask
+from topoexplore.common.params import TopologyParams
+from topoexplore.services.topology import graph as g
+from topoexplore.services.topology import skeleton as sk
 
 __all__ = ["TopologyError", "TopoResult", "TopologyCore", "associate_ids"]
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from services.topology.skeleton import _redundant
+from topoexplore.services.topology.skeleton import _redundant
 
 __all__ = ["find_entry", "build_graph", "prune_spurs", "split_corners", "KIND_NAMES"]
 

@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import logging
 
-from common import messages as m
-from common.grid import GridGeometry
-from common.node import Node, OdomBuffer, run_service
-from services.topology.core import TopologyCore
+from topoexplore.common import messages as m
+from topoexplore.common.grid import GridGeometry
+from topoexplore.common.node import Node, OdomBuffer, run_service
+from topoexplore.services.topology.core import TopologyCore
 
 log = logging.getLogger("topoexplore.topology")
 

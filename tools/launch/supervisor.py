@@ -22,16 +22,16 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from importlib import resources
 from pathlib import Path
 
-from common.bus import Bus, BusError
-from common.keys import Keys
-from services.supervisor.core import ProcSpec, ProcState, Profile, RestartPolicy
+from topoexplore.common.bus import Bus, BusError
+from topoexplore.common.keys import Keys
+from topoexplore.tools.launch.core import ProcSpec, ProcState, Profile, RestartPolicy
 
 log = logging.getLogger("topoexplore.supervisor")
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
-PROFILE_DIR = REPO_ROOT / "deploy" / "profiles"
+PROFILE_PACKAGE = "topoexplore.deploy"  # launch profiles travel as package data: profiles/*.toml
 
 
 def _pdeathsig() -> None:  # runs in the child between fork and exec
@@ -42,11 +42,22 @@ def _pdeathsig() -> None:  # runs in the child between fork and exec
         pass
 
 
+def profile_dir() -> Path:
+    """The built-in launch profiles (``deploy/profiles`` in a checkout, package data once
+    installed)."""
+    return Path(str(resources.files(PROFILE_PACKAGE).joinpath("profiles")))
+
+
+def builtin_profiles() -> list[str]:
+    return sorted(p.stem for p in profile_dir().glob("*.toml"))
+
+
 def profile_path(name_or_path: str) -> Path:
+    """A profile name (``sim``, ``robot``, ...) or a path to a profile TOML file."""
     p = Path(name_or_path)
     if p.suffix == ".toml" or "/" in name_or_path:
         return p
-    return PROFILE_DIR / f"{name_or_path}.toml"
+    return profile_dir() / f"{name_or_path}.toml"
 
 
 class Supervisor:
@@ -88,7 +99,6 @@ class Supervisor:
 
     def _spawn(self, name: str, cmd: list[str]) -> subprocess.Popen:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
-        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT), env.get("PYTHONPATH")]))
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, env=env, start_new_session=True,
                                 preexec_fn=_pdeathsig, text=True, errors="replace", bufsize=1)
@@ -106,7 +116,7 @@ class Supervisor:
         """Start the router process (idempotent)."""
         if not self.profile.router or (self.router is not None and self.router.poll() is None):
             return
-        cmd = [sys.executable, "-u", "-m", "common.router", "--listen", self.endpoint]
+        cmd = [sys.executable, "-u", "-m", "topoexplore.tools.router", "--listen", self.endpoint]
         if self.zenoh_config:
             cmd += ["--zenoh-config", self.zenoh_config]
         self.router = self._spawn("router", cmd)

@@ -10,7 +10,7 @@ import signal
 import sys
 import threading
 
-from common.bus import DEFAULT_ENDPOINT, Bus, BusError, init_logging
+from topoexplore.common.bus import DEFAULT_ENDPOINT, Bus, BusError, init_logging
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -32,7 +32,7 @@ import time
 import numpy as np
 from numba import njit
 
-from common.grid import GridGeometry
+from topoexplore.common.grid import GridGeometry
 
 __all__ = ["office_truth", "office_route", "simulate_scan", "truth_to_grid", "bench_stages",
            "format_table"]
@@ -168,24 +168,24 @@ STAGES = ("mapper", "topology", "reliability", "planner", "planner-frontier", "c
 def _bench_size(n: int, repeats: int, stages: tuple[str, ...], seed: int) -> dict[str, dict]:
     import msgspec
 
-    from common import messages as msg
-    from common.params import (
+    from topoexplore.common import messages as msg
+    from topoexplore.common.params import (
         ControllerParams,
         MapperParams,
         PlannerParams,
         ReliabilityParams,
         TopologyParams,
     )
-    from services.controller.core import ControllerCore
-    from services.planner.core import PlannerCore
-    from services.reliability.core import ReliabilityCore
-    from services.topology.core import TopologyCore
+    from topoexplore.services.controller.core import ControllerCore
+    from topoexplore.services.planner.core import PlannerCore
+    from topoexplore.services.reliability.core import ReliabilityCore
+    from topoexplore.services.topology.core import TopologyCore
 
     occ, centres, verts = office_truth(n, seed)
     geom = GridGeometry(RES, 0.0, 0.0, n, n)
     out: dict[str, dict] = {}
     try:
-        from services.mapper.core import MapperCore
+        from topoexplore.services.mapper.core import MapperCore
     except ImportError:
         MapperCore = None  # noqa: N806
     if MapperCore is None:

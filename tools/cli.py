@@ -27,7 +27,7 @@ def _err(text: str, code: int = 2) -> int:
 
 
 def cmd_worlds(args: argparse.Namespace) -> int:
-    from sim.world import WorldError, builtin_worlds, load_world
+    from topoexplore.sim.world import WorldError, builtin_worlds, load_world
 
     if args.check:
         try:
@@ -45,12 +45,12 @@ def cmd_worlds(args: argparse.Namespace) -> int:
 
 
 def cmd_up(args: argparse.Namespace) -> int:
-    from common.bus import BusError
-    from common.keys import Keys
-    from common.node import params_from_args
-    from common.params import ParamError
-    from services.supervisor.core import ProfileError, load_profile
-    from services.supervisor.service import Supervisor, profile_path
+    from topoexplore.common.bus import BusError
+    from topoexplore.common.keys import Keys
+    from topoexplore.common.node import params_from_args
+    from topoexplore.common.params import ParamError
+    from topoexplore.tools.launch.core import ProfileError, load_profile
+    from topoexplore.tools.launch.supervisor import Supervisor, profile_path
 
     try:
         profile = load_profile(profile_path(args.profile))
@@ -85,15 +85,15 @@ def cmd_up(args: argparse.Namespace) -> int:
 
 
 def cmd_map_save(args: argparse.Namespace) -> int:
-    from common.bus import Bus, BusError
-    from common.livestate import StateError, fetch_state, map_from_state
-    from common.mapio import MapIOError, write_map_server
-    from common.node import params_from_args
-    from common.params import ParamError
+    from topoexplore.common.bus import Bus, BusError
+    from topoexplore.common.mapio import MapIOError, write_map_server
+    from topoexplore.common.node import params_from_args
+    from topoexplore.common.params import ParamError
+    from topoexplore.tools.livestate import StateError, fetch_state, map_from_state
 
     try:
         params = params_from_args(args)
-        from common.keys import Keys
+        from topoexplore.common.keys import Keys
 
         keys = Keys(params.bus.namespace, params.bus.robot)
         with Bus.client(params.bus.connect, config_file=args.zenoh_config) as bus:
@@ -107,13 +107,13 @@ def cmd_map_save(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from common.node import add_bus_args, add_param_args
+    from topoexplore.common.node import add_bus_args, add_param_args
 
     ap = argparse.ArgumentParser(prog="topoexplore", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="command", metavar="COMMAND")
 
-    from common import runner
+    from topoexplore.tools import run as runner
 
     runner.add_arguments(sub.add_parser("run", help="explore a world, write report + picture"))
 
@@ -147,10 +147,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 # subcommands with their own full parsers: forward the remaining argv
 _FORWARD = {
-    "keys": "common.keytools",
-    "router": "common.router",
-    "render": "common.rendercmd",
-    "bench": "common.bench",
+    "keys": "topoexplore.tools.keys",
+    "router": "topoexplore.tools.router",
+    "render": "topoexplore.tools.render",
+    "bench": "topoexplore.tools.bench",
 }
 
 
@@ -169,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         if args.command == "run":
-            from common import runner
+            from topoexplore.tools import run as runner
 
             return runner.run(args)
         if args.command == "up":

@@ -27,12 +27,12 @@ from typing import Any
 
 import msgspec
 
-from common import messages as m
-from common.bus import Bus, BusError
-from common.grid import GridGeometry
-from common.keys import Keys
-from common.node import add_bus_args, add_param_args, params_from_args
-from common.params import STRATEGIES, ParamError, Params
+from topoexplore.common import messages as m
+from topoexplore.common.bus import Bus, BusError
+from topoexplore.common.grid import GridGeometry
+from topoexplore.common.keys import Keys
+from topoexplore.common.node import add_bus_args, add_param_args, params_from_args
+from topoexplore.common.params import STRATEGIES, ParamError, Params
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -177,7 +177,7 @@ class Truth:
     """Ground-truth rasters of the world for coverage / accuracy."""
 
     def __init__(self, world_name: str, resolution: float):
-        from sim.world import load_world, rasterize, truth_free_reachable
+        from topoexplore.sim.world import load_world, rasterize, truth_free_reachable
 
         self.world = load_world(world_name)
         self.resolution = resolution
@@ -187,7 +187,7 @@ class Truth:
         self.free_origin = (fx, fy)
 
     def coverage(self, grid: m.OccupancyGrid | None, p: Params) -> float:
-        from common.metrics import coverage
+        from topoexplore.tools.metrics import coverage
 
         if grid is None:
             return 0.0
@@ -195,7 +195,7 @@ class Truth:
                               self.free_origin, self.resolution, p.mapper.p_free, p.mapper.p_occ))
 
     def accuracy(self, grid: m.OccupancyGrid | None, p: Params) -> float:
-        from common.metrics import map_accuracy
+        from topoexplore.tools.metrics import map_accuracy
 
         if grid is None:
             return 0.0
@@ -239,8 +239,8 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
 
 
 def _bad_message_total(bus: Bus, keys: Keys) -> int:
-    from common.keys import SERVICES
-    from common.livestate import StateError, fetch_state
+    from topoexplore.common.keys import SERVICES
+    from topoexplore.tools.livestate import StateError, fetch_state
 
     total = 0
     for s in SERVICES:
@@ -254,8 +254,8 @@ def _bad_message_total(bus: Bus, keys: Keys) -> int:
 
 def write_outputs(out: Path, report: dict, mon: Monitor, truth: Truth, p: Params,
                   title: str) -> None:
-    from common.mapio import write_map_server, write_png
-    from common.render import render
+    from topoexplore.common.mapio import write_map_server, write_png
+    from topoexplore.tools.draw import render
 
     out.mkdir(parents=True, exist_ok=True)
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
@@ -285,9 +285,9 @@ def write_outputs(out: Path, report: dict, mon: Monitor, truth: Truth, p: Params
 
 
 def run(args: argparse.Namespace) -> int:
-    from services.supervisor.core import load_profile
-    from services.supervisor.service import Supervisor, profile_path
-    from sim.world import WorldError, load_world
+    from topoexplore.sim.world import WorldError, load_world
+    from topoexplore.tools.launch.core import load_profile
+    from topoexplore.tools.launch.supervisor import Supervisor, profile_path
 
     # -- validate everything before starting anything -------------------------------------
     if not (args.speed > 0 and math.isfinite(args.speed)):

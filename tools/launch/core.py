@@ -8,7 +8,8 @@ A launch profile (TOML, ``deploy/profiles/*.toml``)::
 
     [[process]]
     name = "sim"
-    module = "sim.service"        # run as `python -m sim.service <bus and parameter options>`
+    module = "topoexplore.sim.service"  # run as `python -m topoexplore.sim.service <bus and
+    #                                     parameter options>`
     # or: cmd = ["/opt/driver/bin/laser", "--port", "/dev/ttyUSB0"]  (a foreign driver)
     restart = true                # default true
     ready_timeout = 30.0          # [s] to wait for its liveliness token (module processes)

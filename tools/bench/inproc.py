@@ -27,8 +27,9 @@ from typing import Any
 
 import numpy as np
 
-from common import messages as m
-from common.benchexplore import (
+from topoexplore.common import messages as m
+from topoexplore.common.params import load_params
+from topoexplore.tools.bench.explore import (
     STRATEGIES,
     BenchArgError,
     check_overrides,
@@ -36,8 +37,7 @@ from common.benchexplore import (
     pair_ratios,
     resolve_world,
 )
-from common.metrics import coverage
-from common.params import load_params
+from topoexplore.tools.metrics import coverage
 
 
 def _hdr(stamp: float, k: int) -> m.Header:
@@ -50,13 +50,13 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
     """One exploration, in process. ``sets``: ``section.key=value`` overrides (TOML values).
     ``on_update(t, pose, topo, reliability, plan, grid, geom)`` is called after every plan;
     it may raise to stop the run. Returns the run's figures."""
-    from services.controller.core import ControllerCore
-    from services.mapper.core import MapperCore
-    from services.planner.core import PlannerCore
-    from services.reliability.core import ReliabilityCore
-    from services.topology.core import TopologyCore
-    from sim.core import SimCore
-    from sim.world import load_world, truth_free_reachable
+    from topoexplore.services.controller.core import ControllerCore
+    from topoexplore.services.mapper.core import MapperCore
+    from topoexplore.services.planner.core import PlannerCore
+    from topoexplore.services.reliability.core import ReliabilityCore
+    from topoexplore.services.topology.core import TopologyCore
+    from topoexplore.sim.core import SimCore
+    from topoexplore.sim.world import load_world, truth_free_reachable
 
     P = load_params(None, [f"sim.world={json.dumps(world)}", f"sim.seed={int(seed)}",
                            f"planner.strategy={json.dumps(strategy)}", "sim.lockstep=true",

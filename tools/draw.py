@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from common import messages as m
-from common.grid import GridGeometry
+from topoexplore.common import messages as m
+from topoexplore.common.grid import GridGeometry
 
 __all__ = [
     "RenderError",

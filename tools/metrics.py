@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from common.grid import FREE, OCCUPIED, UNKNOWN, GridGeometry, classify
+from topoexplore.common.grid import FREE, OCCUPIED, UNKNOWN, GridGeometry, classify
 
 __all__ = ["MetricsError", "sample_classes", "coverage", "map_accuracy", "accuracy_counts"]
 

@@ -53,8 +53,8 @@ from typing import Any
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED_MAPS = REPO.parent / "shared" / "maps"
+from topoexplore.tools.paths import checkout_root, shared_maps_dir
+
 EXTRA_MAPS = ("lse_arena.yaml",)  # real map_server maps added to the default suite
 STRATEGIES = ("reliability", "all-end-nodes", "frontier")
 QUICK_WORLDS = ("paper-room", "dead-end")
@@ -523,10 +523,11 @@ def machine_info() -> dict[str, Any]:
             pkgs[p] = "not installed"
     git = "unknown"
     try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, text=True,
+        root = checkout_root() or Path.cwd()
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, text=True,
                               capture_output=True, timeout=10).stdout.strip()
         dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
-                               cwd=REPO, text=True, capture_output=True, timeout=10).stdout
+                               cwd=root, text=True, capture_output=True, timeout=10).stdout
         if head:
             git = head + (" (with uncommitted changes)" if dirty.strip() else "")
     except (OSError, subprocess.SubprocessError):
@@ -560,7 +561,7 @@ class Config:
             args += ["--params", self.params]
         for o in self.overrides:
             args += ["--set", o]
-        args += ["--out", str(self.out if self.out.is_absolute() or Path.cwd().resolve() == REPO
+        args += ["--out", str(self.out if self.out.is_absolute() or Path.cwd().resolve() == _root()
                              else self.out.resolve())]
         return shlex.join(args)
 
@@ -597,13 +598,19 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _root() -> Path:
+    """The checkout's root (relative world paths in commands are written from there), or the
+    current directory when installed from a wheel."""
+    return checkout_root() or Path.cwd().resolve()
+
+
 def resolve_world(text: str) -> tuple[str, str, str]:
     """World name or file -> ``(label, argument for run, text for the command)``.
 
     A relative file path is looked up from the current directory, then from the repository
     root. Raises :class:`BenchArgError` for unknown names and unreadable files.
     """
-    from sim.world import WorldError, load_world
+    from topoexplore.sim.world import WorldError, load_world
 
     if "/" not in text and not text.endswith((".toml", ".yaml", ".yml")):
         try:
@@ -612,7 +619,7 @@ def resolve_world(text: str) -> tuple[str, str, str]:
             raise BenchArgError(str(exc)) from None
         return text, text, text
     p = Path(text)
-    cands = [p] if p.is_absolute() else [Path.cwd() / p, REPO / p]
+    cands = [p] if p.is_absolute() else [Path.cwd() / p, _root() / p]
     path = next((c.resolve() for c in cands if c.is_file()), None)
     if path is None:
         raise BenchArgError(f"world file not found: {text}")
@@ -620,17 +627,18 @@ def resolve_world(text: str) -> tuple[str, str, str]:
         load_world(str(path))
     except WorldError as exc:
         raise BenchArgError(str(exc)) from None
-    return path.stem, str(path), os.path.relpath(path, REPO)
+    return path.stem, str(path), os.path.relpath(path, _root())
 
 
 def default_worlds() -> tuple[list[str], list[str]]:
     """Every built-in world plus the real maps of :data:`EXTRA_MAPS` that exist; notes."""
-    from sim.world import builtin_worlds
+    from topoexplore.sim.world import builtin_worlds
 
     worlds = list(builtin_worlds())
     notes = []
     for name in EXTRA_MAPS:
-        p = SHARED_MAPS / name
+        maps = shared_maps_dir()
+        p = (maps or Path("../shared/maps")) / name
         if p.is_file():
             worlds.append(str(p))
         else:
@@ -646,7 +654,7 @@ def check_overrides(params_file: str | None, overrides: Sequence[str]) -> None:
     it once before anything runs (BenchArgError); the keys the suite sets itself are refused."""
     if params_file is None and not overrides:
         return
-    from common.params import ParamError, load_params
+    from topoexplore.common.params import ParamError, load_params
 
     try:
         load_params(params_file, list(overrides))
@@ -765,7 +773,7 @@ def run_one(label: str, world_arg: str, strategy: str, seed: int, out: Path,
     if run_dir.exists():
         shutil.rmtree(run_dir)  # never read a stale report
     run_dir.mkdir(parents=True)
-    cmd = [sys.executable, "-m", "common.cli", "run", "--world", world_arg, "--strategy",
+    cmd = [sys.executable, "-m", "topoexplore.tools.cli", "run", "--world", world_arg, "--strategy",
            strategy, "--seed", str(seed), "--lockstep", "--quiet", "--out", str(run_dir.resolve()),
            "--connect", f"tcp/127.0.0.1:{_free_port()}",
            "--namespace", f"bench{os.getpid()}{re.sub('[^A-Za-z0-9]', '', label)[:12]}"
@@ -775,12 +783,10 @@ def run_one(label: str, world_arg: str, strategy: str, seed: int, out: Path,
         cmd += ["--params", params]
     for o in overrides:
         cmd += ["--set", o]
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
-        filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
     # safety net above the runner's own wall limit: startup, shutdown and the final picture
     timeout = max_wall_time + 180.0 if max_wall_time > 0 else None
     with (run_dir / "bench-stderr.txt").open("w") as err:
-        p = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=err,
+        p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err,
                              start_new_session=True)
         with _ACTIVE_LOCK:
             _ACTIVE.add(p)
@@ -822,7 +828,7 @@ def run_one(label: str, world_arg: str, strategy: str, seed: int, out: Path,
 
 def _world_area(world_arg: str) -> float:
     """Bounding area of a world [m^2] (scheduling order only; 0 if it does not load)."""
-    from sim.world import WorldError, load_world
+    from topoexplore.sim.world import WorldError, load_world
 
     try:
         w = load_world(world_arg)

@@ -24,11 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from common import messages as m
-from common.bus import Bus
-from common.keys import Keys
-
-REPO = Path(__file__).resolve().parents[1]
+from topoexplore.common import messages as m
+from topoexplore.common.bus import Bus
+from topoexplore.common.keys import Keys
 
 
 def _stats_ms(samples: list[float]) -> dict[str, float]:
@@ -52,8 +50,7 @@ class _Procs:
         self.procs: list[subprocess.Popen] = []
 
     def python(self, *args: str) -> subprocess.Popen:
-        env = dict(os.environ, PYTHONPATH=str(REPO))
-        p = subprocess.Popen([sys.executable, "-u", *args], env=env, stdout=subprocess.DEVNULL,
+        p = subprocess.Popen([sys.executable, "-u", *args], stdout=subprocess.DEVNULL,
                              stderr=subprocess.DEVNULL, start_new_session=True)
         self.procs.append(p)
         return p
@@ -73,8 +70,8 @@ class _Procs:
 
 _PUBLISHER = r"""
 import sys, time
-from common import messages as m
-from common.bus import Bus
+from topoexplore.common import messages as m
+from topoexplore.common.bus import Bus
 ep, key, kind, n, rate = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4]), float(sys.argv[5])
 with Bus.client(ep, wait_for_router=True) as bus:
     pub = bus.publisher(key, reliable=True)
@@ -102,7 +99,7 @@ def bench_hop(n: int = 200) -> dict[str, dict]:
         ep = _free_endpoint()
         procs = _Procs()
         try:
-            procs.python("-m", "common.router", "--listen", ep)
+            procs.python("-m", "topoexplore.tools.router", "--listen", ep)
             lat: list[float] = []
             done = threading.Event()
             with Bus.client(ep, wait_for_router=True) as bus:
@@ -129,8 +126,8 @@ def bench_lockstep_sim(world: str = "paper-room", scans: int = 400) -> dict:
     keys = Keys("bench", "sim")
     procs = _Procs()
     try:
-        procs.python("-m", "common.router", "--listen", ep)
-        procs.python("-m", "sim.service", "--connect", ep, "--namespace", "bench", "--robot",
+        procs.python("-m", "topoexplore.tools.router", "--listen", ep)
+        procs.python("-m", "topoexplore.sim.service", "--connect", ep, "--namespace", "bench", "--robot",
                      "sim", "--set", "sim.lockstep=true", "--set", "sim.lockstep_wait_for=[]",
                      "--set", f'sim.world="{world}"')
         stamps: list[float] = []
@@ -160,9 +157,9 @@ def bench_lockstep_sim(world: str = "paper-room", scans: int = 400) -> dict:
 
 def bench_core_sim(world: str = "paper-room", scans: int = 500) -> dict:
     """SimCore compute only: one scan + physics steps per scan period."""
-    from common.params import load_params
-    from sim.core import SimCore
-    from sim.world import load_world
+    from topoexplore.common.params import load_params
+    from topoexplore.sim.core import SimCore
+    from topoexplore.sim.world import load_world
 
     p = load_params().sim
     core = SimCore(load_world(world), p, np.random.default_rng(0))
@@ -180,8 +177,8 @@ def bench_core_sim(world: str = "paper-room", scans: int = 500) -> dict:
 
 def bench_pipeline_latency(world: str, duration: float = 20.0) -> dict:
     """Real-time stack (speed 1): per-hop and scan -> cmd_vel latency seen by one monitor."""
-    from services.supervisor.core import load_profile
-    from services.supervisor.service import Supervisor, profile_path
+    from topoexplore.tools.launch.core import load_profile
+    from topoexplore.tools.launch.supervisor import Supervisor, profile_path
 
     ep = _free_endpoint()
     keys = Keys("benchrt", "robot1")
@@ -228,9 +225,8 @@ _TYPES = {"scan": m.LaserScan, "map": m.OccupancyGrid, "topo": m.TopoGraph,
 
 def bench_lockstep_explore(world: str = "paper-room") -> dict:
     with tempfile.TemporaryDirectory() as d:
-        r = subprocess.run([sys.executable, "-m", "common.cli", "run", "--world", world,
+        r = subprocess.run([sys.executable, "-m", "topoexplore.tools.cli", "run", "--world", world,
                             "--lockstep", "--quiet", "--out", d],
-                           cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO)),
                            capture_output=True, text=True, timeout=1200)
         try:
             rep = json.loads((Path(d) / "report.json").read_text())
@@ -242,7 +238,7 @@ def bench_lockstep_explore(world: str = "paper-room") -> dict:
 
 
 def stages_main(argv: list[str]) -> int:
-    from common import benchstages
+    from topoexplore.tools.bench import stages as benchstages
 
     ap = argparse.ArgumentParser(prog="topoexplore bench stages", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -306,24 +302,3 @@ def format_bus(bus: dict) -> str:
                          f"{r['wall_time_s']:.1f} wall s = {r['speedup']:.1f}x real time "
                          f"({'finished' if r['finished'] else 'not finished'})")
     return "\n".join(lines)
-
-
-def main(argv: list[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or argv[0] not in ("stages", "explore", "inproc"):
-        print("usage: topoexplore bench {stages,explore,inproc} [options]  (-h for help)",
-              file=sys.stderr)
-        return 2
-    if argv[0] == "stages":
-        return stages_main(argv[1:])
-    if argv[0] == "inproc":
-        from common import inproc
-
-        return inproc.main(argv[1:])
-    from common import benchexplore
-
-    return benchexplore.main(argv[1:])
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -12,8 +12,8 @@ import json
 import sys
 from pathlib import Path
 
-from common import messages as m
-from common.livestate import StateError, as_message
+from topoexplore.common import messages as m
+from topoexplore.tools.livestate import StateError, as_message
 
 
 def _err(text: str) -> int:
@@ -23,7 +23,7 @@ def _err(text: str) -> int:
 
 def load_run(run_dir: Path):
     """(grid, geom, topo, rel, trail) from a directory written by `topoexplore run`."""
-    from common.mapio import read_map_server
+    from topoexplore.common.mapio import read_map_server
 
     grid, geom = read_map_server(run_dir / "map.yaml")
     topo = rel = None
@@ -50,10 +50,10 @@ def load_run(run_dir: Path):
 
 
 def load_live(args: argparse.Namespace):
-    from common.bus import Bus
-    from common.keys import Keys
-    from common.livestate import fetch_state, map_from_state
-    from common.node import params_from_args
+    from topoexplore.common.bus import Bus
+    from topoexplore.common.keys import Keys
+    from topoexplore.common.node import params_from_args
+    from topoexplore.tools.livestate import fetch_state, map_from_state
 
     params = params_from_args(args)
     keys = Keys(params.bus.namespace, params.bus.robot)
@@ -71,11 +71,11 @@ def load_live(args: argparse.Namespace):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from common.bus import BusError
-    from common.mapio import MapIOError, write_png
-    from common.node import add_bus_args, add_param_args
-    from common.params import ParamError
-    from common.render import render
+    from topoexplore.common.bus import BusError
+    from topoexplore.common.mapio import MapIOError, write_png
+    from topoexplore.common.node import add_bus_args, add_param_args
+    from topoexplore.common.params import ParamError
+    from topoexplore.tools.draw import render
 
     ap = argparse.ArgumentParser(prog="topoexplore render", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)

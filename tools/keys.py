@@ -38,9 +38,16 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from common import messages as m
-from common.bus import DEFAULT_ENDPOINT, Bus, BusError, init_logging
-from common.keys import DEFAULT_NAMESPACE, DEFAULT_ROBOT, SERVICES, TOPICS, Keys, type_for_key
+from topoexplore.common import messages as m
+from topoexplore.common.bus import DEFAULT_ENDPOINT, Bus, BusError, init_logging
+from topoexplore.common.keys import (
+    DEFAULT_NAMESPACE,
+    DEFAULT_ROBOT,
+    SERVICES,
+    TOPICS,
+    Keys,
+    type_for_key,
+)
 
 PROG = "topoexplore keys"
 
@@ -927,7 +934,7 @@ def _positive(kind: type, lo: float, name: str):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from common.node import add_bus_args
+    from topoexplore.common.node import add_bus_args
 
     p = _Parser(prog=PROG, description="Inspect the Zenoh keys of a running topoexplore stack.")
     sub = p.add_subparsers(dest="cmd", metavar="{list,echo,hz,get}", required=True)

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 from typing import Any
 
-import msgpack
 import msgspec
 import numpy as np
 
-from common import messages as m
-from common.bus import Bus
-from common.grid import GridGeometry
-from common.keys import Keys
+from topoexplore.common import messages as m
+from topoexplore.common.bus import Bus
+from topoexplore.common.grid import GridGeometry
+from topoexplore.common.keys import Keys
 
 
 class StateError(RuntimeError):
@@ -23,7 +22,7 @@ def fetch_state(bus: Bus, keys: Keys, service: str, timeout: float = 3.0) -> dic
     for _key, payload, err in replies:
         if payload is not None:
             try:
-                value = msgpack.unpackb(payload, raw=False)
+                value = msgspec.msgpack.decode(payload)
             except Exception as exc:
                 raise StateError(f"{service} state reply is not msgpack: {exc}") from None
             if not isinstance(value, dict):

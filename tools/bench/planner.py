@@ -15,11 +15,11 @@ import time
 
 import numpy as np
 
-from common import messages as m
-from common.grid import GridGeometry
-from common.params import PlannerParams
-from services.planner import frontier as fr
-from services.planner.core import PlannerCore
+from topoexplore.common import messages as m
+from topoexplore.common.grid import GridGeometry
+from topoexplore.common.params import PlannerParams
+from topoexplore.services.planner import frontier as fr
+from topoexplore.services.planner.core import PlannerCore
 
 
 def office_grid(n: int, seed: int = 0) -> tuple[np.ndarray, GridGeometry]:

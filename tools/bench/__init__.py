@@ -1,0 +1,38 @@
+"""``topoexplore bench``: benchmarks that print figures (not timed tests).
+
+    topoexplore bench stages [--sizes 100,300,1000] [--json] [--bus] [--worlds paper-room,office]
+    topoexplore bench explore [--worlds ...] [--strategies ...] [--seeds N] [--out DIR]
+    topoexplore bench inproc [--worlds ...] [--strategies ...] [--seeds N] [--set k=v ...]
+
+``stages`` (:mod:`.stages`, :mod:`.bus`) times every core and the bus; ``explore``
+(:mod:`.explore`) runs the strategy comparison suite with the real processes; ``inproc``
+(:mod:`.inproc`) runs the same cores in one process for parameter sweeps.
+"""
+
+from __future__ import annotations
+
+import sys
+
+_USAGE = "usage: topoexplore bench {stages,explore,inproc} [options]  (-h for help)"
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] not in ("stages", "explore", "inproc"):
+        print(_USAGE, file=sys.stderr)
+        return 2
+    if argv[0] == "stages":
+        from topoexplore.tools.bench import bus
+
+        return bus.stages_main(argv[1:])
+    if argv[0] == "inproc":
+        from topoexplore.tools.bench import inproc
+
+        return inproc.main(argv[1:])
+    from topoexplore.tools.bench import explore
+
+    return explore.main(argv[1:])
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,1 @@
+"""Launch profiles (``core``, pure) and the supervisor that runs them (``supervisor``)."""
