@@ -27,10 +27,10 @@ import msgspec
 import zenoh
 
 from topoexplore.common import messages as m
+from topoexplore.common.keys import DEFAULT_ENDPOINT
 
 log = logging.getLogger("topoexplore.bus")
 
-DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 MSGPACK = "application/msgpack"
 
 

@@ -8,16 +8,28 @@ lower-left corner ``origin + (j, i) * resolution``.
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
 
-from topoexplore.common import messages as m
-
 UNKNOWN = 0
 FREE = 1
 OCCUPIED = 2
+
+
+class GridError(ValueError):
+    """A grid array does not fit its geometry (shape, type, resolution, origin)."""
+
+
+class Occupancy(NamedTuple):
+    """Classification thresholds of an occupancy grid: known free below p_free, occupied
+    above p_occ, undecided in between (``[mapper] p_free / p_occ``)."""
+
+    p_free: float = 0.35
+    p_occ: float = 0.65
 
 
 @dataclass(frozen=True)
@@ -27,10 +39,6 @@ class GridGeometry:
     origin_y: float  # [m]
     width: int  # cells along x
     height: int  # cells along y
-
-    @staticmethod
-    def of(msg: m.OccupancyGrid) -> GridGeometry:
-        return GridGeometry(msg.resolution, msg.origin.x, msg.origin.y, msg.width, msg.height)
 
     def world_to_cell(self, x, y):
         """World [m] -> (row, col) integer indices (may be outside the grid)."""
@@ -58,6 +66,23 @@ class GridGeometry:
             self.origin_y,
             self.origin_y + self.height * self.resolution,
         )
+
+
+def check_grid(data, geom: GridGeometry) -> np.ndarray:
+    """The one grid check: a 2-D integer array of shape (geom.height, geom.width) and a geometry
+    with a positive resolution and a finite origin. Returns the array; GridError otherwise."""
+    if not isinstance(geom, GridGeometry):
+        raise GridError(f"geometry must be a GridGeometry (got {type(geom).__name__})")
+    g = np.asarray(data)
+    if g.ndim != 2 or g.shape != (geom.height, geom.width) or g.size == 0:
+        raise GridError(f"grid shape {g.shape} does not match geometry "
+                        f"{geom.height}x{geom.width} (rows x cols)")
+    if not np.issubdtype(g.dtype, np.integer):
+        raise GridError(f"grid must be an integer array (got {g.dtype})")
+    if not (math.isfinite(geom.resolution) and geom.resolution > 0
+            and math.isfinite(geom.origin_x) and math.isfinite(geom.origin_y)):
+        raise GridError(f"bad grid geometry {geom}")
+    return g
 
 
 def crop_known(grid: np.ndarray, geom: GridGeometry, margin: int = 1

@@ -1,4 +1,5 @@
-"""Every key expression, built in one place from namespace + robot.
+"""Where things are on the bus: every key expression, built in one place from namespace +
+robot, and the default router endpoint.
 
 Layout: ``<ns>/<robot>/<topic>``, e.g. ``topoexplore/robot1/scan``. Liveliness tokens live at
 ``<ns>/<robot>/alive/<service>`` and state queryables at ``<ns>/<robot>/<service>/state``.
@@ -13,6 +14,7 @@ from topoexplore.common import messages as m
 
 DEFAULT_NAMESPACE = "topoexplore"
 DEFAULT_ROBOT = "robot1"
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"  # the router every process connects to by default
 
 # topic -> message type: the one table of what travels on which key
 TOPICS: dict[str, type] = {
@@ -38,6 +40,20 @@ def check_segment(value: str, what: str) -> str:
     if not _SEGMENT.match(value or ""):
         raise ValueError(f"bad {what} {value!r}: use letters, digits, '_', '-' and '/' separators")
     return value
+
+
+def check_endpoint(ep: str) -> str:
+    """A Zenoh locator like tcp/127.0.0.1:7447 (tcp/udp/tls/quic need host:port, port
+    1..65535); ValueError otherwise."""
+    proto, sep, addr = ep.partition("/")
+    if not sep or not proto or not addr:
+        raise ValueError(f"bad endpoint {ep!r}: expected PROTOCOL/HOST:PORT, e.g. "
+                         f"{DEFAULT_ENDPOINT}")
+    if proto in ("tcp", "udp", "tls", "quic"):
+        host, colon, port = addr.rpartition(":")
+        if not colon or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+            raise ValueError(f"bad endpoint {ep!r}: port must be 1..65535")
+    return ep
 
 
 @dataclass(frozen=True)

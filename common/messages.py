@@ -41,8 +41,6 @@ __all__ = [
     "MESSAGE_TYPES",
     "encode",
     "decode",
-    "grid_to_array",
-    "array_to_grid_bytes",
 ]
 
 # Sanity limits for decoded messages.
@@ -278,6 +276,8 @@ def _v_scan(m: LaserScan) -> None:
     _finite(m, "angle_increment", m.angle_increment, -math.pi, math.pi)
     if m.angle_increment == 0.0 and n > 1:
         _fail(m, "angle_increment is zero")
+    if abs(m.angle_increment) * (n - 1) > 2 * math.pi + 1e-6:
+        _fail(m, f"{n} beams at {m.angle_increment} rad span more than a turn")
     _finite(m, "range_min", m.range_min, 0.0, 1000.0)
     _finite(m, "range_max", m.range_max, 0.0, 1000.0)
     if m.range_max <= m.range_min:
@@ -426,16 +426,3 @@ _VALIDATORS = {
     ExploreStatus: _v_status,
     SimStatus: _v_sim,
 }
-
-
-# --- symmetric conversions -----------------------------------------------------------------
-
-
-def grid_to_array(m: OccupancyGrid) -> np.ndarray:
-    """OccupancyGrid -> int8 array of shape (height, width); row = y, column = x."""
-    return np.frombuffer(m.data, dtype=np.int8).reshape(m.height, m.width)
-
-
-def array_to_grid_bytes(arr: np.ndarray) -> bytes:
-    """int8 array (height, width) -> OccupancyGrid.data (inverse of grid_to_array)."""
-    return np.ascontiguousarray(arr, dtype=np.int8).tobytes()

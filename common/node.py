@@ -26,9 +26,11 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
+from topoexplore.common import convert
 from topoexplore.common import messages as m
-from topoexplore.common.bus import DEFAULT_ENDPOINT, Bus, BusError, Publisher, init_logging
-from topoexplore.common.keys import TOPICS, Keys
+from topoexplore.common.bus import Bus, BusError, Publisher, init_logging
+from topoexplore.common.domain import Pose
+from topoexplore.common.keys import DEFAULT_ENDPOINT, TOPICS, Keys
 from topoexplore.common.params import ParamError, Params, load_params, params_to_dict
 
 log = logging.getLogger("topoexplore")
@@ -43,10 +45,10 @@ class OdomBuffer:
     def __init__(self, horizon: float = 5.0):
         self.horizon = horizon  # [s] history kept
         self._t: list[float] = []
-        self._p: list[tuple[float, float, float]] = []
+        self._p: list[Pose] = []
         self._lock = threading.Lock()
 
-    def add(self, stamp: float, pose: tuple[float, float, float]) -> None:
+    def add(self, stamp: float, pose: Pose) -> None:
         with self._lock:
             if self._t and stamp < self._t[-1]:
                 if stamp < self._t[-1] - self.horizon:  # clock went back (sim restarted)
@@ -69,11 +71,11 @@ class OdomBuffer:
         with self._lock:
             return self._t[-1] if self._t else -math.inf
 
-    def latest(self) -> tuple[float, tuple[float, float, float]] | None:
+    def latest(self) -> tuple[float, Pose] | None:
         with self._lock:
             return (self._t[-1], self._p[-1]) if self._t else None
 
-    def pose_near(self, stamp: float) -> tuple[float, float, float] | None:
+    def pose_near(self, stamp: float) -> Pose | None:
         """Pose at stamp if covered, else the newest pose (real time: a late or old input);
         None only when no odometry has arrived."""
         pose = self.pose_at(stamp)
@@ -82,7 +84,7 @@ class OdomBuffer:
             pose = newest[1] if newest is not None else None
         return pose
 
-    def pose_at(self, stamp: float, tolerance: float = 1e-6) -> tuple[float, float, float] | None:
+    def pose_at(self, stamp: float, tolerance: float = 1e-6) -> Pose | None:
         """Pose at stamp (linear interpolation, angle-aware); None if not covered yet."""
         with self._lock:
             if not self._t or stamp > self._t[-1] + tolerance or stamp < self._t[0] - tolerance:
@@ -96,7 +98,7 @@ class OdomBuffer:
             p0, p1 = self._p[i - 1], self._p[i]
         a = (stamp - t0) / (t1 - t0) if t1 > t0 else 1.0
         dth = math.atan2(math.sin(p1[2] - p0[2]), math.cos(p1[2] - p0[2]))
-        return (p0[0] + a * (p1[0] - p0[0]), p0[1] + a * (p1[1] - p0[1]), p0[2] + a * dth)
+        return Pose(p0[0] + a * (p1[0] - p0[0]), p0[1] + a * (p1[1] - p0[1]), p0[2] + a * dth)
 
 
 class Inbox:
@@ -192,7 +194,7 @@ class Node:
     def __init__(self, service: str, params: Params, zenoh_config: str | None = None):
         self.service = service
         self.params = params
-        self.lockstep = params.sim.lockstep
+        self.lockstep = params.runtime.lockstep
         self.keys = Keys(params.bus.namespace, params.bus.robot)
         self.stop = threading.Event()
         self.inbox = Inbox()
@@ -226,7 +228,7 @@ class Node:
 
     def subscribe_odom(self, buffer: OdomBuffer) -> None:
         self.subscribe("odom", on_msg=lambda o: buffer.add(
-            o.header.stamp, (o.pose.x, o.pose.y, o.pose.theta)))
+            o.header.stamp, convert.pose_from_msg(o.pose)))
 
     def header(self, topic: str, stamp: float, src_seq: int, frame: str = "map") -> m.Header:
         seq = self._seq.get(topic, 0)
@@ -249,7 +251,7 @@ class Node:
             return None
         if ready is None:
             return msg, True
-        limit = self.params.sim.lockstep_timeout if self.lockstep else 0.5
+        limit = self.params.runtime.lockstep_timeout if self.lockstep else 0.5
         ok = inbox.wait(lambda: self.stop.is_set() or ready(msg), limit)
         return msg, ok and not self.stop.is_set()
 
