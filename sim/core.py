@@ -12,7 +12,8 @@ import math
 import numpy as np
 import pymunk
 
-from topoexplore.common.params import SimParams
+from topoexplore.common.domain import Odom, Pose, Scan
+from topoexplore.common.params import LaserParams, RobotParams, SimParams
 from topoexplore.sim.world import World
 
 __all__ = ["SimError", "SimCore", "box_vertices", "beam_angles"]
@@ -45,21 +46,22 @@ def beam_angles(beams: int, fov: float) -> tuple[float, float]:
 class SimCore:
     """One robot in one static world.
 
-    Robot: pymunk dynamic circle (radius ``params.robot_radius``, infinite moment). Each step
+    Robot: pymunk dynamic circle (radius ``robot.radius``, infinite moment). Each step
     the body velocity is set from the latest command in the body frame (differential drive),
     so the contact solver really stops it at walls. Contacts with static shapes are counted:
     going from touching nothing to touching something is one collision.
     """
 
-    def __init__(self, world: World, params: SimParams, rng: np.random.Generator):
+    def __init__(self, world: World, params: SimParams, rng: np.random.Generator,
+                 robot: RobotParams | None = None, laser: LaserParams | None = None):
         if not isinstance(world, World):
             raise SimError(f"world must be a sim.world.World (got {type(world).__name__})")
-        if not isinstance(params, SimParams):
-            raise SimError(f"params must be SimParams (got {type(params).__name__})")
         if not isinstance(rng, np.random.Generator):
             raise SimError(f"rng must be a numpy Generator (got {type(rng).__name__})")
         self.world = world
         self.params = params
+        self.robot = robot or RobotParams()
+        self.laser = laser or LaserParams()
         self._rng = rng
         self._odom_rng = np.random.default_rng(rng.integers(0, 2**63 - 1))
         self._dt = 1.0 / params.physics_hz  # [s]
@@ -82,7 +84,7 @@ class SimCore:
         space.add(*shapes)
 
         x, y, th = world.robot_pose
-        r = params.robot_radius
+        r = self.robot.radius
         body = pymunk.Body(ROBOT_MASS, math.inf)
         body.position = (x, y)
         body.angle = th
@@ -105,8 +107,9 @@ class SimCore:
         self._laser_filter = pymunk.ShapeFilter(
             mask=pymunk.ShapeFilter.ALL_MASKS() ^ ROBOT_CATEGORY)
 
-        self.angle_min, self.angle_increment = beam_angles(params.beams, params.fov)  # [rad]
-        self._beam_rel = self.angle_min + self.angle_increment * np.arange(params.beams)
+        lp = self.laser
+        self.angle_min, self.angle_increment = beam_angles(lp.beams, lp.fov)  # [rad]
+        self._beam_rel = self.angle_min + self.angle_increment * np.arange(lp.beams)
 
         self._cmd = (0.0, 0.0)  # [m/s, rad/s] active command
         self._cmd_time = 0.0  # [s] sim time of the latest command()
@@ -144,17 +147,21 @@ class SimCore:
         """The robot touches a static shape now."""
         return self._touching > 0
 
-    def truth_pose(self) -> tuple[float, float, float]:
+    def truth_pose(self) -> Pose:
         """Ground-truth pose (x [m], y [m], theta [rad] in (-pi, pi])."""
         b = self._body
-        return (float(b.position.x), float(b.position.y), _wrap(float(b.angle)))
+        return Pose(float(b.position.x), float(b.position.y), _wrap(float(b.angle)))
 
-    def odom_pose(self) -> tuple[float, float, float]:
+    def odom_pose(self) -> Pose:
         """Odometry pose in the map frame: the truth unless ``params.odom_drift`` > 0."""
         if self.params.odom_drift <= 0.0:
             return self.truth_pose()
         x, y, th = self._odom
-        return (x, y, _wrap(th))
+        return Pose(x, y, _wrap(th))
+
+    def odom(self) -> Odom:
+        """Odometry: pose and measured velocity."""
+        return Odom(self.odom_pose(), *self._meas)
 
     def velocity(self) -> tuple[float, float]:
         """Measured (v [m/s] along the heading, w [rad/s]) after the last step."""
@@ -169,8 +176,8 @@ class SimCore:
             raise SimError(f"command needs two numbers (got {v!r}, {w!r})") from None
         if not (math.isfinite(v) and math.isfinite(w)):
             raise SimError(f"command must be finite (got v={v}, w={w})")
-        p = self.params
-        self._cmd = (min(max(v, -p.v_limit), p.v_limit), min(max(w, -p.w_limit), p.w_limit))
+        r = self.robot
+        self._cmd = (min(max(v, -r.v_limit), r.v_limit), min(max(w, -r.w_limit), r.w_limit))
         self._cmd_time = self.time
 
     def step(self) -> None:
@@ -197,7 +204,7 @@ class SimCore:
         """Odometry with random-walk drift: variance per step = drift^2 * |travel| (so the
         position error has sigma ~ drift [m] after 1 m, the heading error ~ drift [rad])."""
         k = self.params.odom_drift
-        travel = abs(ds) + abs(dth) * self.params.robot_radius
+        travel = abs(ds) + abs(dth) * self.robot.radius
         if travel > 0.0:
             e_s, e_t = self._odom_rng.normal(0.0, k * math.sqrt(travel), 2)
             ds, dth = ds + e_s, dth + e_t
@@ -206,19 +213,19 @@ class SimCore:
         self._odom = (x + ds * math.cos(mid), y + ds * math.sin(mid), th + dth)
 
     # ---------------------------------------------------------------- laser
-    def scan(self) -> np.ndarray:
-        """Laser ranges [m] (float64, params.beams long) from angle_min by angle_increment.
+    def scan(self) -> Scan:
+        """One laser scan: laser.beams ranges [m] from angle_min by angle_increment.
 
-        Beams start at the laser (robot centre + laser_offset ahead), Gaussian noise of sigma
+        Beams start at the laser (robot centre + laser.offset ahead), Gaussian noise of sigma
         range_noise on returns, no return -> range_max exactly, clipped to [range_min,
         range_max].
         """
-        p = self.params
+        p = self.laser
         b = self._body
         x, y = b.position
         th = b.angle
-        ox = x + p.laser_offset * math.cos(th)
-        oy = y + p.laser_offset * math.sin(th)
+        ox = x + p.offset * math.cos(th)
+        oy = y + p.offset * math.sin(th)
         rmax = p.range_max
         ang = th + self._beam_rel
         ex = (ox + rmax * np.cos(ang)).tolist()
@@ -231,10 +238,11 @@ class SimCore:
             info = query(origin, (ex[i], ey[i]), 0.0, flt)
             if info is not None:
                 alpha[i] = info.alpha
-        noise = self._rng.normal(0.0, p.range_noise, p.beams) if p.range_noise > 0 else 0.0
+        sigma = self.params.range_noise
+        noise = self._rng.normal(0.0, sigma, p.beams) if sigma > 0 else 0.0
         hit = alpha < 1.0
-        ranges = np.where(hit, alpha * rmax + noise, rmax)
-        return np.clip(ranges, p.range_min, rmax)
+        ranges = np.clip(np.where(hit, alpha * rmax + noise, rmax), p.range_min, rmax)
+        return Scan(ranges, self.angle_min, self.angle_increment, p.range_min, rmax)
 
 
 def _wrap(a: float) -> float:

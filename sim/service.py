@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 
+from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.node import Node, run_service
 from topoexplore.sim.core import SimCore
@@ -27,14 +28,16 @@ log = logging.getLogger("topoexplore.sim")
 class SimService:
     def __init__(self, node: Node):
         self.node = node
-        p = node.params.sim
+        P = node.params
+        p = P.sim
         self.p = p
+        self.runtime = P.runtime
         try:
             self.world = load_world(p.world)
         except WorldError as exc:
             raise SystemExit(f"topoexplore-sim: {exc}") from None
-        self.core = SimCore(self.world, p, np.random.default_rng(p.seed))
-        self.steps_per_scan = max(1, round(p.physics_hz / p.scan_hz))
+        self.core = SimCore(self.world, p, np.random.default_rng(p.seed), P.robot, P.laser)
+        self.steps_per_scan = max(1, round(p.physics_hz / P.laser.scan_hz))
         self.steps_per_odom = max(1, round(p.physics_hz / p.odom_hz))
         self.pub_scan = node.publisher("scan")
         self.pub_odom = node.publisher("odom")
@@ -53,22 +56,17 @@ class SimService:
     # -- publishing -----------------------------------------------------------------------
     def publish_odom(self) -> None:
         t = self.core.time
-        x, y, th = self.core.odom_pose()
-        v, w = self.core.velocity()
-        hdr = self.node.header("odom", t, self.scan_seq)
-        self.pub_odom.put(m.Odometry(header=hdr, pose=m.Pose2D(x=x, y=y, theta=th), v=v, w=w))
-        tx, ty, tth = self.core.truth_pose()
-        self.pub_truth.put(m.Pose(header=self.node.header("truth", t, self.scan_seq),
-                                  pose=m.Pose2D(x=tx, y=ty, theta=tth)))
+        self.pub_odom.put(convert.odom_to_msg(self.core.odom(),
+                                              self.node.header("odom", t, self.scan_seq)))
+        self.pub_truth.put(convert.truth_to_msg(self.core.truth_pose(),
+                                                self.node.header("truth", t, self.scan_seq)))
 
     def publish_scan(self) -> None:
         self.scan_seq += 1
         self.publish_odom()  # the pose at the scan stamp, before the scan
-        ranges = self.core.scan()
-        hdr = m.Header(seq=self.scan_seq, stamp=self.core.time, frame="laser", src_seq=self.scan_seq)
-        self.pub_scan.put(m.LaserScan(
-            header=hdr, angle_min=self.core.angle_min, angle_increment=self.core.angle_increment,
-            range_min=self.p.range_min, range_max=self.p.range_max, ranges=ranges.tolist()))
+        hdr = m.Header(seq=self.scan_seq, stamp=self.core.time, frame="laser",
+                       src_seq=self.scan_seq)
+        self.pub_scan.put(convert.scan_to_msg(self.core.scan(), hdr))
 
     def publish_status(self) -> None:
         wall = time.monotonic() - self.wall_start
@@ -101,8 +99,8 @@ class SimService:
     def wait_for_pipeline(self) -> None:
         """Lockstep: before scan 0, wait for the listed services and for a scan subscriber
         (a scan nobody receives would cost a whole lockstep timeout)."""
-        want = set(self.p.lockstep_wait_for)
-        deadline = time.monotonic() + self.p.lockstep_wait
+        want = set(self.runtime.lockstep_wait_for)
+        deadline = time.monotonic() + self.runtime.lockstep_wait
         alive: set[str] = set()
         while not self.node.stop.is_set() and time.monotonic() < deadline:
             if want:
@@ -123,13 +121,13 @@ class SimService:
         k = self.scan_seq
         ok = self.node.inbox.wait(
             lambda: self.node.stop.is_set() or self.node.inbox.src_seq("cmd_vel") >= k,
-            self.p.lockstep_timeout)
+            self.runtime.lockstep_timeout)
         if self.node.stop.is_set():
             return
         if not ok:
             self.lockstep_timeouts += 1
             log.warning("lockstep: no cmd_vel for scan %d within %.1f s; stepping on", k,
-                        self.p.lockstep_timeout)
+                        self.runtime.lockstep_timeout)
         self.apply_latest_cmd()
         for _ in range(self.steps_per_scan):
             self.physics_step()

@@ -8,11 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from topoexplore.common.params import ControllerParams, Params, load_params
+from topoexplore.common.domain import Pose, Route, Scan
+from topoexplore.common.params import ControllerParams, load_params
 from topoexplore.services.controller.core import (
     MODES,
     ControllerCore,
-    ControllerError,
     clean_path,
     front_distance,
     lookahead_point,
@@ -28,18 +28,28 @@ STRAIGHT = np.array([[0.0, 0.0], [5.0, 0.0]])
 L_PATH = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0]])
 
 
-def free_scan(rng: float = 8.0):
+R = 0.2  # [m] robot radius
+
+
+def free_scan(rng: float = 8.0) -> Scan:
     """181 beams, -90..90 deg, all returning rng [m]."""
-    return (np.full(181, rng), -math.pi / 2, math.radians(1.0))
+    return Scan(np.full(181, rng), -math.pi / 2, math.radians(1.0), 0.02, 8.0)
 
 
-def scan_with(points_xy: list[tuple[float, float]], rng: float = 8.0):
+def scan_with(points_xy: list[tuple[float, float]], rng: float = 8.0) -> Scan:
     """Free scan with returns at the given robot-frame points (nearest beam per point)."""
-    ranges, amin, inc = free_scan(rng)
+    s = free_scan(rng)
     for x, y in points_xy:
-        k = int(round((math.atan2(y, x) - amin) / inc))
-        ranges[k] = min(ranges[k], math.hypot(x, y))
-    return ranges, amin, inc
+        k = int(round((math.atan2(y, x) - s.angle_min) / s.angle_increment))
+        s.ranges[k] = min(s.ranges[k], math.hypot(x, y))
+    return s
+
+
+def step(core, t, pose, path, plan_id, done, scan, goal_heading=None):
+    """One update with the path given as waypoints and a plan id."""
+    route = Route(np.asarray(path, dtype=np.float64).reshape(-1, 2), plan_id,
+                  goal_heading=goal_heading)
+    return core.update(t, Pose(*pose), route, done, scan)
 
 
 def simulate(core: ControllerCore, path, pose, steps: int, dt: float = 0.2, scan=None,
@@ -48,7 +58,7 @@ def simulate(core: ControllerCore, path, pose, steps: int, dt: float = 0.2, scan
     x, y, th = pose
     poses, modes = [], []
     for k in range(steps):
-        v, w, mode = core.update(t0 + k * dt, (x, y, th), path, plan_id, False,
+        v, w, mode = step(core, t0 + k * dt, (x, y, th), path, plan_id, False,
                                  scan if scan is not None else free_scan())
         assert abs(v) <= P.v_max + 1e-12 and abs(w) <= P.w_max + 1e-12
         assert mode in MODES
@@ -101,20 +111,20 @@ def test_lookahead_point_off_path_goes_back_to_path():
 
 
 def test_front_distance_sector_and_lateral_offset():
-    assert front_distance(None, P) == math.inf
-    assert front_distance(free_scan(), P) == pytest.approx(8.0)
-    assert front_distance(scan_with([(0.5, 0.0)]), P) == pytest.approx(0.5)
+    assert front_distance(None, P, R) == math.inf
+    assert front_distance(free_scan(), P, R) == pytest.approx(8.0)
+    assert front_distance(scan_with([(0.5, 0.0)]), P, R) == pytest.approx(0.5)
     # inside the angular sector but beside the robot's corridor (lateral 0.3 > 0.25): ignored
-    assert front_distance(scan_with([(0.6, 0.3)]), P) == pytest.approx(8.0)
+    assert front_distance(scan_with([(0.6, 0.3)]), P, R) == pytest.approx(8.0)
     # ahead-left at 45 deg and inside the corridor: in the way (a sofa corner, say)
-    assert front_distance(scan_with([(0.2, 0.2)]), P) == pytest.approx(math.hypot(0.2, 0.2))
+    assert front_distance(scan_with([(0.2, 0.2)]), P, R) == pytest.approx(math.hypot(0.2, 0.2))
     # outside the angular sector (about 76 deg): beside the robot, not ahead
-    assert front_distance(scan_with([(0.05, 0.2)]), P) == pytest.approx(8.0)
+    assert front_distance(scan_with([(0.05, 0.2)]), P, R) == pytest.approx(8.0)
     # zero / non-finite ranges are not returns
-    r, a, i = free_scan()
-    r[90] = 0.0
-    r[91] = np.nan
-    assert front_distance((r, a, i), P) == pytest.approx(8.0)
+    s = free_scan()
+    s.ranges[90] = 0.0
+    s.ranges[91] = np.nan
+    assert front_distance(s, P, R) == pytest.approx(8.0)
 
 
 def test_obstacle_scale():
@@ -127,9 +137,9 @@ def test_obstacle_scale():
 
 
 def test_rear_blocked_needs_returns_behind():
-    assert not rear_blocked(free_scan(), P)  # a forward 180 deg laser never sees behind
-    wide = (np.array([0.3, 8.0, 8.0]), math.pi, -math.pi / 2)  # beam at 180 deg: 0.3 m behind
-    assert rear_blocked(wide, P)
+    assert not rear_blocked(free_scan(), P, R)  # a forward 180 deg laser never sees behind
+    wide = Scan(np.array([0.3, 8.0, 8.0]), math.pi, -math.pi / 2, 0.02, 8.0)  # 0.3 m behind
+    assert rear_blocked(wide, P, R)
 
 
 # --- behaviour --------------------------------------------------------------------------------
@@ -137,7 +147,7 @@ def test_rear_blocked_needs_returns_behind():
 
 def test_straight_path_full_speed():
     core = ControllerCore(P)
-    v, w, mode = core.update(0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False, free_scan())
+    v, w, mode = step(core, 0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False, free_scan())
     assert mode == "track"
     assert v == pytest.approx(P.v_max)
     assert abs(w) < 1e-9
@@ -145,31 +155,31 @@ def test_straight_path_full_speed():
 
 def test_path_behind_rotates_in_place():
     core = ControllerCore(P)
-    v, w, mode = core.update(0.0, (0.0, 0.0, math.pi), STRAIGHT, 1, False, free_scan())
+    v, w, mode = step(core, 0.0, (0.0, 0.0, math.pi), STRAIGHT, 1, False, free_scan())
     assert mode == "rotate" and v == 0.0 and abs(w) > 0.0
     # path to the left: turn counter-clockwise
     core = ControllerCore(P)
-    v, w, mode = core.update(0.0, (0.0, 0.0, 0.0), [[0, 0], [0, 3]], 1, False, free_scan())
+    v, w, mode = step(core, 0.0, (0.0, 0.0, 0.0), [[0, 0], [0, 3]], 1, False, free_scan())
     assert mode == "rotate" and v == 0.0 and w > 0.0
 
 
 def test_rotation_direction_does_not_chatter_at_pi():
     core = ControllerCore(P)
     path = [[0.0, 0.0], [-3.0, 0.0]]
-    _, w1, _ = core.update(0.0, (0.0, 0.0, 0.01), path, 1, False, free_scan())
-    _, w2, m2 = core.update(0.2, (0.0, 0.0, -0.01), path, 1, False, free_scan())
+    _, w1, _ = step(core, 0.0, (0.0, 0.0, 0.01), path, 1, False, free_scan())
+    _, w2, m2 = step(core, 0.2, (0.0, 0.0, -0.01), path, 1, False, free_scan())
     assert m2 == "rotate" and math.copysign(1, w1) == math.copysign(1, w2)
 
 
 def test_obstacle_in_front_blocks():
     core = ControllerCore(P)
-    v, w, mode = core.update(0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False, scan_with([(0.25, 0.0)]))
+    v, w, mode = step(core, 0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False, scan_with([(0.25, 0.0)]))
     assert mode == "blocked" and v == 0.0
 
 
 def test_obstacle_near_slows_down():
     core = ControllerCore(P)
-    v, _, mode = core.update(0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False, scan_with([(0.45, 0.0)]))
+    v, _, mode = step(core, 0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False, scan_with([(0.45, 0.0)]))
     assert mode == "slow"
     assert 0.0 < v < P.v_max
     assert v == pytest.approx(P.v_max * obstacle_scale(0.45, P))
@@ -177,17 +187,17 @@ def test_obstacle_near_slows_down():
 
 def test_obstacle_beside_corridor_does_not_slow():
     core = ControllerCore(P)
-    v, _, mode = core.update(0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False,
+    v, _, mode = step(core, 0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False,
                              scan_with([(0.4, 0.35), (0.4, -0.35)]))
     assert mode == "track" and v == pytest.approx(P.v_max)
 
 
 def test_empty_path_and_done_stop():
     core = ControllerCore(P)
-    assert core.update(0.0, (0.0, 0.0, 0.0), np.zeros((0, 2)), 1, False, free_scan()) == (
+    assert step(core, 0.0, (0.0, 0.0, 0.0), np.zeros((0, 2)), 1, False, free_scan()) == (
         0.0, 0.0, "idle")
-    assert core.update(0.2, (0.0, 0.0, 0.0), [], 2, False, None) == (0.0, 0.0, "idle")
-    assert core.update(0.4, (0.0, 0.0, 0.0), STRAIGHT, 3, True, free_scan()) == (
+    assert step(core, 0.2, (0.0, 0.0, 0.0), [], 2, False, None) == (0.0, 0.0, "idle")
+    assert step(core, 0.4, (0.0, 0.0, 0.0), STRAIGHT, 3, True, free_scan()) == (
         0.0, 0.0, "done")
 
 
@@ -204,7 +214,7 @@ def test_follows_l_shaped_path_to_the_end():
         assert d < 0.25
     assert "track" in modes
     # latched: keeps reporting arrived with zero command
-    assert core.update(999.0, poses[-1], L_PATH, 1, False, free_scan()) == (0.0, 0.0, "arrived")
+    assert step(core, 999.0, poses[-1], L_PATH, 1, False, free_scan()) == (0.0, 0.0, "arrived")
     # speed limit respected: at least the straight-line distance at v_max; and no dawdling
     assert len(modes) * 0.2 >= (math.hypot(2.0, 2.0) - P.goal_tolerance) / P.v_max
     assert len(modes) * 0.2 <= 1.5 * 4.0 / P.v_max
@@ -220,7 +230,7 @@ def test_looks_around_once_at_the_start_then_follows():
     core = ControllerCore(ControllerParams())  # default: one full turn first
     th, t, turned, modes = 0.0, 0.0, 0.0, []
     for _ in range(200):
-        v, w, mode = core.update(t, (0.0, 0.0, th), STRAIGHT, 1, False, free_scan())
+        v, w, mode = step(core, t, (0.0, 0.0, th), STRAIGHT, 1, False, free_scan())
         modes.append(mode)
         if mode != "look":
             break
@@ -229,9 +239,9 @@ def test_looks_around_once_at_the_start_then_follows():
     assert modes[0] == "look" and modes[-1] == "track"
     assert 2 * math.pi - 0.05 <= turned <= 2 * math.pi + 0.25
     # done once: a new plan does not look again; a clock reset (sim restart) does
-    assert core.update(t + 0.2, (0.0, 0.0, th), STRAIGHT, 2, False, free_scan())[2] == "track"
-    assert core.update(0.0, (0.0, 0.0, th), STRAIGHT, 2, False, free_scan())[2] == "look"
-    assert ControllerCore(P).update(0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False,
+    assert step(core, t + 0.2, (0.0, 0.0, th), STRAIGHT, 2, False, free_scan())[2] == "track"
+    assert step(core, 0.0, (0.0, 0.0, th), STRAIGHT, 2, False, free_scan())[2] == "look"
+    assert step(ControllerCore(P), 0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False,
                                     free_scan())[2] == "track"  # start_turn = 0: no look
 
 
@@ -239,39 +249,37 @@ def test_faces_the_goal_heading_before_arriving():
     core = ControllerCore(P)
     path = np.array([[0.0, 0.0], [1.0, 0.0]])
     pose = (1.0, 0.0, 0.0)  # at the end, facing +x; the plan wants the robot to face -y
-    v, w, mode = core.update(0.0, pose, path, 1, False, free_scan(), goal_heading=-math.pi / 2)
+    v, w, mode = step(core, 0.0, pose, path, 1, False, free_scan(), goal_heading=-math.pi / 2)
     assert mode == "face" and v == 0.0 and w < 0.0
     th, t = 0.0, 0.0
     for _ in range(50):
         t += 0.2
         th += w * 0.2
-        v, w, mode = core.update(t, (1.0, 0.0, th), path, 1, False, free_scan(),
+        v, w, mode = step(core, t, (1.0, 0.0, th), path, 1, False, free_scan(),
                                  goal_heading=-math.pi / 2)
         if mode == "arrived":
             break
     assert mode == "arrived" and abs(th + math.pi / 2) <= P.face_tolerance + 0.2
     # without a heading the same pose is arrived at once; a new heading re-opens the goal
     core2 = ControllerCore(P)
-    assert core2.update(0.0, pose, path, 1, False, free_scan())[2] == "arrived"
-    assert core2.update(0.2, pose, path, 1, False, free_scan(), goal_heading=math.pi)[2] == "face"
-    with pytest.raises(ControllerError):
-        core2.update(0.4, pose, path, 1, False, free_scan(), goal_heading=math.nan)
+    assert step(core2, 0.0, pose, path, 1, False, free_scan())[2] == "arrived"
+    assert step(core2, 0.2, pose, path, 1, False, free_scan(), goal_heading=math.pi)[2] == "face"
 
 
 def test_new_plan_resets_progress_and_arrival():
     core = ControllerCore(P)
     poses, modes = simulate(core, STRAIGHT[:, :] * [0.4, 1.0], (0.0, 0.0, 0.0), steps=200)
     assert modes[-1] == "arrived"
-    v, _, mode = core.update(100.0, poses[-1], [[2.0, 0.0], [5.0, 0.0]], 2, False, free_scan())
+    v, _, mode = step(core, 100.0, poses[-1], [[2.0, 0.0], [5.0, 0.0]], 2, False, free_scan())
     assert mode == "track" and v > 0.0
     assert core.snapshot()["plan_id"] == 2
 
 
 def test_progress_never_goes_back():
     core = ControllerCore(P)
-    core.update(0.0, (3.0, 0.0, 0.0), STRAIGHT, 1, False, free_scan())
+    step(core, 0.0, (3.0, 0.0, 0.0), STRAIGHT, 1, False, free_scan())
     s1 = core.snapshot()["progress"]
-    core.update(0.2, (1.0, 0.0, 0.0), STRAIGHT, 1, False, free_scan())  # pushed back
+    step(core, 0.2, (1.0, 0.0, 0.0), STRAIGHT, 1, False, free_scan())  # pushed back
     assert core.snapshot()["progress"] >= s1
 
 
@@ -280,7 +288,7 @@ P_BACKUP = ControllerParams(recovery_backup=True, start_turn=0.0)
 
 def test_default_recovery_only_turns_in_place():
     core = ControllerCore(P)
-    cmds = [core.update(k * 0.2, (0.0, 0.0, 0.0), STRAIGHT, 1, False,
+    cmds = [step(core, k * 0.2, (0.0, 0.0, 0.0), STRAIGHT, 1, False,
                         scan_with([(0.25, 0.0)])) for k in range(int(P.stuck_time / 0.2) + 8)]
     assert all(v >= 0.0 for v, _, _ in cmds)  # never drives blind backwards
 
@@ -291,18 +299,18 @@ def test_stuck_triggers_recovery_backup_then_turn():
     t, dt = 0.0, 0.2
     mode = ""
     while t < P.stuck_time - 1e-9:  # commanding forward, but the robot does not move
-        v, w, mode = core.update(t, pose, STRAIGHT, 1, False, free_scan())
+        v, w, mode = step(core, t, pose, STRAIGHT, 1, False, free_scan())
         assert mode == "track"
         t += dt
-    v, w, mode = core.update(t, pose, STRAIGHT, 1, False, free_scan())
+    v, w, mode = step(core, t, pose, STRAIGHT, 1, False, free_scan())
     assert mode == "recovery" and v == pytest.approx(-P.recovery_speed) and w == 0.0
     # backs up for recovery_time, then resumes (heading already toward the path)
     t_end = t + P.recovery_time
     while t < t_end - 1e-9:
-        v, _, mode = core.update(t, pose, STRAIGHT, 1, False, free_scan())
+        v, _, mode = step(core, t, pose, STRAIGHT, 1, False, free_scan())
         assert mode == "recovery" and v < 0.0
         t += dt
-    v, _, mode = core.update(t + dt, pose, STRAIGHT, 1, False, free_scan())
+    v, _, mode = step(core, t + dt, pose, STRAIGHT, 1, False, free_scan())
     assert mode == "track" and v > 0.0
     assert core.snapshot()["recoveries"] == 1
 
@@ -310,21 +318,20 @@ def test_stuck_triggers_recovery_backup_then_turn():
 def test_blocked_for_long_triggers_recovery():
     core = ControllerCore(P_BACKUP)
     scan = scan_with([(0.25, 0.0)])
-    modes = [core.update(k * 0.2, (0.0, 0.0, 0.0), STRAIGHT, 1, False, scan)[2]
+    modes = [step(core, k * 0.2, (0.0, 0.0, 0.0), STRAIGHT, 1, False, scan)[2]
              for k in range(int(P.stuck_time / 0.2) + 2)]
     assert modes[0] == "blocked" and modes[-1] == "recovery"
 
 
 def test_recovery_skips_backup_when_rear_is_blocked():
     core = ControllerCore(P)
-    wide_free = (np.full(361, 8.0), -math.pi, math.radians(1.0))
-    r = wide_free[0].copy()
+    r = np.full(361, 8.0)
     r[0] = 0.3  # return straight behind
-    blocked_rear = (r, -math.pi, math.radians(1.0))
+    blocked_rear = Scan(r, -math.pi, math.radians(1.0), 0.02, 8.0)
     path = [[0.0, 0.0], [0.0, 3.0]]  # to the left: needs turning
     pose = (0.0, 0.0, 0.0)
     # stand still while "rotating" (wedged): no progress -> recovery, which may not back up
-    out = [core.update(k * 0.2, pose, path, 1, False, blocked_rear)
+    out = [step(core, k * 0.2, pose, path, 1, False, blocked_rear)
            for k in range(int(P.stuck_time / 0.2) + 2)]
     assert out[-1][2] == "recovery"
     assert out[-1][0] == 0.0 and out[-1][1] > 0.0
@@ -339,8 +346,8 @@ def test_moving_robot_is_not_stuck():
 def test_clock_going_back_resets_timers():
     core = ControllerCore(P)
     for k in range(10):
-        core.update(100.0 + k * 0.2, (0.0, 0.0, 0.0), STRAIGHT, 1, False, free_scan())
-    _, _, mode = core.update(0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False, free_scan())
+        step(core, 100.0 + k * 0.2, (0.0, 0.0, 0.0), STRAIGHT, 1, False, free_scan())
+    _, _, mode = step(core, 0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False, free_scan())
     assert mode == "track"
 
 
@@ -359,27 +366,9 @@ def test_single_waypoint_path():
 
 def test_snapshot_is_json():
     core = ControllerCore(P)
-    core.update(0.0, (0.0, 0.0, 0.0), L_PATH, 1, False, free_scan())
+    step(core, 0.0, (0.0, 0.0, 0.0), L_PATH, 1, False, free_scan())
     snap = json.loads(json.dumps(core.snapshot(), allow_nan=False))
     assert snap["mode"] == "track" and snap["plan_id"] == 1
-
-
-def test_bad_input_raises():
-    core = ControllerCore(P)
-    with pytest.raises(ControllerError):
-        core.update(float("nan"), (0.0, 0.0, 0.0), STRAIGHT, 1, False, None)
-    with pytest.raises(ControllerError):
-        core.update(0.0, (0.0, 0.0), STRAIGHT, 1, False, None)
-    with pytest.raises(ControllerError):
-        core.update(0.0, (0.0, 0.0, 0.0), [[0.0, 0.0, 1.0]], 1, False, None)
-    with pytest.raises(ControllerError):
-        core.update(0.0, (0.0, 0.0, 0.0), [[0.0, np.inf]], 1, False, None)
-    with pytest.raises(ControllerError):
-        core.update(0.0, (0.0, 0.0, 0.0), STRAIGHT, "one", False, None)
-    with pytest.raises(ControllerError):
-        core.update(0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False, (np.ones(3), 0.0))
-    with pytest.raises(ValueError):
-        ControllerCore(Params())
 
 
 def test_params_validation():

@@ -21,7 +21,8 @@ import math
 
 import numpy as np
 
-from topoexplore.common.params import ControllerParams
+from topoexplore.common.domain import Command, Pose, Route, Scan
+from topoexplore.common.params import ControllerParams, RobotParams
 
 __all__ = [
     "ControllerError",
@@ -48,16 +49,6 @@ class ControllerError(ValueError):
     """Bad input to the controller."""
 
 
-def _finite(name: str, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ControllerError(f"{name} must be a number (got {value!r})") from None
-    if not math.isfinite(v):
-        raise ControllerError(f"{name} must be finite (got {v})")
-    return v
-
-
 def wrap_angle(a: float) -> float:
     """Angle [rad] -> (-pi, pi]."""
     return math.atan2(math.sin(a), math.cos(a))
@@ -82,18 +73,6 @@ def clean_path(waypoints) -> np.ndarray:
         keep = np.ones(len(w), dtype=bool)
         keep[1:] = np.hypot(*(w[1:] - w[:-1]).T) > 1e-6
         w = w[keep]
-    return w
-
-
-def _as_waypoints(waypoints) -> np.ndarray:
-    """Validated (n, 2) float copy of the waypoints as given (duplicates kept)."""
-    try:
-        w = np.array(waypoints, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ControllerError("waypoints must be an (n, 2) array of numbers") from None
-    if w.size == 0:
-        return np.zeros((0, 2))
-    clean_path(w)  # raises on bad shape or values
     return w
 
 
@@ -169,42 +148,38 @@ def pure_pursuit(pose: tuple[float, float, float], target) -> tuple[float, float
 # --- scan geometry --------------------------------------------------------------------------
 
 
-def _scan_xy(scan) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Valid returns of (ranges, angle_min, angle_increment): (r, angle, x, y) robot frame."""
-    ranges, angle_min, inc = scan
-    r = np.asarray(ranges, dtype=np.float64).ravel()
-    a = _finite("scan angle_min", angle_min) + _finite("scan angle_increment", inc) * np.arange(
-        r.size)
+def _scan_xy(scan: Scan) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Valid returns of a scan: (r, angle, x, y) in the robot frame."""
+    r = np.asarray(scan.ranges, dtype=np.float64).ravel()
+    a = scan.angles()
     ok = np.isfinite(r) & (r > 0.0)
     r, a = r[ok], a[ok]
     return r, a, r * np.cos(a), r * np.sin(a)
 
 
-def front_distance(scan, params: ControllerParams) -> float:
+def front_distance(scan: Scan | None, params: ControllerParams, radius: float) -> float:
     """Range [m] of the nearest return in the front sector, inf if none.
 
-    Front sector: |angle| <= front_half_angle and lateral offset |y| <= robot_radius +
+    Front sector: |angle| <= front_half_angle and lateral offset |y| <= radius +
     lateral_margin (a return beside the robot's swept corridor is not in the way).
     """
     if scan is None:
         return math.inf
     r, a, _, y = _scan_xy(scan)
     a = np.arctan2(np.sin(a), np.cos(a))
-    m = (np.abs(a) <= params.front_half_angle) & (
-        np.abs(y) <= params.robot_radius + params.lateral_margin)
+    m = (np.abs(a) <= params.front_half_angle) & (np.abs(y) <= radius + params.lateral_margin)
     return float(np.min(r[m])) if np.any(m) else math.inf
 
 
-def rear_blocked(scan, params: ControllerParams) -> bool:
+def rear_blocked(scan: Scan | None, params: ControllerParams, radius: float) -> bool:
     """True if a return lies behind the robot centre in its swept corridor within the backing
-    distance (recovery_speed * recovery_time + robot_radius + lateral_margin). A forward-only
+    distance (recovery_speed * recovery_time + radius + lateral_margin). A forward-only
     180 deg laser never sees behind, so the rear then counts as not known to be blocked."""
     if scan is None:
         return False
     _, _, x, y = _scan_xy(scan)
-    reach = (params.robot_radius + params.lateral_margin
-             + params.recovery_speed * params.recovery_time)  # [m]
-    m = (x < -1e-9) & (-x <= reach) & (np.abs(y) <= params.robot_radius + params.lateral_margin)
+    reach = radius + params.lateral_margin + params.recovery_speed * params.recovery_time  # [m]
+    m = (x < -1e-9) & (-x <= reach) & (np.abs(y) <= radius + params.lateral_margin)
     return bool(np.any(m))
 
 
@@ -226,10 +201,9 @@ def obstacle_scale(d_front: float, params: ControllerParams) -> float:
 class ControllerCore:
     """Path follower state: current path and progress, rotate/recovery phases, stuck timer."""
 
-    def __init__(self, params: ControllerParams):
-        if not isinstance(params, ControllerParams):
-            raise ControllerError(f"params must be ControllerParams (got {type(params).__name__})")
+    def __init__(self, params: ControllerParams, radius: float | None = None):
         self.params = params
+        self.radius = RobotParams().radius if radius is None else float(radius)  # [m]
         self.plan_id: int | None = None
         self.path = np.zeros((0, 2))
         self._raw = np.zeros((0, 2))
@@ -264,7 +238,7 @@ class ControllerCore:
         self._rotating = False
         self._ref = None
 
-    def _out(self, v: float, w: float, mode: str, moving: bool, t: float, pose) -> tuple:
+    def _out(self, v: float, w: float, mode: str, moving: bool, t: float, pose) -> Command:
         if not moving:
             self._ref = None
             self._recovery = None
@@ -273,93 +247,58 @@ class ControllerCore:
             self._ref = (t, pose[0], pose[1], pose[2])
         self.mode = mode
         self.cmd = (float(v), float(w))
-        return float(v), float(w), mode
+        return Command(float(v), float(w), mode)
 
     def _turn_w(self, alpha: float) -> float:
         p = self.params
         return float(np.clip(p.heading_gain * alpha, -p.w_max, p.w_max))
 
-    # -- public --
-
-    def update(self, t: float, pose: tuple[float, float, float], waypoints, plan_id: int,
-               done: bool, scan, goal_heading: float | None = None) -> tuple[float, float, str]:
-        """One control step at time t [s]. Returns (v [m/s], w [rad/s], mode).
-
-        waypoints: (n, 2) path [m] (empty = stop); plan_id changes when a new path arrives
-        (a changed waypoint list with the same id also counts as new); done: exploration over;
-        scan: (ranges [m], angle_min [rad], angle_increment [rad]) of the latest scan in the
-        robot frame, or None; goal_heading [rad]: at the end of the path, turn in place to
-        within face_tolerance of it (mode "face") before reporting "arrived" (None: any).
-        """
-        p = self.params
-        t = _finite("t", t)
-        try:
-            if len(pose) != 3:
-                raise ControllerError(f"pose must have 3 values (x, y, theta), got {len(pose)}")
-        except TypeError:
-            raise ControllerError(f"pose must be (x, y, theta) (got {pose!r})") from None
-        pose = (_finite("pose.x", pose[0]), _finite("pose.y", pose[1]),
-                _finite("pose.theta", pose[2]))
-        if isinstance(plan_id, bool) or not isinstance(plan_id, (int, np.integer)):
-            raise ControllerError(f"plan_id must be an int (got {plan_id!r})")
-        if scan is not None:
-            try:
-                if len(scan) != 3:
-                    raise ControllerError("scan must be (ranges, angle_min, angle_increment)")
-            except TypeError:
-                raise ControllerError("scan must be (ranges, angle_min, angle_increment)") from None
-        raw = _as_waypoints(waypoints)
-        if goal_heading is not None:
-            goal_heading = _finite("goal_heading", goal_heading)
-        if t < self._t_last:  # clock went back (sim restart): forget timers, look again
-            self._ref = None
-            self._recovery = None
-            self._look_left, self._look_th = p.start_turn, None
-        self._t_last = t
-        self.front = front_distance(scan, p)
-
-        if int(plan_id) != self.plan_id or raw.shape != self._raw.shape or not np.array_equal(
-                raw, self._raw) or goal_heading != self.goal_heading:
+    def _take_route(self, route: Route | None) -> None:
+        """A new path when the plan id, the waypoints or the goal heading changed."""
+        raw = route.waypoints if route is not None else np.zeros((0, 2))
+        plan_id = route.plan_id if route is not None else -1
+        heading = route.goal_heading if route is not None else None
+        if plan_id != self.plan_id or raw.shape != self._raw.shape or not np.array_equal(
+                raw, self._raw) or heading != self.goal_heading:
             self._set_path(int(plan_id), raw)
-            self.goal_heading = goal_heading
-        if bool(done):
-            return self._out(0.0, 0.0, "done", False, t, pose)
-        if self._look_left > 0.0:  # look around first: a forward laser sees nothing behind
-            th = pose[2]
-            if self._look_th is not None:
-                self._look_left -= abs(wrap_angle(th - self._look_th))
-            self._look_th = th
-            if self._look_left > 1e-3:
-                w = p.w_max if self._look_left > 0.5 else max(0.5 * p.w_max, self._look_left)
-                return self._out(0.0, w, "look", False, t, pose)
-            self._look_left = 0.0
-        if len(self.path) == 0:
-            return self._out(0.0, 0.0, "idle", False, t, pose)
-        if self.arrived:
-            return self._out(0.0, 0.0, "arrived", False, t, pose)
+            self.goal_heading = heading
 
-        x, y, th = pose
-        total = float(self.cum[-1])
-        s_proj, _ = project_on_path(self.path, self.cum, x, y, self.s, self.s + p.search_window)
-        self.s = max(self.s, s_proj)
+    def _look(self, t: float, pose: Pose) -> Command | None:
+        """Turn in place start_turn [rad] before the first path (a forward laser sees nothing
+        behind); None once done."""
+        if self._look_left <= 0.0:
+            return None
+        th = pose[2]
+        if self._look_th is not None:
+            self._look_left -= abs(wrap_angle(th - self._look_th))
+        self._look_th = th
+        if self._look_left > 1e-3:
+            w_max = self.params.w_max
+            w = w_max if self._look_left > 0.5 else max(0.5 * w_max, self._look_left)
+            return self._out(0.0, w, "look", False, t, pose)
+        self._look_left = 0.0
+        return None
+
+    def _at_end(self, t: float, pose: Pose) -> Command | None:
+        """At the end of the path: face the goal heading, then report "arrived"."""
+        p = self.params
         end = self.path[-1]
-        if math.hypot(end[0] - x, end[1] - y) <= p.goal_tolerance and total - self.s <= (
-                p.search_window):
-            err = 0.0 if self.goal_heading is None else wrap_angle(self.goal_heading - th)
-            self.heading_error = err
-            if abs(err) > p.face_tolerance:  # at the end: face the goal heading first
-                w = math.copysign(max(abs(self._turn_w(err)), 0.5 * p.w_max), err)
-                return self._out(0.0, w, "face", True, t, pose)
-            self.arrived = True
-            return self._out(0.0, 0.0, "arrived", False, t, pose)
+        if math.hypot(end[0] - pose[0], end[1] - pose[1]) > p.goal_tolerance or (
+                float(self.cum[-1]) - self.s > p.search_window):
+            return None
+        err = 0.0 if self.goal_heading is None else wrap_angle(self.goal_heading - pose[2])
+        self.heading_error = err
+        if abs(err) > p.face_tolerance:
+            w = math.copysign(max(abs(self._turn_w(err)), 0.5 * p.w_max), err)
+            return self._out(0.0, w, "face", True, t, pose)
+        self.arrived = True
+        return self._out(0.0, 0.0, "arrived", False, t, pose)
 
-        target, _ = lookahead_point(self.path, self.cum, x, y, self.s, p.lookahead,
-                                    p.search_window)
-        self.target = (float(target[0]), float(target[1]))
-        alpha, dist, kappa = pure_pursuit(pose, target)
-        self.heading_error = alpha
-
-        # stuck detection: commanded motion but no progress for stuck_time
+    def _recover(self, t: float, pose: Pose, alpha: float, scan: Scan | None) -> Command | None:
+        """Stuck detection (commanded motion, no progress for stuck_time) and the recovery:
+        back up (if enabled and the rear is not known to be blocked), then turn to the path."""
+        p = self.params
+        x, y, th = pose
         if self._ref is not None and self._recovery is None:
             t0, x0, y0, th0 = self._ref
             if (math.hypot(x - x0, y - y0) > p.stuck_distance
@@ -367,8 +306,8 @@ class ControllerCore:
                 self._ref = (t, x, y, th)
             elif t - t0 >= p.stuck_time:
                 self.recoveries += 1
-                self._recovery = ("backup" if p.recovery_backup and not rear_blocked(scan, p)
-                                  else "turn")
+                self._recovery = ("backup" if p.recovery_backup
+                                  and not rear_blocked(scan, p, self.radius) else "turn")
                 self._rec_start = t
         if self._recovery == "backup":
             if t - self._rec_start < p.recovery_time:
@@ -380,8 +319,11 @@ class ControllerCore:
                 return self._out(0.0, self._turn_w(alpha), "recovery", True, t, pose)
             self._recovery = None
             self._ref = (t, x, y, th)
+        return None
 
-        # rotate in place when the heading error is large (with hysteresis)
+    def _rotate(self, t: float, pose: Pose, alpha: float) -> Command | None:
+        """Rotate in place while the heading error is large (with hysteresis)."""
+        p = self.params
         if abs(alpha) > p.rotate_angle or (self._rotating and abs(alpha) > 0.5 * p.rotate_angle):
             if not self._rotating or abs(alpha) < math.pi - 0.3:
                 self._rot_dir = 1.0 if alpha >= 0.0 else -1.0
@@ -389,7 +331,11 @@ class ControllerCore:
             w = self._rot_dir * max(abs(self._turn_w(alpha)), 0.5 * p.w_max)
             return self._out(0.0, w, "rotate", True, t, pose)
         self._rotating = False
+        return None
 
+    def _pursue(self, t: float, pose: Pose, alpha: float, kappa: float) -> Command:
+        """Pure pursuit at v_max, slowed near obstacles ahead, stopped by the safety distance."""
+        p = self.params
         scale = obstacle_scale(self.front, p)
         if scale <= 0.0:
             return self._out(0.0, self._turn_w(alpha), "blocked", True, t, pose)
@@ -398,6 +344,50 @@ class ControllerCore:
             v = p.w_max / abs(kappa)
         w = float(np.clip(v * kappa, -p.w_max, p.w_max))
         return self._out(v, w, "slow" if scale < 1.0 else "track", True, t, pose)
+
+    # -- public --
+
+    def update(self, t: float, pose: Pose, route: Route | None, done: bool,
+               scan: Scan | None) -> Command:
+        """One control step at time t [s] for the robot at pose (map frame).
+
+        route: the path to follow (None or no waypoints = stop); a new plan_id, changed
+        waypoints or a changed goal heading start it anew; at its end the robot turns to the
+        route's goal_heading (mode "face", within face_tolerance) before reporting "arrived".
+        done: exploration over. scan: the latest scan (robot frame), or None.
+        """
+        if t < self._t_last:  # clock went back (sim restart): forget timers, look again
+            self._ref = None
+            self._recovery = None
+            self._look_left, self._look_th = self.params.start_turn, None
+        self._t_last = t
+        self.front = front_distance(scan, self.params, self.radius)
+        self._take_route(route)
+        if bool(done):
+            return self._out(0.0, 0.0, "done", False, t, pose)
+        look = self._look(t, pose)
+        if look is not None:
+            return look
+        if len(self.path) == 0:
+            return self._out(0.0, 0.0, "idle", False, t, pose)
+        if self.arrived:
+            return self._out(0.0, 0.0, "arrived", False, t, pose)
+        x, y, _ = pose
+        s_proj, _ = project_on_path(self.path, self.cum, x, y, self.s,
+                                    self.s + self.params.search_window)
+        self.s = max(self.s, s_proj)
+        end = self._at_end(t, pose)
+        if end is not None:
+            return end
+        target, _ = lookahead_point(self.path, self.cum, x, y, self.s, self.params.lookahead,
+                                    self.params.search_window)
+        self.target = (float(target[0]), float(target[1]))
+        alpha, _, kappa = pure_pursuit(pose, target)
+        self.heading_error = alpha
+        cmd = self._recover(t, pose, alpha, scan)
+        if cmd is None:
+            cmd = self._rotate(t, pose, alpha)
+        return cmd if cmd is not None else self._pursue(t, pose, alpha, kappa)
 
     def snapshot(self) -> dict:
         """JSON-able controller state."""

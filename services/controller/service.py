@@ -10,9 +10,9 @@ from __future__ import annotations
 import logging
 import math
 
-import numpy as np
-
+from topoexplore.common import convert
 from topoexplore.common import messages as m
+from topoexplore.common.domain import Command
 from topoexplore.common.node import Node, OdomBuffer, run_service
 from topoexplore.services.controller.core import ControllerCore
 
@@ -22,14 +22,14 @@ log = logging.getLogger("topoexplore.controller")
 class ControllerService:
     def __init__(self, node: Node):
         self.node = node
-        self.core = ControllerCore(node.params.controller)
+        self.core = ControllerCore(node.params.controller, node.params.robot.radius)
         self.odom = OdomBuffer()
         self.pub = node.publisher("cmd_vel")
         node.subscribe_odom(self.odom)
         node.subscribe("plan")
         node.subscribe("explore/status")
         node.subscribe("scan", queue=True)
-        self.last_cmd = (0.0, 0.0, "idle")
+        self.last_cmd = Command(0.0, 0.0, "idle")
         node.add_state(self.state)
 
     def ready(self, scan: m.LaserScan) -> bool:
@@ -50,25 +50,22 @@ class ControllerService:
         plan, status = inbox.latest.get("plan"), inbox.latest.get("explore/status")
         pose = self.odom.pose_near(scan.header.stamp)
         if pose is None:
-            v, w, mode = 0.0, 0.0, "no-pose"
+            cmd = Command(0.0, 0.0, "no-pose")
         else:
-            waypoints = np.asarray(plan.waypoints, dtype=np.float64).reshape(-1, 2) \
-                if plan is not None else np.zeros((0, 2))
-            plan_id = plan.plan_id if plan is not None else -1
-            done = status is not None and status.state in ("done", "failed")
-            v, w, mode = self.core.update(
-                scan.header.stamp, pose, waypoints, plan_id, done,
-                (np.asarray(scan.ranges, dtype=np.float64), scan.angle_min, scan.angle_increment),
-                plan.goal_heading if plan is not None else None)
-        if mode != self.last_cmd[2] and mode in ("blocked", "recovery") and pose is not None:
+            done = status is not None and convert.status_from_msg(status).finished
+            cmd = self.core.update(scan.header.stamp, pose,
+                                   convert.route_from_msg(plan) if plan is not None else None,
+                                   done, convert.scan_from_msg(scan))
+        v, w, mode = cmd
+        if mode != self.last_cmd.mode and mode in ("blocked", "recovery") and pose is not None:
             c = self.core  # the safety stop or a stuck recovery took over: say where and why
             log.info("t=%.1f s %s at (%.2f, %.2f, %.2f rad): front %.2f m, heading error "
                      "%.2f rad, lookahead (%.2f, %.2f), recoveries %d", scan.header.stamp, mode,
                      pose[0], pose[1], pose[2], c.front, c.heading_error, *(c.target or (math.nan, math.nan)),
                      c.recoveries)
-        self.last_cmd = (v, w, mode)
-        self.pub.put(m.Twist(header=self.node.header("cmd_vel", scan.header.stamp,
-                                                     scan.header.src_seq), v=v, w=w))
+        self.last_cmd = cmd
+        self.pub.put(convert.command_to_msg(cmd, self.node.header(
+            "cmd_vel", scan.header.stamp, scan.header.src_seq)))
         self.node.processed += 1
 
     def state(self) -> dict:

@@ -34,7 +34,9 @@ import math
 import numpy as np
 from numba import njit
 
+from topoexplore.common.domain import GridMap, Pose, Scan
 from topoexplore.common.grid import GridGeometry
+from topoexplore.common.kernels import bresenham, line_length
 from topoexplore.common.params import MapperParams
 
 __all__ = [
@@ -43,12 +45,10 @@ __all__ = [
     "MapperCore",
     "beam_endpoints",
     "grow_axis",
-    "check_params",
     "logodds_to_int8",
     "prob_to_logodds",
 ]
 
-MAX_COORD = 1.0e6  # [m] poses beyond this are rejected (float precision, absurd input)
 _STAMP_LIMIT = 2**31 - 2  # scan stamps are int32; wrap (and clear) before overflowing
 
 
@@ -75,75 +75,27 @@ def prob_to_logodds(p: np.ndarray, l_min: float, l_max: float) -> np.ndarray:
     return np.clip(np.log(p / (1.0 - p)), l_min, l_max)
 
 
-def beam_endpoints(
-    pose: tuple[float, float, float],
-    ranges: np.ndarray,
-    angle_min: float,
-    angle_increment: float,
-    range_min: float,
-    range_max: float,
-    laser_offset: float = 0.0,
-) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
+def beam_endpoints(pose: Pose, scan: Scan, laser_offset: float = 0.0
+                   ) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
     """World end points of the usable beams of one scan.
 
     Beam i points at ``theta + angle_min + i * angle_increment`` from the laser, which sits
     ``laser_offset`` [m] ahead of the robot centre. Returns ``(lx, ly, ex, ey, hit)``: laser
     position [m], end points [m] of the beams with range >= range_min (no-return beams end at
-    range_max), and ``hit`` (True where the beam ended on an obstacle). Raises ScanError on bad
-    input.
+    range_max), and ``hit`` (True where the beam ended on an obstacle).
     """
-    x, y, th = _check_pose(pose)
-    r = _check_scan(ranges, angle_min, angle_increment, range_min, range_max)
-    if not math.isfinite(laser_offset) or abs(laser_offset) > 10.0:
-        raise ScanError(f"laser_offset={laser_offset} is not a finite offset within 10 m")
+    x, y, th = pose
+    r = scan.ranges
     lx = x + laser_offset * math.cos(th)
     ly = y + laser_offset * math.sin(th)
-    idx = np.nonzero(r >= range_min)[0]
+    idx = np.nonzero(r >= scan.range_min)[0]
     rr = r[idx]
-    hit = rr < range_max
-    rr = np.minimum(rr, range_max)
-    ang = th + angle_min + idx * angle_increment
+    hit = rr < scan.range_max
+    rr = np.minimum(rr, scan.range_max)
+    ang = th + scan.angle_min + idx * scan.angle_increment
     ex = lx + rr * np.cos(ang)
     ey = ly + rr * np.sin(ang)
     return lx, ly, ex, ey, hit
-
-
-def _check_pose(pose) -> tuple[float, float, float]:
-    try:
-        x, y, th = (float(v) for v in pose)
-    except (TypeError, ValueError):
-        raise ScanError(f"pose must be (x, y, theta), got {pose!r}") from None
-    if not all(math.isfinite(v) for v in (x, y, th)):
-        raise ScanError(f"pose {(x, y, th)} is not finite")
-    if abs(x) > MAX_COORD or abs(y) > MAX_COORD or abs(th) > 1000.0:
-        raise ScanError(f"pose {(x, y, th)} is absurd (|x|,|y| <= {MAX_COORD:g} m)")
-    return x, y, th
-
-
-def _check_scan(ranges, angle_min, angle_increment, range_min, range_max) -> np.ndarray:
-    try:
-        r = np.asarray(ranges, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ScanError("ranges must be a 1-D sequence of numbers") from None
-    if r.ndim != 1 or r.size == 0:
-        raise ScanError(f"ranges must be a non-empty 1-D array (got shape {r.shape})")
-    for name, v in (("angle_min", angle_min), ("angle_increment", angle_increment),
-                    ("range_min", range_min), ("range_max", range_max)):
-        if not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(v):
-            raise ScanError(f"{name}={v!r} is not a finite number")
-    if not 0.0 <= range_min < range_max:
-        raise ScanError(f"need 0 <= range_min < range_max (got {range_min}, {range_max})")
-    if r.size > 1 and angle_increment == 0.0:
-        raise ScanError(f"angle_increment is zero with {r.size} beams")
-    if abs(angle_min) > 2 * math.pi or abs(angle_increment) * (r.size - 1) > 2 * math.pi + 1e-6:
-        raise ScanError(
-            f"{r.size} beams at {angle_increment} rad from {angle_min} rad span more than a turn"
-        )
-    if np.isnan(r).any():
-        raise ScanError(f"{int(np.isnan(r).sum())} ranges are NaN")
-    if (r < 0.0).any():
-        raise ScanError(f"{int((r < 0.0).sum())} ranges are negative (-inf included)")
-    return r
 
 
 # --- the numba kernel ----------------------------------------------------------------------
@@ -165,8 +117,9 @@ def _integrate_kernel(logodds, occ, stamp, scan_id, r0, c0, er, ec, hit,
                       l_free, l_occ, l_min, l_max):  # pragma: no cover - compiled
     """Apply one scan in place; return the touched window (row0, row1, col0, col1), half-open.
 
-    Bresenham from (r0, c0) to each (er[k], ec[k]); all indices must be inside the grid.
-    ``stamp[r, c] == scan_id`` marks a cell already updated in this scan.
+    Bresenham (:func:`topoexplore.common.kernels.bresenham`) from (r0, c0) to each
+    (er[k], ec[k]); all indices must be inside the grid. ``stamp[r, c] == scan_id`` marks a
+    cell already updated in this scan.
     """
     h, w = logodds.shape
     rmin, rmax, cmin, cmax = h, -1, w, -1
@@ -182,34 +135,25 @@ def _integrate_kernel(logodds, occ, stamp, scan_id, r0, c0, er, ec, hit,
                 rmax = max(rmax, r)
                 cmin = min(cmin, c)
                 cmax = max(cmax, c)
-    for k in range(n):  # pass 2: free cells along each ray
-        r1 = er[k]
-        c1 = ec[k]
-        dr = abs(r1 - r0)
-        dc = abs(c1 - c0)
-        sr = 1 if r1 > r0 else -1
-        sc = 1 if c1 > c0 else -1
-        err = dc - dr
-        r = r0
-        c = c0
-        while True:
-            last = r == r1 and c == c1
-            if not (last and hit[k]) and stamp[r, c] != scan_id:
+    cap = 1  # line buffers sized for the longest ray
+    for k in range(n):
+        cap = max(cap, line_length(r0, c0, er[k], ec[k]))
+    rows = np.empty(cap, np.int64)
+    cols = np.empty(cap, np.int64)
+    for k in range(n):  # pass 2: free cells along each ray (a hit's own cell is not free)
+        m = bresenham(r0, c0, er[k], ec[k], rows, cols)
+        if hit[k]:
+            m -= 1
+        for i in range(m):
+            r = rows[i]
+            c = cols[i]
+            if stamp[r, c] != scan_id:
                 stamp[r, c] = scan_id
                 _apply(logodds, occ, r, c, l_free, l_min, l_max)
                 rmin = min(rmin, r)
                 rmax = max(rmax, r)
                 cmin = min(cmin, c)
                 cmax = max(cmax, c)
-            if last:
-                break
-            e2 = 2 * err
-            if e2 > -dr:
-                err -= dr
-                c += sc
-            if e2 < dc:
-                err += dc
-                r += sr
     if rmax < 0:
         return 0, 0, 0, 0
     return rmin, rmax + 1, cmin, cmax + 1
@@ -255,24 +199,6 @@ def grow_axis(lo: int, hi: int, n: int, margin: int, limit: int) -> tuple[int, i
     return add_lo, add_hi
 
 
-def check_params(p: MapperParams) -> None:
-    """The core's own guard (it may be built from unvalidated params): the kernel writes without
-    bounds checks, so sizes and log-odds must be sane. Raises ValueError with one line."""
-    vals = {k: getattr(p, k) for k in ("resolution", "l_occ", "l_free", "l_min", "l_max",
-                                       "initial_size", "grow_margin", "max_size")}
-    bad = [k for k, v in vals.items() if not (isinstance(v, (int, float)) and math.isfinite(v))]
-    if bad:
-        raise ValueError(f"mapper params not finite numbers: {', '.join(bad)}")
-    if not (p.resolution > 0 and p.initial_size > 0 and p.max_size > 0 and p.grow_margin >= 0):
-        raise ValueError("mapper: need resolution, initial_size, max_size > 0, grow_margin >= 0")
-    if p.initial_size > p.max_size:
-        raise ValueError(f"mapper.initial_size={p.initial_size} exceeds max_size={p.max_size}")
-    if not (p.l_min < 0 < p.l_max and p.l_free < 0 < p.l_occ):
-        raise ValueError("mapper: need l_min < 0 < l_max and l_free < 0 < l_occ")
-    if p.max_size / p.resolution > 50_000:
-        raise ValueError("mapper: max_size / resolution exceeds 50000 cells per side")
-
-
 # --- the core ------------------------------------------------------------------------------
 
 
@@ -282,11 +208,9 @@ class MapperCore:
     Cell (row i, col j) covers ``[origin + (j, i) * res, origin + (j+1, i+1) * res)``; row = y.
     """
 
-    def __init__(self, params: MapperParams):
-        if not isinstance(params, MapperParams):
-            raise TypeError("params must be a common.params.MapperParams")
-        check_params(params)
+    def __init__(self, params: MapperParams, laser_offset: float = 0.0):
         self.params = params
+        self.laser_offset = float(laser_offset)  # [m] laser ahead of the robot centre
         self._res = float(params.resolution)  # [m/cell]
         # origin = base + offset cells * res: integer offsets keep growth exactly cell-aligned
         self._base_x = 0.0  # [m]
@@ -305,7 +229,7 @@ class MapperCore:
 
     @property
     def ready(self) -> bool:
-        """True once a grid exists (after the first integrate, or from_occupancy)."""
+        """True once a grid exists (after the first integrate, or from_grid)."""
         return self._l.size > 0
 
     @property
@@ -333,9 +257,13 @@ class MapperCore:
         v.flags.writeable = False
         return v
 
+    def grid(self, copy: bool = False) -> GridMap:
+        """The occupancy grid with its geometry (a read-only live view without ``copy``)."""
+        return GridMap(self.occupancy(copy), self.geometry)
+
     def _need_grid(self) -> None:
         if not self.ready:
-            raise RuntimeError("mapper has no grid yet: integrate a scan or use from_occupancy")
+            raise RuntimeError("mapper has no grid yet: integrate a scan or use from_grid")
 
     def _origin_x(self) -> float:
         return self._base_x + self._off_c * self._res
@@ -346,20 +274,14 @@ class MapperCore:
     # -- loading -------------------------------------------------------------------------------
 
     @classmethod
-    def from_occupancy(cls, grid_int8: np.ndarray, geom: GridGeometry,
-                       params: MapperParams) -> MapperCore:
+    def from_grid(cls, grid: GridMap, params: MapperParams,
+                  laser_offset: float = 0.0) -> MapperCore:
         """Continue mapping on a saved grid: log-odds = logit(value / 100), clamped; -1 unknown.
 
         Values 0 and 100 (e.g. from a map_server file) come back as the clamp values
         (round(100 p) at l_min / l_max, 2 / 98 with the defaults): classes are preserved.
         """
-        g = np.asarray(grid_int8)
-        if g.ndim != 2 or g.shape != (geom.height, geom.width) or g.size == 0:
-            raise MapLoadError(
-                f"grid shape {g.shape} does not match geometry {geom.height}x{geom.width}"
-            )
-        if not np.issubdtype(g.dtype, np.integer):
-            raise MapLoadError(f"grid must be an integer array (got {g.dtype})")
+        g, geom = grid.data, grid.geom
         if g.min() < -1 or g.max() > 100:
             raise MapLoadError("grid values must be -1 (unknown) or 0..100")
         if not math.isclose(geom.resolution, params.resolution, rel_tol=1e-9):
@@ -367,11 +289,9 @@ class MapperCore:
                 f"map resolution {geom.resolution} m differs from mapper.resolution "
                 f"{params.resolution} m"
             )
-        if not (math.isfinite(geom.origin_x) and math.isfinite(geom.origin_y)):
-            raise MapLoadError("map origin is not finite")
         if max(geom.width, geom.height) * geom.resolution > params.max_size + 1e-9:
             raise MapLoadError(f"map is larger than mapper.max_size={params.max_size} m")
-        core = cls(params)
+        core = cls(params, laser_offset)
         core._base_x = float(geom.origin_x)
         core._base_y = float(geom.origin_y)
         known = g >= 0
@@ -385,20 +305,18 @@ class MapperCore:
 
     # -- the update ----------------------------------------------------------------------------
 
-    def integrate(self, pose: tuple[float, float, float], ranges: np.ndarray, angle_min: float,
-                  angle_increment: float, range_min: float, range_max: float,
-                  laser_offset: float = 0.0) -> tuple[int, int, int, int]:
-        """Fuse one scan taken at ``pose`` (robot centre, map frame; laser ``laser_offset`` ahead).
+    def integrate(self, pose: Pose, scan: Scan) -> tuple[int, int, int, int]:
+        """Fuse one scan taken at ``pose`` (robot centre, map frame; the laser sits
+        ``laser_offset`` ahead).
 
         Returns the changed window ``(row0, row1, col0, col1)`` (half-open) in the current grid.
         If the grid was created or grew during this call, every index shifted, so the window is
         the whole grid. ``(0, 0, 0, 0)`` if no cell changed. Raises ScanError (state unchanged)
-        on a bad scan or pose, or if the grid would have to grow beyond ``max_size``.
+        if the scan's range or the grid would have to grow beyond ``max_size``.
         """
-        lx, ly, ex, ey, hit = beam_endpoints(pose, ranges, angle_min, angle_increment,
-                                             range_min, range_max, laser_offset)
-        if not math.isfinite(range_max) or range_max > self.params.max_size:
-            raise ScanError(f"range_max={range_max} exceeds mapper.max_size")
+        if scan.range_max > self.params.max_size:
+            raise ScanError(f"range_max={scan.range_max} exceeds mapper.max_size")
+        lx, ly, ex, ey, hit = beam_endpoints(pose, scan, self.laser_offset)
         changed_shape = False
         if not self.ready:
             self._create(float(pose[0]), float(pose[1]))

@@ -12,8 +12,7 @@ from __future__ import annotations
 
 import logging
 
-import numpy as np
-
+from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.node import Node, OdomBuffer, run_service
 from topoexplore.services.mapper.core import MapperCore, ScanError
@@ -24,7 +23,7 @@ log = logging.getLogger("topoexplore.mapper")
 class MapperService:
     def __init__(self, node: Node):
         self.node = node
-        self.core = MapperCore(node.params.mapper)
+        self.core = MapperCore(node.params.mapper, node.params.laser.offset)
         self.odom = OdomBuffer()
         self.pub_map = node.publisher("map")
         node.subscribe_odom(self.odom)
@@ -48,14 +47,12 @@ class MapperService:
         if pose is None:
             self.skip("pose_missing", f"no odometry at stamp {scan.header.stamp:.3f}")
             return
-        expected = self.node.params.sim.beams
+        expected = self.node.params.laser.beams
         if len(scan.ranges) != expected:
             self.skip("beam_count", f"{len(scan.ranges)} beams, expected {expected}")
             return
         try:
-            self.core.integrate(pose, np.asarray(scan.ranges, dtype=np.float64), scan.angle_min,
-                                scan.angle_increment, scan.range_min, scan.range_max,
-                                laser_offset=self.node.params.sim.laser_offset)
+            self.core.integrate(pose, convert.scan_from_msg(scan))
         except ScanError as exc:
             self.skip("rejected", str(exc))
             return
@@ -68,11 +65,7 @@ class MapperService:
         self.pub_map.put(self.last_map)
 
     def make_map(self, stamp: float, src_seq: int) -> m.OccupancyGrid:
-        g = self.core.geometry
-        return m.OccupancyGrid(
-            header=self.node.header("map", stamp, src_seq), resolution=g.resolution,
-            width=g.width, height=g.height, origin=m.Pose2D(x=g.origin_x, y=g.origin_y, theta=0.0),
-            data=m.array_to_grid_bytes(self.core.occupancy()))
+        return convert.grid_to_msg(self.core.grid(), self.node.header("map", stamp, src_seq))
 
     def state(self) -> dict:
         out: dict = {"skipped_scans": dict(self.skipped), "map": self.last_map, "grid": None}

@@ -30,9 +30,10 @@ import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
-from topoexplore.common.grid import GridGeometry, open_unknown
-from topoexplore.common.messages import NodeReliability
-from topoexplore.common.params import ReliabilityParams
+from topoexplore.common.domain import Belief, Graph, GridMap, Pose
+from topoexplore.common.grid import GridGeometry, Occupancy, open_unknown
+from topoexplore.common.kernels import flood_fill
+from topoexplore.common.params import LaserParams, ReliabilityParams
 
 __all__ = [
     "ReliabilityError",
@@ -67,40 +68,9 @@ def _finite(name: str, value: float) -> float:
     return v
 
 
-def _pose3(pose) -> tuple[float, float, float]:
-    try:
-        n = len(pose)
-    except TypeError:
-        raise ReliabilityError(f"pose must be (x, y, theta) (got {pose!r})") from None
-    if n != 3:
-        raise ReliabilityError(f"pose must have 3 values (x, y, theta), got {n}")
-    return (_finite("pose.x", pose[0]), _finite("pose.y", pose[1]), _finite("pose.theta", pose[2]))
-
-
 def _wrap(a: float) -> float:
     """Angle [rad] -> (-pi, pi]."""
     return math.atan2(math.sin(a), math.cos(a))
-
-
-def _check_grid(grid_int8: np.ndarray, geom: GridGeometry) -> np.ndarray:
-    if not isinstance(geom, GridGeometry):
-        raise ReliabilityError(f"geom must be a GridGeometry (got {type(geom).__name__})")
-    g = np.asarray(grid_int8)
-    if g.ndim != 2 or g.shape != (geom.height, geom.width):
-        raise ReliabilityError(
-            f"grid shape {g.shape} does not match geometry (height, width) = "
-            f"({geom.height}, {geom.width})"
-        )
-    if not (math.isfinite(geom.resolution) and geom.resolution > 0):
-        raise ReliabilityError(f"grid resolution must be positive (got {geom.resolution})")
-    return g
-
-
-def _check_p_occ(p_occ: float) -> float:
-    p = _finite("p_occ", p_occ)
-    if not 0.0 < p < 1.0:
-        raise ReliabilityError(f"p_occ must be in (0, 1) (got {p})")
-    return p
 
 
 # --- equations ----------------------------------------------------------------------------
@@ -234,34 +204,30 @@ def _line_clear(ax: float, ay: float, bx: float, by: float, grid: np.ndarray,
     return not bool(np.any(grid[rows[keep], cols[keep]] > occ_threshold))
 
 
-def line_of_sight(a_xy, b_xy, grid_int8: np.ndarray, geom: GridGeometry,
-                  p_occ: float = 0.65) -> bool:
+def line_of_sight(a_xy, b_xy, grid: GridMap, p_occ: float = 0.65) -> bool:
     """True if the segment a-b [m] crosses no occupied cell (value > p_occ * 100).
 
     The cells containing a and b themselves are excluded; unknown (-1) cells and cells outside
     the grid do not block.
     """
-    g = _check_grid(grid_int8, geom)
-    p = _check_p_occ(p_occ)
-    ax, ay = _finite("a.x", a_xy[0]), _finite("a.y", a_xy[1])
-    bx, by = _finite("b.x", b_xy[0]), _finite("b.y", b_xy[1])
-    return _line_clear(ax, ay, bx, by, g, geom, p * 100.0)
+    return _line_clear(float(a_xy[0]), float(a_xy[1]), float(b_xy[0]), float(b_xy[1]),
+                       grid.data, grid.geom, p_occ * 100.0)
 
 
-def _laser_xy(pose: tuple[float, float, float], params: ReliabilityParams) -> tuple[float, float]:
+def _laser_xy(pose: Pose, laser: LaserParams) -> tuple[float, float]:
     x, y, th = pose
-    return x + params.laser_offset * math.cos(th), y + params.laser_offset * math.sin(th)
+    return x + laser.offset * math.cos(th), y + laser.offset * math.sin(th)
 
 
 def _in_fov_range(nx: float, ny: float, lx: float, ly: float, theta: float,
-                  params: ReliabilityParams) -> bool:
+                  laser: LaserParams) -> bool:
     dist = math.hypot(nx - lx, ny - ly)
-    if dist > params.range_max:
+    if dist > laser.range_max:
         return False
     if dist < 1e-9:  # node at the laser: trivially seen
         return True
     rel = _wrap(math.atan2(ny - ly, nx - lx) - theta)
-    return abs(rel) <= 0.5 * params.fov + 1e-12
+    return abs(rel) <= 0.5 * laser.fov + 1e-12
 
 
 def near_frontier(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, radius: float,
@@ -325,33 +291,10 @@ def _mark_groups(front, cells, min_cells):  # pragma: no cover - compiled
     """In place on ``front`` (uint8, 1 = frontier): cells of 8-connected groups of at least
     min_cells become 3, the others 2. Visits only the listed frontier cells: they are few,
     and labelling the whole grid costs ~100 x more at 1000 x 1000."""
-    h, w = front.shape
-    n = cells.shape[0]
-    stack = np.empty(n, np.int64)
-    members = np.empty(n, np.int64)
-    for k in range(n):
-        r0, c0 = cells[k, 0], cells[k, 1]
-        if front[r0, c0] != 1:
-            continue
-        front[r0, c0] = 2
-        top = 1
-        stack[0] = r0 * w + c0
-        m = 0
-        while top > 0:
-            top -= 1
-            q = stack[top]
-            members[m] = q
-            m += 1
-            r = q // w
-            c = q - r * w
-            for dr in range(-1, 2):
-                for dc in range(-1, 2):
-                    a = r + dr
-                    b = c + dc
-                    if 0 <= a < h and 0 <= b < w and front[a, b] == 1:
-                        front[a, b] = 2
-                        stack[top] = a * w + b
-                        top += 1
+    w = front.shape[1]
+    members = np.empty(cells.shape[0], np.int64)  # a group holds listed cells only
+    for k in range(cells.shape[0]):
+        m = flood_fill(front, cells[k, 0], cells[k, 1], 1, 2, members)
         if m >= min_cells:
             for i in range(m):
                 q = members[i]
@@ -386,9 +329,9 @@ def leaf_chains(end_ids, edges: list[tuple[int, int]]) -> dict[int, list[int]]:
     return out
 
 
-def frontier_owned(end_ids, edges: list[tuple[int, int, np.ndarray]], grid: np.ndarray,
-                   geom: GridGeometry, p_free: float, min_cells: int, max_dist: float,
-                   unknown: np.ndarray | None = None) -> dict[int, int]:
+def frontier_owned(end_ids, graph: Graph, grid: np.ndarray, geom: GridGeometry, p_free: float,
+                   min_cells: int, max_dist: float, unknown: np.ndarray | None = None
+                   ) -> dict[int, int]:
     """Frontier cells each end node "owns": cells of frontier groups >= min_cells whose nearest
     skeleton point (any edge polyline point, within max_dist [m]) is on the node's leaf chain;
     where a chain joins two end nodes (no branch between them), each owns its nearer half.
@@ -397,16 +340,17 @@ def frontier_owned(end_ids, edges: list[tuple[int, int, np.ndarray]], grid: np.n
     frontiers beside an edge rather than at its tip (a room whose side opens into the unknown):
     the end node stands for its leaf chain's part of free space, and while unknown space opens
     from that part, an observation of the node does not say the map there is complete.
-    edges: (node a, node b, (n, 2) polyline [m]). Returns {end id: cells}, only ids with cells.
+    Returns {end id: cells}, only ids with cells.
     """
+    edges = graph.edges
     if not edges or min_cells <= 0:
         return {}
     cells = frontier_cells(grid, p_free, min_cells, unknown)
     if len(cells) == 0:
         return {}
-    pairs = [(a, b) for a, b, _ in edges]
+    pairs = [(e.a, e.b) for e in edges]
     chains = leaf_chains(end_ids, pairs)
-    pts, lab = _stack_edges(edges)
+    pts, lab = graph.points, graph.edge_labels()
     if len(pts) == 0:
         return {}
     # per skeleton point: the owning end node, the one nearest along its chain (a chain that
@@ -440,26 +384,20 @@ def frontier_owned(end_ids, edges: list[tuple[int, int, np.ndarray]], grid: np.n
     return {ids[j]: int(counts[j]) for j in np.flatnonzero(counts)}
 
 
-def is_observed(node_xy, pose, grid_int8: np.ndarray, geom: GridGeometry,
-                params: ReliabilityParams, p_occ: float = 0.65) -> bool:
+def is_observed(node_xy, pose: Pose, grid: GridMap, laser: LaserParams,
+                p_occ: float = 0.65) -> bool:
     """Whether an end node counts as observed at this pose (paper §3.2, after eqs. 2 and 3).
 
-    Observed = inside the forward field of view (params.fov centred on the heading, seen from
-    the laser at params.laser_offset ahead of the robot centre), within params.range_max of the
+    Observed = inside the forward field of view (laser.fov centred on the heading, seen from
+    the laser at laser.offset ahead of the robot centre), within laser.range_max of the
     laser, and the line from the laser to the node crosses no occupied cell (excluding the
     node's and the laser's own cells; unknown cells do not block).
     """
-    p = _pose3(pose)
-    g = _check_grid(grid_int8, geom)
-    occ = _check_p_occ(p_occ) * 100.0
-    try:
-        nx, ny = _finite("node.x", node_xy[0]), _finite("node.y", node_xy[1])
-    except (TypeError, IndexError):
-        raise ReliabilityError(f"node_xy must be (x, y) (got {node_xy!r})") from None
-    lx, ly = _laser_xy(p, params)
-    if not _in_fov_range(nx, ny, lx, ly, p[2], params):
+    nx, ny = float(node_xy[0]), float(node_xy[1])
+    lx, ly = _laser_xy(pose, laser)
+    if not _in_fov_range(nx, ny, lx, ly, pose[2], laser):
         return False
-    return _line_clear(lx, ly, nx, ny, g, geom, occ)
+    return _line_clear(lx, ly, nx, ny, grid.data, grid.geom, p_occ * 100.0)
 
 
 # --- the stateful core --------------------------------------------------------------------
@@ -480,39 +418,6 @@ def new_viewpoint(last: tuple[float, float, float] | None, rx: float, ry: float,
     lx, ly, lb = last
     turned = abs(math.remainder(bearing - lb, 2 * math.pi))
     return math.hypot(rx - lx, ry - ly) >= params.view_distance or turned >= params.view_angle
-
-
-def _stack_edges(edges) -> tuple[np.ndarray, np.ndarray]:
-    """All edge polyline points as one (n, 2) array [m] and the edge index of each point
-    (one conversion for all edges: per-edge arrays cost more than the rest of the update)."""
-    flat: list = []
-    lab: list[int] = []
-    for k, (_, _, p) in enumerate(edges):
-        if isinstance(p, np.ndarray):
-            p = p.reshape(-1, 2).tolist()
-        flat.extend(p)
-        lab.extend([k] * len(p))
-    try:
-        pts = np.asarray(flat, dtype=np.float64).reshape(-1, 2)
-    except (TypeError, ValueError):
-        raise ReliabilityError("edge points must be [x, y] pairs of numbers") from None
-    return pts, np.asarray(lab, dtype=np.int64)
-
-
-def _check_edges(edges) -> list[tuple[int, int, list]]:
-    out = []
-    for item in edges:
-        try:
-            a, b, pts = item
-            a, b = int(a), int(b)
-        except (TypeError, ValueError):
-            raise ReliabilityError(f"edge must be (a, b, (n, 2) points) (got {item!r:.80})"
-                                   ) from None
-        out.append((a, b, pts))
-    pts, _ = _stack_edges(out)
-    if not np.all(np.isfinite(pts)):
-        raise ReliabilityError("an edge has a non-finite point")
-    return out
 
 
 @dataclass
@@ -545,11 +450,11 @@ class ReliabilityCore:
     and alpha_max is exact up to one bin width.
     """
 
-    def __init__(self, params: ReliabilityParams):
-        if not isinstance(params, ReliabilityParams):
-            raise ReliabilityError(
-                f"params must be ReliabilityParams (got {type(params).__name__})")
+    def __init__(self, params: ReliabilityParams, laser: LaserParams | None = None,
+                 occ: Occupancy | None = None):
         self.params = params
+        self.laser = laser or LaserParams()  # field of view, range and mount of the laser
+        self.occ = occ or Occupancy()  # the map's classification thresholds
         self._nbins = max(1, int(math.ceil(TWO_PI / params.bearing_bin - 1e-9)))
         self._bin_width = TWO_PI / self._nbins  # [rad]
         self._tracks: dict[int, _Track] = {}
@@ -597,95 +502,90 @@ class ReliabilityCore:
             tr.n_bearings += 1
             tr.alpha_max = circular_spread(tr.bins[~np.isnan(tr.bins)])
 
-    @staticmethod
-    def _parse_nodes(end_nodes) -> dict[int, tuple[float, float]]:
-        out: dict[int, tuple[float, float]] = {}
-        for item in end_nodes:
-            try:
-                nid, x, y = item
-            except (TypeError, ValueError):
-                raise ReliabilityError(f"end node must be (id, x, y) (got {item!r})") from None
-            if isinstance(nid, bool) or not isinstance(nid, (int, np.integer)):
-                raise ReliabilityError(f"end node id must be an int (got {nid!r})")
-            nid = int(nid)
-            if nid in out:
-                raise ReliabilityError(f"end node id {nid} appears twice")
-            out[nid] = (_finite(f"node {nid} x", x), _finite(f"node {nid} y", y))
-        return out
-
-    # -- public --
-
-    def update(self, end_nodes: list[tuple[int, float, float]], gone: list[int],
-               pose: tuple[float, float, float], grid_int8: np.ndarray, geom: GridGeometry,
-               p_occ: float = 0.65, edges: list[tuple[int, int, np.ndarray]] | None = None
-               ) -> list[NodeReliability]:
-        """One reliability step for the current end nodes seen from ``pose``.
-
-        end_nodes: (id, x [m], y [m]) of every current end node; gone: ids that vanished;
-        pose: robot centre (x [m], y [m], theta [rad]); grid_int8: the occupancy grid used for
-        the line-of-sight test with its geometry; edges: the topological edges (node a, node b,
-        (n, 2) polyline [m]) for the frontier ownership test (:func:`frontier_owned`; None
-        skips it). Returns one NodeReliability per current end node, sorted by id.
-        """
+    def _unknown(self, grid: np.ndarray, geom: GridGeometry) -> np.ndarray | None:
+        """Unexplored cells for the frontier tests (None when both are off)."""
         pr = self.params
-        pose = _pose3(pose)
-        grid = _check_grid(grid_int8, geom)
-        occ = _check_p_occ(p_occ) * 100.0
-        nodes = self._parse_nodes(end_nodes)
-        owned: dict[int, int] = {}
-        unknown = None
-        if pr.frontier_group > 0 or pr.frontier_radius > 0:
-            unknown = open_unknown(grid, int(pr.pocket_area / geom.resolution ** 2), pr.p_free,
-                                   p_occ)
-        checked = _check_edges(edges) if edges else []  # validated even when unused
-        if checked and pr.frontier_group > 0:
-            min_cells = max(1, int(math.ceil(pr.frontier_group / geom.resolution - 1e-9)))
-            owned = frontier_owned(list(nodes), checked, grid, geom, pr.p_free,
-                                   min_cells, pr.range_max, unknown)
+        if pr.frontier_group <= 0 and pr.frontier_radius <= 0:
+            return None
+        return open_unknown(grid, int(pr.pocket_area / geom.resolution ** 2), self.occ.p_free,
+                            self.occ.p_occ)
+
+    def _forget(self, gone, current: dict[int, tuple[float, float]]) -> None:
+        """Drop the histories of vanished nodes (listed in gone, or no longer in the graph)."""
         for gid in gone:
             if self._tracks.pop(int(gid), None) is not None:
                 self._dropped += 1
-        for nid in [k for k in self._tracks if k not in nodes]:
+        for nid in [k for k in self._tracks if k not in current]:
             del self._tracks[nid]
             self._dropped += 1
 
+    def _track(self, nid: int, nx: float, ny: float) -> _Track:
+        """The node's history, restarted when it moved beyond move_tolerance (DESIGN §4)."""
+        tr = self._tracks.get(nid)
+        if tr is None:
+            tr = self._tracks[nid] = self._new_track(nx, ny)
+        elif math.hypot(nx - tr.anchor_x, ny - tr.anchor_y) > self.params.move_tolerance:
+            resets = tr.resets + 1  # movement resets belief
+            tr = self._tracks[nid] = self._new_track(nx, ny)
+            tr.resets = resets
+            self._resets += 1
+        tr.x, tr.y = nx, ny
+        return tr
+
+    def _observe(self, tr: _Track, pose: Pose, grid: np.ndarray, geom: GridGeometry,
+                 unknown: np.ndarray | None, owned: bool) -> None:
+        """One observation test and, when it counts, the Bayes update (eqs. 1-10)."""
+        pr = self.params
         rx, ry, th = pose
-        lx, ly = _laser_xy(pose, pr)
-        out: list[NodeReliability] = []
+        nx, ny = tr.x, tr.y
+        dist = math.hypot(nx - rx, ny - ry)  # [m] robot centre -> node (paper eq. 2)
+        if dist <= pr.visit_radius:
+            tr.visited = True
+        lx, ly = _laser_xy(pose, self.laser)
+        tr.visible = _in_fov_range(nx, ny, lx, ly, th, self.laser) and _line_clear(
+            lx, ly, nx, ny, grid, geom, self.occ.p_occ * 100.0)
+        if not tr.visible:
+            return
+        tr.n_obs += 1
+        tr.r_min = min(tr.r_min, dist)
+        if dist > 1e-9:
+            self._add_bearing(tr, math.atan2(ny - ry, nx - rx))
+        tr.d = distance_index(tr.r_min, pr)
+        tr.a = angle_index(tr.alpha_max, pr)
+        bearing = math.atan2(ny - ry, nx - rx)
+        if (new_viewpoint(tr.view, rx, ry, bearing, pr) and not owned
+                and not near_frontier(nx, ny, grid, geom, pr.frontier_radius, self.occ.p_free,
+                                      unknown)):
+            tr.view = (rx, ry, bearing)
+            tr.p = min(bayes_update(tr.p, reliability_index(tr.d, tr.a)), pr.p_max)
+            self._remember(tr)
+
+    # -- public --
+
+    def update(self, graph: Graph, pose: Pose, grid: GridMap) -> list[Belief]:
+        """One reliability step for the graph's end nodes seen from ``pose`` (robot centre).
+
+        The grid serves the line-of-sight test and the frontier tests; the graph's edges the
+        frontier ownership test (:func:`frontier_owned`, only with frontier_group > 0).
+        Returns one Belief per current end node, sorted by id.
+        """
+        pr = self.params
+        g, geom = grid.data, grid.geom
+        nodes = {n.id: (n.x, n.y) for n in graph.end_nodes()}
+        unknown = self._unknown(g, geom)
+        owned: dict[int, int] = {}
+        if graph.edges and pr.frontier_group > 0:
+            min_cells = max(1, int(math.ceil(pr.frontier_group / geom.resolution - 1e-9)))
+            owned = frontier_owned(list(nodes), graph, g, geom, self.occ.p_free, min_cells,
+                                   self.laser.range_max, unknown)
+        self._forget(graph.gone, nodes)
+        out: list[Belief] = []
         for nid in sorted(nodes):
-            nx, ny = nodes[nid]
-            tr = self._tracks.get(nid)
-            if tr is None:
-                tr = self._tracks[nid] = self._new_track(nx, ny)
-            elif math.hypot(nx - tr.anchor_x, ny - tr.anchor_y) > pr.move_tolerance:
-                resets = tr.resets + 1  # movement resets belief (DESIGN §4)
-                tr = self._tracks[nid] = self._new_track(nx, ny)
-                tr.resets = resets
-                self._resets += 1
-            tr.x, tr.y = nx, ny
-            dist = math.hypot(nx - rx, ny - ry)  # [m] robot centre -> node (paper eq. 2)
-            if dist <= pr.visit_radius:
-                tr.visited = True
-            tr.visible = _in_fov_range(nx, ny, lx, ly, th, pr) and _line_clear(
-                lx, ly, nx, ny, grid, geom, occ)
-            if tr.visible:
-                tr.n_obs += 1
-                tr.r_min = min(tr.r_min, dist)
-                if dist > 1e-9:
-                    self._add_bearing(tr, math.atan2(ny - ry, nx - rx))
-                tr.d = distance_index(tr.r_min, pr)
-                tr.a = angle_index(tr.alpha_max, pr)
-                bearing = math.atan2(ny - ry, nx - rx)
-                if (new_viewpoint(tr.view, rx, ry, bearing, pr) and nid not in owned
-                        and not near_frontier(nx, ny, grid, geom, pr.frontier_radius,
-                                              pr.p_free, unknown)):
-                    tr.view = (rx, ry, bearing)
-                    tr.p = min(bayes_update(tr.p, reliability_index(tr.d, tr.a)), pr.p_max)
-                    self._remember(tr)
-            out.append(NodeReliability(
-                id=nid, x=nx, y=ny, p=tr.p, d=tr.d, a=tr.a, r_min=tr.r_min,
-                alpha_max=tr.alpha_max, visible=tr.visible, n_obs=tr.n_obs, visited=tr.visited,
-                frontier=owned.get(nid, 0)))
+            tr = self._track(nid, *nodes[nid])
+            self._observe(tr, pose, g, geom, unknown, nid in owned)
+            out.append(Belief(id=nid, x=tr.x, y=tr.y, p=tr.p, d=tr.d, a=tr.a, r_min=tr.r_min,
+                              alpha_max=tr.alpha_max, visible=tr.visible, n_obs=tr.n_obs,
+                              visited=tr.visited, frontier=owned.get(nid, 0)))
         self._updates += 1
         return out
 

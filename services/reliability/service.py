@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import logging
 
+from topoexplore.common import convert
 from topoexplore.common import messages as m
-from topoexplore.common.grid import GridGeometry
 from topoexplore.common.node import Node, OdomBuffer, run_service
 from topoexplore.services.reliability.core import ReliabilityCore
 
@@ -19,7 +19,8 @@ log = logging.getLogger("topoexplore.reliability")
 class ReliabilityService:
     def __init__(self, node: Node):
         self.node = node
-        self.core = ReliabilityCore(node.params.reliability)
+        P = node.params
+        self.core = ReliabilityCore(P.reliability, P.laser, P.mapper.occupancy)
         self.odom = OdomBuffer()
         self.pub = node.publisher("reliability")
         node.subscribe_odom(self.odom)
@@ -45,13 +46,10 @@ class ReliabilityService:
             log.warning("topo %d skipped: %s missing", topo.header.src_seq,
                         "map" if grid is None else "pose")
             return
-        ends = [(n.id, n.x, n.y) for n in topo.nodes if n.kind == "end"]
-        edges = [(e.a, e.b, e.points) for e in topo.edges]
-        nodes = self.core.update(ends, list(topo.gone), pose, m.grid_to_array(grid),
-                                 GridGeometry.of(grid), self.node.params.mapper.p_occ, edges)
-        self.last = m.Reliability(
-            header=self.node.header("reliability", topo.header.stamp, topo.header.src_seq),
-            nodes=nodes)
+        beliefs = self.core.update(convert.graph_from_msg(topo), pose,
+                                   convert.grid_from_msg(grid))
+        self.last = convert.beliefs_to_msg(beliefs, self.node.header(
+            "reliability", topo.header.stamp, topo.header.src_seq))
         self.pub.put(self.last)
         self.node.processed += 1
 

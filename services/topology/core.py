@@ -31,26 +31,20 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from topoexplore.common import messages as m
-from topoexplore.common.grid import GridGeometry, free_mask, occupied_mask, unknown_mask
+from topoexplore.common.domain import Graph, GridMap, Node
+from topoexplore.common.grid import GridGeometry, Occupancy, free_mask, occupied_mask, unknown_mask
 from topoexplore.common.params import TopologyParams
 from topoexplore.services.topology import graph as g
 from topoexplore.services.topology import skeleton as sk
 
-__all__ = ["TopologyError", "TopoResult", "TopologyCore", "associate_ids"]
-
-
-class TopologyError(ValueError):
-    """Bad input to the topology core (grid shape/type, geometry, robot position, thresholds)."""
+__all__ = ["TopoResult", "TopologyCore", "associate_ids"]
 
 
 @dataclass
 class TopoResult:
-    nodes: list[m.TopoNode]
-    edges: list[m.TopoEdge]
-    gone: list[int]
+    graph: Graph
     skeleton: np.ndarray  # bool (h, w): final pruned skeleton of the robot's component
-    stats: dict = field(default_factory=dict)  # counts and per-stage timings are NOT here (pure)
+    stats: dict = field(default_factory=dict)  # node and edge counts
 
 
 # --- id association --------------------------------------------------------------------------
@@ -119,13 +113,17 @@ def associate_ids(prev_kind: np.ndarray, prev_xy: np.ndarray, new_kind: np.ndarr
 # --- the core --------------------------------------------------------------------------------
 
 
+def _clip(a0: int, a1: int, b0: int, b1: int, h: int, w: int) -> tuple[int, int, int, int]:
+    """Rows a0..a1 and cols b0..b1 (half-open) clipped to an h x w array."""
+    return max(a0, 0), min(a1, h), max(b0, 0), min(b1, w)
+
+
 class TopologyCore:
     """Thinning-based topological map with stable node ids (see module docstring)."""
 
-    def __init__(self, params: TopologyParams):
-        if params.skeleton_method not in sk.SKELETON_METHODS:
-            raise TopologyError(f"unknown skeleton_method {params.skeleton_method!r}")
+    def __init__(self, params: TopologyParams, occ: Occupancy | None = None):
         self.p = params
+        self.occ = occ or Occupancy()  # the map's classification thresholds
         self._next_id = 0
         self._prev_ids = np.zeros(0, np.int64)
         self._prev_kind = np.zeros(0, np.int8)
@@ -139,7 +137,6 @@ class TopologyCore:
         self._grid: np.ndarray | None = None
         self._mask: np.ndarray | None = None
         self._skel: np.ndarray | None = None
-        self._thr: tuple[float, float] | None = None
         self._dt: np.ndarray | None = None
         self._seen: np.ndarray | None = None
         self._nodeid: np.ndarray | None = None
@@ -165,10 +162,11 @@ class TopologyCore:
                                                      self._geom.resolution],
         }
 
-    def update(self, grid_int8: np.ndarray, geom: GridGeometry, robot_xy: tuple[float, float],
-               p_free: float = 0.35, p_occ: float = 0.65) -> TopoResult:
-        """One topology update for the current grid (module docstring, steps 1-8)."""
-        grid = self._check(grid_int8, geom, robot_xy, p_free, p_occ)
+    def update(self, grid_map: GridMap, robot_xy: tuple[float, float]) -> TopoResult:
+        """One topology update for the current grid (module docstring, steps 1-8); robot_xy
+        [m] picks the skeleton component the robot is on."""
+        grid, geom = grid_map.data, grid_map.geom
+        p_free, p_occ = self.occ
         self._updates += 1
         res = geom.resolution
         mask, skel, dirty = self._mask_and_skeleton(grid, geom, p_free, p_occ)
@@ -219,29 +217,6 @@ class TopologyCore:
 
     # -- steps -----------------------------------------------------------------------------
 
-    @staticmethod
-    def _check(grid_int8, geom, robot_xy, p_free, p_occ) -> np.ndarray:
-        if not isinstance(geom, GridGeometry):
-            raise TopologyError(f"geom must be a GridGeometry, got {type(geom).__name__}")
-        a = np.asarray(grid_int8)
-        if a.ndim != 2 or a.dtype.kind not in "iu":
-            raise TopologyError(f"grid must be a 2-D integer array, got {a.dtype} {a.shape}")
-        if a.shape != (geom.height, geom.width):
-            raise TopologyError(f"grid shape {a.shape} != geometry (height, width) "
-                                f"({geom.height}, {geom.width})")
-        if not (math.isfinite(geom.resolution) and geom.resolution > 0
-                and math.isfinite(geom.origin_x) and math.isfinite(geom.origin_y)):
-            raise TopologyError(f"bad grid geometry {geom}")
-        try:
-            x, y = (float(v) for v in robot_xy)
-        except (TypeError, ValueError):
-            raise TopologyError(f"robot_xy must be two numbers, got {robot_xy!r}") from None
-        if not (math.isfinite(x) and math.isfinite(y)):
-            raise TopologyError(f"robot_xy must be finite, got {robot_xy!r}")
-        if not (0.0 < p_free <= p_occ < 1.0):
-            raise TopologyError(f"need 0 < p_free <= p_occ < 1 (got {p_free}, {p_occ})")
-        return a
-
     def _clean(self, free: np.ndarray, res: float) -> np.ndarray:
         hole_cells = int(round(self.p.fill_holes / (res * res)))
         return sk.clean_free_mask(free, hole_cells, int(self.p.open_cells))
@@ -257,7 +232,7 @@ class TopologyCore:
         Returns (mask, skel, dirty): dirty = padded (r0, r1, c0, c1) outside which neither the
         mask nor the occupied cells changed, or None if everything must be treated as new.
         """
-        prev = self._aligned_previous(grid, geom, (p_free, p_occ))
+        prev = self._aligned_previous(grid, geom)
         dirty = None
         if prev is None:
             mask, skel = self._full_mask_and_skeleton(grid, geom.resolution, p_free)
@@ -271,7 +246,6 @@ class TopologyCore:
         self._grid = grid.copy()
         self._mask = mask
         self._skel = skel
-        self._thr = (p_free, p_occ)
         return mask, skel, dirty
 
     def _distance(self, grid, mask, dirty, p_occ) -> np.ndarray:
@@ -325,12 +299,12 @@ class TopologyCore:
         mask[:, 0] = mask[:, -1] = 0
         return mask, sk.skeletonize(mask, self.p.skeleton_method)
 
-    def _aligned_previous(self, grid, geom, thr):
-        """Previous (mask, skeleton) if the geometry and thresholds are unchanged, else None.
+    def _aligned_previous(self, grid, geom):
+        """Previous (mask, skeleton) if the geometry is unchanged, else None.
 
         A grown or shifted grid (rare: the mapper grows by metres at a time) is recomputed fully.
         """
-        if not self.p.incremental or self._geom is None or self._thr != thr:
+        if not self.p.incremental or self._geom is None:
             return None
         if self._geom != geom or self._grid.shape != grid.shape:
             return None
@@ -342,25 +316,39 @@ class TopologyCore:
         Returns (ok, dirty): ok False means a full pass is needed; dirty is the padded window
         (r0, r1, c0, c1) in which the mask or the occupied cells may have changed.
         """
-        h, w = grid.shape
+        changed = self._changed_cells(grid)
+        if changed is None:
+            self._reused += 1
+            return True, (0, 0, 0, 0)
+        dirty, box = self._reclean(grid, res, p_free, mask, changed)
+        if box is None:
+            self._reused += 1
+            return True, dirty
+        if self._rethin(mask, skel, box):
+            self._window_thins += 1
+            return True, dirty
+        return False, None
+
+    def _changed_cells(self, grid) -> tuple[int, int, int, int] | None:
+        """Padded bounding box (r0, r1, c0, c1) of the cells that differ from the previous
+        grid, None if none does."""
         changed = grid != self._grid
         rows = np.flatnonzero(changed.any(axis=1))
         if rows.size == 0:
-            self._reused += 1
-            return True, (0, 0, 0, 0)
+            return None
         cols = np.flatnonzero(changed.any(axis=0))
-        r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
-        # padded coordinates from here on
-        r0, r1, c0, c1 = int(r0) + 1, int(r1) + 1, int(c0) + 1, int(c1) + 1
+        return int(rows[0]) + 1, int(rows[-1]) + 2, int(cols[0]) + 1, int(cols[-1]) + 2
+
+    def _reclean(self, grid, res, p_free, mask, box) -> tuple[tuple, tuple | None]:
+        """Re-clean the changed box plus the cleaning reach (from a crop with context) into
+        ``mask``. Returns (dirty, changed): the re-cleaned window and the padded bounding box of
+        the mask cells that changed (None if none did)."""
+        h, w = grid.shape
         H, W = mask.shape
+        r0, r1, c0, c1 = box
         reach = self._reach(res)
-
-        def clip(a0, a1, b0, b1):
-            return max(a0, 0), min(a1, H), max(b0, 0), min(b1, W)
-
-        # 1. re-clean the changed window (plus the cleaning reach) from a crop with context
-        pr0, pr1, pc0, pc1 = clip(r0 - reach, r1 + reach, c0 - reach, c1 + reach)
-        cr0, cr1, cc0, cc1 = clip(pr0 - reach, pr1 + reach, pc0 - reach, pc1 + reach)
+        pr0, pr1, pc0, pc1 = _clip(r0 - reach, r1 + reach, c0 - reach, c1 + reach, H, W)
+        cr0, cr1, cc0, cc1 = _clip(pr0 - reach, pr1 + reach, pc0 - reach, pc1 + reach, H, W)
         free = np.zeros((cr1 - cr0, cc1 - cc0), bool)
         gr0, gr1, gc0, gc1 = max(cr0 - 1, 0), min(cr1 - 1, h), max(cc0 - 1, 0), min(cc1 - 1, w)
         free[gr0 + 1 - cr0:gr1 + 1 - cr0, gc0 + 1 - cc0:gc1 + 1 - cc0] = free_mask(
@@ -379,47 +367,56 @@ class TopologyCore:
         diff = new_m != mask[pr0:pr1, pc0:pc1]
         dirty = (pr0, pr1, pc0, pc1)
         if not diff.any():
-            self._reused += 1
-            return True, dirty
+            return dirty, None
         mask[pr0:pr1, pc0:pc1] = new_m
         rr = np.flatnonzero(diff.any(axis=1))
         cc = np.flatnonzero(diff.any(axis=0))
-        r0, r1, c0, c1 = pr0 + rr[0], pr0 + rr[-1] + 1, pc0 + cc[0], pc0 + cc[-1] + 1
-        # 2. re-thin a window around the mask change; accept if the seam agrees
-        dt = None
+        return dirty, (pr0 + rr[0], pr0 + rr[-1] + 1, pc0 + cc[0], pc0 + cc[-1] + 1)
+
+    def _rethin(self, mask, skel, box) -> bool:
+        """Re-thin a window around the mask change ``box`` and paste it into ``skel`` if the
+        result agrees with the skeleton on a band around it; else grow the window (4 tries).
+        False: a full pass is needed."""
+        H, W = mask.shape
+        r0, r1, c0, c1 = box
         for attempt in range(4):
-            crop0 = clip(r0 - 8, r1 + 8, c0 - 8, c1 + 8)
-            if dt is None or attempt:
-                sub = mask[crop0[0]:crop0[1], crop0[2]:crop0[3]]
-                dt = cv2.distanceTransform(sub, cv2.DIST_C, 3)
+            cr0, cr1, cc0, cc1 = _clip(r0 - 8, r1 + 8, c0 - 8, c1 + 8, H, W)
+            dt = cv2.distanceTransform(mask[cr0:cr1, cc0:cc1], cv2.DIST_C, 3)
             dmax = float(dt.max()) if dt.size else 0.0
             if not dmax <= H + W:  # no non-free cell in the crop: cv2 returns ~FLT_MAX, and
-                return False, None  # the thinning reach is unbounded -> full update
+                return False  # the thinning reach is unbounded -> full update
             rad = int(dmax) + 3
-            wr0, wr1, wc0, wc1 = clip(r0 - rad, r1 + rad, c0 - rad, c1 + rad)
+            win = _clip(r0 - rad, r1 + rad, c0 - rad, c1 + rad, H, W)
             ctx = int(rad * (2 + attempt)) + 6
-            xr0, xr1, xc0, xc1 = clip(wr0 - ctx, wr1 + ctx, wc0 - ctx, wc1 + ctx)
-            if (xr1 - xr0) * (xc1 - xc0) > 0.6 * H * W:
-                return False, None
-            crop = np.zeros((xr1 - xr0 + 2, xc1 - xc0 + 2), np.uint8)
-            crop[1:-1, 1:-1] = mask[xr0:xr1, xc0:xc1]
-            thin = sk.skeletonize(crop, self.p.skeleton_method)[1:-1, 1:-1]
-            # seam band: 3 cells outside the window, inside the crop
-            band = 3
-            br0, br1, bc0, bc1 = clip(wr0 - band, wr1 + band, wc0 - band, wc1 + band)
-            old_b = skel[br0:br1, bc0:bc1].copy()
-            new_b = thin[br0 - xr0:br1 - xr0, bc0 - xc0:bc1 - xc0]
-            inner = np.zeros(old_b.shape, bool)
-            inner[wr0 - br0:wr1 - br0, wc0 - bc0:wc1 - bc0] = True
-            if np.array_equal(old_b[~inner], new_b[~inner]):
-                skel[wr0:wr1, wc0:wc1] = thin[wr0 - xr0:wr1 - xr0, wc0 - xc0:wc1 - xc0]
-                # the seam pixels may form staircases with the pasted window
-                sk.one_pixel_wide(skel, br0, br1, bc0, bc1)
-                self._window_thins += 1
-                return True, dirty
-            r0, r1, c0, c1 = wr0, wr1, wc0, wc1
-            dt = None
-        return False, None
+            crop = _clip(win[0] - ctx, win[1] + ctx, win[2] - ctx, win[3] + ctx, H, W)
+            if (crop[1] - crop[0]) * (crop[3] - crop[2]) > 0.6 * H * W:
+                return False
+            if self._paste_thinned(mask, skel, win, crop):
+                return True
+            r0, r1, c0, c1 = win
+        return False
+
+    def _paste_thinned(self, mask, skel, win, crop) -> bool:
+        """Thin ``mask`` in ``crop`` and paste the result into ``skel`` in ``win`` if it agrees
+        with ``skel`` on the 3-cell seam band around ``win`` (inside the crop)."""
+        H, W = mask.shape
+        wr0, wr1, wc0, wc1 = win
+        xr0, xr1, xc0, xc1 = crop
+        sub = np.zeros((xr1 - xr0 + 2, xc1 - xc0 + 2), np.uint8)
+        sub[1:-1, 1:-1] = mask[xr0:xr1, xc0:xc1]
+        thin = sk.skeletonize(sub, self.p.skeleton_method)[1:-1, 1:-1]
+        band = 3
+        br0, br1, bc0, bc1 = _clip(wr0 - band, wr1 + band, wc0 - band, wc1 + band, H, W)
+        old_b = skel[br0:br1, bc0:bc1].copy()
+        new_b = thin[br0 - xr0:br1 - xr0, bc0 - xc0:bc1 - xc0]
+        inner = np.zeros(old_b.shape, bool)
+        inner[wr0 - br0:wr1 - br0, wc0 - bc0:wc1 - bc0] = True
+        if not np.array_equal(old_b[~inner], new_b[~inner]):
+            return False
+        skel[wr0:wr1, wc0:wc1] = thin[wr0 - xr0:wr1 - xr0, wc0 - xc0:wc1 - xc0]
+        # the seam pixels may form staircases with the pasted window
+        sk.one_pixel_wide(skel, br0, br1, bc0, bc1)
+        return True
 
     def _entry(self, mask, skel, geom: GridGeometry, robot_xy) -> tuple[int, int]:
         """(skeleton pixel where the robot joins the skeleton or -1, the robot's free cell or -1);
@@ -458,7 +455,7 @@ class TopologyCore:
         self._prev_kind = np.zeros(0, np.int8)
         self._prev_xy = np.zeros((0, 2))
         self._last_counts = {"end": 0, "branch": 0, "corner": 0, "edges": 0}
-        return TopoResult([], [], gone, np.zeros((geom.height, geom.width), bool))
+        return TopoResult(Graph.empty(gone), np.zeros((geom.height, geom.width), bool))
 
     def _finish(self, gr, mask, dt, geom: GridGeometry) -> TopoResult:
         node_pix, node_kind, ea, eb, off, pix, _nodeid, comp = gr
@@ -469,7 +466,7 @@ class TopologyCore:
         leaf = (node_kind == g.BRANCH) & (deg <= 1)
         if leaf.any():  # a blob of >= 3-neighbour pixels at a skeleton tip (left by pruning
             node_kind = node_kind.copy()  # or a staircase) is a leaf: an end node, not a
-            node_kind[leaf] = g.END  # branch (lse_arena: its room went unexplored)
+            node_kind[leaf] = g.END  # branch (docs/design.md, "A branch blob at a tip")
         splits = g.split_corners(mask, ea, eb, off, pix, W, p.corner_min_deviation / res,
                                  bool(p.corner_nodes))
         sa, sb, s0, s1, ln, cl = g.assemble(ea, eb, off, pix, splits, len(node_pix), dt, W)
@@ -502,14 +499,12 @@ class TopologyCore:
         matched_old = set(match.values())
         gone = [int(self._prev_ids[o]) for o in range(len(self._prev_ids)) if o not in matched_old]
         self._prev_ids, self._prev_kind, self._prev_xy = ids, kinds, nxy
-        nodes = [m.TopoNode(id=int(i), kind=g.KIND_NAMES[int(k)], x=float(x), y=float(y))
-                 for i, k, x, y in zip(ids, kinds, nx.tolist(), ny.tolist(), strict=True)]
+        nodes = [Node(int(i), g.KIND_NAMES[int(k)], x, y)
+                 for i, k, x, y in zip(ids.tolist(), kinds.tolist(), nx.tolist(), ny.tolist(),
+                                       strict=True)]
         keep, koff = g.decimate(pix, s0, s1, W)
-        plist = pts[keep].tolist()
-        koff = koff.tolist()
-        edges = [m.TopoEdge(a=int(ids[a]), b=int(ids[b]), points=plist[koff[k]:koff[k + 1]],
-                            length=float(length * res), clearance=float(c * res))
-                 for k, (a, b, length, c) in enumerate(zip(sa, sb, ln, cl, strict=True))]
+        graph = Graph.build(nodes, np.column_stack((ids[sa], ids[sb])).tolist(), pts[keep], koff,
+                            (ln * res).tolist(), (cl * res).tolist(), gone)
         out = np.zeros((H, W), bool)
         out.flat[pix] = True
         out.flat[node_pix] = True
@@ -519,6 +514,6 @@ class TopologyCore:
             "end": int(np.sum(kinds == g.END)),
             "branch": int(np.sum(kinds == g.BRANCH)),
             "corner": int(np.sum(kinds == g.CORNER)),
-            "edges": len(edges),
+            "edges": len(graph.edges),
         }
-        return TopoResult(nodes, edges, gone, out[1:-1, 1:-1], dict(self._last_counts))
+        return TopoResult(graph, out[1:-1, 1:-1], dict(self._last_counts))

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import logging
 
+from topoexplore.common import convert
 from topoexplore.common import messages as m
-from topoexplore.common.grid import GridGeometry
 from topoexplore.common.node import Node, OdomBuffer, run_service
 from topoexplore.services.topology.core import TopologyCore
 
@@ -19,7 +19,7 @@ log = logging.getLogger("topoexplore.topology")
 class TopologyService:
     def __init__(self, node: Node):
         self.node = node
-        self.core = TopologyCore(node.params.topology)
+        self.core = TopologyCore(node.params.topology, node.params.mapper.occupancy)
         self.odom = OdomBuffer()
         self.pub = node.publisher("topo")
         node.subscribe_odom(self.odom)
@@ -38,12 +38,9 @@ class TopologyService:
             self.skipped += 1
             log.warning("no odometry for map at %.3f: skipped", grid.header.stamp)
             return
-        mp = self.node.params.mapper
-        res = self.core.update(m.grid_to_array(grid), GridGeometry.of(grid), (pose[0], pose[1]),
-                               mp.p_free, mp.p_occ)
-        self.last = m.TopoGraph(header=self.node.header("topo", grid.header.stamp,
-                                                        grid.header.src_seq),
-                                nodes=res.nodes, edges=res.edges, gone=res.gone)
+        res = self.core.update(convert.grid_from_msg(grid), (pose.x, pose.y))
+        self.last = convert.graph_to_msg(res.graph, self.node.header(
+            "topo", grid.header.stamp, grid.header.src_seq))
         self.pub.put(self.last)
         self.node.processed += 1
 
