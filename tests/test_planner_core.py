@@ -2,28 +2,36 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import msgspec
 import numpy as np
 import pytest
 
-from topoexplore.common import messages as m
-from topoexplore.common.grid import GridGeometry
-from topoexplore.common.params import PlannerParams
-from topoexplore.services.planner import frontier as fr
+from topoexplore.common.domain import Belief, ExploreState, Graph, GridMap, Node, Plan
+from topoexplore.common.grid import GridGeometry, Occupancy, classify, unknown_mask
+from topoexplore.common.params import STRATEGIES, PlannerParams, RobotParams
 from topoexplore.services.planner import graph as gr
-from topoexplore.services.planner.core import PlannerCore, PlannerInputError
+from topoexplore.services.planner import gridsearch as gs
+from topoexplore.services.planner import mapview, strategies
+from topoexplore.services.planner.core import PlannerCore
+from topoexplore.services.planner.decision import Action, Decision
+from topoexplore.services.planner.mapview import MapView
+from topoexplore.services.planner.strategies.base import Config
+
+RADIUS = RobotParams().radius
 
 # --- builders --------------------------------------------------------------------------------
 
 
 def node(i, kind, x, y):
-    return m.TopoNode(id=i, kind=kind, x=float(x), y=float(y))
+    return Node(i, kind, float(x), float(y))
 
 
 def edge(a, b, pts, clearance=0.5, step=0.1):
-    """Edge a->b along the corner points `pts`, densified to ~step spacing like a skeleton."""
+    """Edge a->b along the corner points `pts`, densified to ~step spacing like a skeleton:
+    (a, b, points, length, clearance) for Graph.from_edges."""
     pts = np.asarray(pts, dtype=float)
     dense = [pts[0]]
     for p0, p1 in zip(pts[:-1], pts[1:], strict=True):
@@ -32,21 +40,20 @@ def edge(a, b, pts, clearance=0.5, step=0.1):
             dense.append(p0 + (p1 - p0) * k / n)
     dense = np.asarray(dense)
     length = float(np.sum(np.hypot(*np.diff(dense, axis=0).T)))
-    return m.TopoEdge(a=a, b=b, points=dense.tolist(), length=length, clearance=clearance)
-
-
-def hdr():
-    return m.Header(seq=0, stamp=0.0, frame="map", src_seq=-1)
+    return (a, b, dense, length, clearance)
 
 
 def topo(nodes, edges):
-    return m.TopoGraph(header=hdr(), nodes=nodes, edges=edges)
+    return Graph.from_edges(nodes, edges)
 
 
 def rel(pmap):
-    return m.Reliability(header=hdr(), nodes=[
-        m.NodeReliability(id=i, x=0.0, y=0.0, p=p, d=0.5, a=0.0, r_min=math.inf,
-                          alpha_max=0.0, visible=False) for i, p in pmap.items()])
+    return [Belief(id=i, x=0.0, y=0.0, p=p, d=0.5, a=0.0, r_min=math.inf, alpha_max=0.0,
+                   visible=False) for i, p in pmap.items()]
+
+
+def grid(g, geom):
+    return GridMap(g, geom)
 
 
 def params(**kw):
@@ -57,7 +64,11 @@ def params(**kw):
                                                        "stop_when_mapped": False, **kw})
 
 
-def u_graph(narrow_to_4=False):
+def wps(out: Plan) -> list[tuple[float, float]]:
+    return [tuple(map(float, w)) for w in out.route.waypoints]
+
+
+def u_parts(narrow_to_4=False):
     """Robot at the branch node 0 (0, 0).
 
     End node 3 at (2, 0.5) is the nearest in a straight line (2.06 m) but 9.5 m away along the
@@ -70,7 +81,11 @@ def u_graph(narrow_to_4=False):
              edge(2, 3, [(2, 4), (2, 0.5)]),
              edge(0, 4, [(0, 0), (-3, 0)], clearance=0.15 if narrow_to_4 else 0.5),
              edge(0, 5, [(0, 0), (0, -5)])]
-    return topo(nodes, edges)
+    return nodes, edges
+
+
+def u_graph(narrow_to_4=False):
+    return topo(*u_parts(narrow_to_4))
 
 
 def dist_to_polylines(pt, tp):
@@ -93,190 +108,195 @@ OPEN = {3: 0.5, 4: 0.5, 5: 0.5}
 
 def test_waits_for_topo_and_reliability():
     core = PlannerCore(params())
-    out = core.update(0.0, POSE, None, None, None, None)
-    assert out.state == "exploring" and out.waypoints == [] and "waiting for topo" in out.reason
-    out = core.update(0.1, POSE, u_graph(), None, None, None)
-    assert out.state == "exploring" and out.waypoints == [] and "waiting" in out.reason
+    out = core.update(0.0, POSE, None, None, None)
+    assert out.state == "exploring" and wps(out) == [] and "waiting for topo" in out.status.reason
+    out = core.update(0.1, POSE, u_graph(), None, None)
+    assert out.state == "exploring" and wps(out) == [] and "waiting" in out.status.reason
 
 
 def test_no_end_nodes_is_done_only_after_a_reliability_update():
     loop = topo([node(0, "branch", 0, 0), node(1, "branch", 2, 0)],
                 [edge(0, 1, [(0, 0), (2, 0)]), edge(0, 1, [(0, 0), (1, 1), (2, 0)])])
     core = PlannerCore(params(strategy="all-end-nodes"))
-    out = core.update(0.0, POSE, loop, None, None, None)
-    assert out.state == "exploring" and "waiting" in out.reason
-    out = core.update(0.2, POSE, loop, rel({}), None, None)
-    assert out.state == "exploring" and "waiting" in out.reason  # no *earlier* reliability
-    out = core.update(0.4, POSE, loop, rel({}), None, None)
-    assert out.state == "done" and "no end nodes" in out.reason
+    out = core.update(0.0, POSE, loop, None, None)
+    assert out.state == "exploring" and "waiting" in out.status.reason
+    out = core.update(0.2, POSE, loop, rel({}), None)
+    assert out.state == "exploring" and "waiting" in out.status.reason  # no *earlier* one
+    out = core.update(0.4, POSE, loop, rel({}), None)
+    assert out.state == "done" and "no end nodes" in out.status.reason
 
 
 def test_empty_topo_waits_and_done_needs_confirmation():
     core = PlannerCore(params(done_confirm=2))
     empty = topo([], [])
     for k in range(3):
-        out = core.update(0.2 * k, POSE, empty, rel({}), None, None)
-        assert out.state == "exploring" and "empty" in out.reason
+        out = core.update(0.2 * k, POSE, empty, rel({}), None)
+        assert out.state == "exploring" and "empty" in out.status.reason
     allrel = {3: 0.95, 4: 0.95, 5: 0.95}
-    out = core.update(1.0, POSE, u_graph(), rel(allrel), None, None)
-    assert out.state == "exploring" and out.waypoints == [] and "confirming (1/2)" in out.reason
-    out = core.update(1.2, POSE, u_graph(), rel(OPEN), None, None)
-    assert out.state == "exploring" and out.target_id == 4  # a candidate resets the count
-    out = core.update(1.4, POSE, u_graph(), rel(allrel), None, None)
-    assert out.state == "exploring" and out.waypoints == []
-    out = core.update(1.6, POSE, u_graph(), rel(allrel), None, None)
-    assert out.state == "done"
+    out = core.update(1.0, POSE, u_graph(), rel(allrel), None)
+    assert out.state == "exploring" and wps(out) == []
+    assert "confirming (1/2)" in out.status.reason
+    out = core.update(1.2, POSE, u_graph(), rel(OPEN), None)
+    assert out.state == "exploring" and out.route.target_id == 4  # a candidate resets the count
+    out = core.update(1.4, POSE, u_graph(), rel(allrel), None)
+    assert out.state == "exploring" and wps(out) == []
+    out = core.update(1.6, POSE, u_graph(), rel(allrel), None)
+    assert out.state == "done" and out.status.finished
 
 
 def test_failed_only_when_the_robot_cannot_join_the_skeleton_for_a_while():
     core = PlannerCore(params(progress_timeout=10.0))
-    narrow = u_graph()
-    narrow.edges = [msgspec.structs.replace(e, clearance=0.1) for e in narrow.edges]
-    out = core.update(0.0, POSE, narrow, rel(OPEN), None, None)
-    assert out.state == "exploring" and out.waypoints == [] and "cannot join" in out.reason
-    out = core.update(10.0, POSE, narrow, rel(OPEN), None, None)
-    assert out.state == "failed" and "clearance" in out.reason
+    nodes, edges = u_parts()
+    narrow = topo(nodes, [(a, b, p, ln, 0.1) for a, b, p, ln, _ in edges])
+    out = core.update(0.0, POSE, narrow, rel(OPEN), None)
+    assert out.state == "exploring" and wps(out) == [] and "cannot join" in out.status.reason
+    out = core.update(10.0, POSE, narrow, rel(OPEN), None)
+    assert out.state == "failed" and "clearance" in out.status.reason
 
 
 def test_picks_nearest_by_path_cost_not_straight_line():
     core = PlannerCore(params())
-    out = core.update(0.0, POSE, u_graph(), rel(OPEN), None, None)
+    out = core.update(0.0, POSE, u_graph(), rel(OPEN), None)
     assert out.state == "exploring"
-    assert out.target_id == 4, out.reason  # 3 m by path; node 3 is nearer in a straight line
-    assert out.target_xy == (-3.0, 0.0)
-    assert out.candidates == 3 and out.end_nodes == 3 and out.reliable == 0
-    assert out.target_p == pytest.approx(0.5)
+    r, s = out.route, out.status
+    assert r.target_id == 4, s.reason  # 3 m by path; node 3 is nearer in a straight line
+    assert r.target_xy == (-3.0, 0.0) and r.strategy == "reliability"
+    assert s.candidates == 3 and s.end_nodes == 3 and s.reliable == 0
+    assert s.target_id == 4 and s.target_p == pytest.approx(0.5)
 
 
 def test_ignores_reliable_nodes_and_reports_done():
     core = PlannerCore(params())
-    out = core.update(0.0, POSE, u_graph(), rel({3: 0.5, 4: 0.95, 5: 0.5}), None, None)
-    assert out.target_id == 5 and out.reliable == 1
-    out = core.update(0.2, POSE, u_graph(), rel({3: 0.91, 4: 0.95, 5: 0.99}), None, None)
-    assert out.state == "done" and out.waypoints == [] and out.target_id == -1
-    assert "all 3 reachable end nodes reliable (P >= 0.9)" in out.reason
+    out = core.update(0.0, POSE, u_graph(), rel({3: 0.5, 4: 0.95, 5: 0.5}), None)
+    assert out.route.target_id == 5 and out.status.reliable == 1
+    out = core.update(0.2, POSE, u_graph(), rel({3: 0.91, 4: 0.95, 5: 0.99}), None)
+    assert out.state == "done" and wps(out) == [] and out.route.target_id == -1
+    assert out.route.target_xy == (0.0, 0.0)
+    assert "all 3 reachable end nodes reliable (P >= 0.9)" in out.status.reason
 
 
 def test_never_targets_a_node_behind_a_narrow_gap():
     core = PlannerCore(params())
-    out = core.update(0.0, POSE, u_graph(narrow_to_4=True), rel(OPEN), None, None)
-    assert out.target_id == 5  # 4 is nearer but behind a 0.15 m clearance edge
+    out = core.update(0.0, POSE, u_graph(narrow_to_4=True), rel(OPEN), None)
+    assert out.route.target_id == 5  # 4 is nearer but behind a 0.15 m clearance edge
     out = core.update(0.2, POSE, u_graph(narrow_to_4=True), rel({3: 0.95, 4: 0.5, 5: 0.95}),
-                      None, None)
-    assert out.state == "done" and out.target_id == -1
-    assert "unreachable" in out.reason and "4" in out.reason
+                      None)
+    assert out.state == "done" and out.route.target_id == -1
+    assert "unreachable" in out.status.reason and "4" in out.status.reason
 
 
 def test_path_starts_at_robot_follows_edges_and_ends_at_target():
     tp = u_graph()
     core = PlannerCore(params())
     pose = (0.15, 2.2, math.pi / 2)  # slightly off the left arm of the U
-    out = core.update(0.0, pose, tp, rel({3: 0.5, 4: 0.95, 5: 0.95}), None, None)
-    assert out.target_id == 3
-    wps = np.asarray(out.waypoints)
-    assert tuple(wps[0]) == pytest.approx(pose[:2])
-    assert tuple(wps[-1]) == pytest.approx((2.0, 0.5))
-    assert tuple(wps[1]) == pytest.approx((0.0, 2.2), abs=1e-6)  # entry point on the arm
-    for p in wps[1:]:
+    out = core.update(0.0, pose, tp, rel({3: 0.5, 4: 0.95, 5: 0.95}), None)
+    assert out.route.target_id == 3
+    w = out.route.waypoints
+    assert tuple(w[0]) == pytest.approx(pose[:2])
+    assert tuple(w[-1]) == pytest.approx((2.0, 0.5))
+    assert tuple(w[1]) == pytest.approx((0.0, 2.2), abs=1e-6)  # entry point on the arm
+    for p in w[1:]:
         assert dist_to_polylines(p, tp) < 1e-6
-    steps = np.hypot(*np.diff(wps[1:], axis=0).T)
+    steps = np.hypot(*np.diff(w[1:], axis=0).T)
     assert steps.max() <= 0.35 and steps.min() >= 0.1  # thinned to ~0.25 m
-    assert any(tuple(p) == pytest.approx((0.0, 4.0)) for p in wps)  # corners kept
-    assert any(tuple(p) == pytest.approx((2.0, 4.0)) for p in wps)
-    length = float(np.sum(np.hypot(*np.diff(wps, axis=0).T)))
+    assert any(tuple(p) == pytest.approx((0.0, 4.0)) for p in w)  # corners kept
+    assert any(tuple(p) == pytest.approx((2.0, 4.0)) for p in w)
+    length = float(np.sum(np.hypot(*np.diff(w, axis=0).T)))
     assert length == pytest.approx(0.15 + 1.8 + 2.0 + 3.5, abs=0.05)  # up, across, down
 
 
 def test_replans_when_target_becomes_reliable():
     core = PlannerCore(params())
-    out1 = core.update(0.0, POSE, u_graph(), rel(OPEN), None, None)
-    assert out1.target_id == 4
-    out2 = core.update(0.2, POSE, u_graph(), rel(OPEN), None, None)
-    assert out2.plan_id == out1.plan_id  # nothing changed: same plan
-    out3 = core.update(0.4, POSE, u_graph(), rel({3: 0.5, 4: 0.93, 5: 0.5}), None, None)
-    assert out3.target_id == 5 and out3.plan_id > out1.plan_id
-    assert "became reliable" in out3.reason
+    out1 = core.update(0.0, POSE, u_graph(), rel(OPEN), None)
+    assert out1.route.target_id == 4
+    out2 = core.update(0.2, POSE, u_graph(), rel(OPEN), None)
+    assert out2.route.plan_id == out1.route.plan_id  # nothing changed: same plan
+    out3 = core.update(0.4, POSE, u_graph(), rel({3: 0.5, 4: 0.93, 5: 0.5}), None)
+    assert out3.route.target_id == 5 and out3.route.plan_id > out1.route.plan_id
+    assert "became reliable" in out3.status.reason
 
 
 def test_replans_when_target_moves_and_when_it_vanishes():
     core = PlannerCore(params())
-    out1 = core.update(0.0, POSE, u_graph(), rel(OPEN), None, None)
-    moved = u_graph()
-    moved.nodes[4] = node(4, "end", -3.6, 0)
-    moved.edges[3] = edge(0, 4, [(0, 0), (-3.6, 0)])
-    out2 = core.update(0.2, POSE, moved, rel(OPEN), None, None)
-    assert out2.target_id == 4 and out2.plan_id == out1.plan_id + 1
-    assert out2.waypoints[-1] == pytest.approx((-3.6, 0.0))
-    gone = u_graph()
-    del gone.nodes[4]
-    del gone.edges[3]
-    out3 = core.update(0.4, POSE, gone, rel(OPEN), None, None)
-    assert out3.target_id == 5 and "vanished" in out3.reason
+    out1 = core.update(0.0, POSE, u_graph(), rel(OPEN), None)
+    nodes, edges = u_parts()
+    nodes[4] = node(4, "end", -3.6, 0)
+    edges[3] = edge(0, 4, [(0, 0), (-3.6, 0)])
+    out2 = core.update(0.2, POSE, topo(nodes, edges), rel(OPEN), None)
+    assert out2.route.target_id == 4 and out2.route.plan_id == out1.route.plan_id + 1
+    assert wps(out2)[-1] == pytest.approx((-3.6, 0.0))
+    nodes, edges = u_parts()
+    del nodes[4]
+    del edges[3]
+    out3 = core.update(0.4, POSE, topo(nodes, edges), rel(OPEN), None)
+    assert out3.route.target_id == 5 and "vanished" in out3.status.reason
 
 
 def test_ties_prefer_the_node_ahead():
     tp = topo([node(1, "end", -3, 0), node(2, "end", 3.2, 0)],
               [edge(1, 2, [(-3, 0), (3.2, 0)])])
-    out = PlannerCore(params()).update(0.0, (0, 0, 0.0), tp, rel({1: 0.5, 2: 0.5}), None, None)
-    assert out.target_id == 2  # 3.2 m ahead beats 3.0 m behind (within the tie tolerance)
-    out = PlannerCore(params()).update(0.0, (0, 0, math.pi), tp, rel({1: 0.5, 2: 0.5}), None,
-                                       None)
-    assert out.target_id == 1
+    out = PlannerCore(params()).update(0.0, (0, 0, 0.0), tp, rel({1: 0.5, 2: 0.5}), None)
+    assert out.route.target_id == 2  # 3.2 m ahead beats 3.0 m behind (within the tie tolerance)
+    out = PlannerCore(params()).update(0.0, (0, 0, math.pi), tp, rel({1: 0.5, 2: 0.5}), None)
+    assert out.route.target_id == 1
+
+
+def with_node_6(x):
+    nodes, edges = u_parts()
+    return topo(nodes + [node(6, "end", x, 0)], edges + [edge(0, 6, [(0, 0), (x, 0)])])
 
 
 def test_switches_only_to_a_much_cheaper_target():
     core = PlannerCore(params())
-    assert core.update(0.0, POSE, u_graph(), rel(OPEN), None, None).target_id == 4
-    tp = u_graph()
-    tp.nodes.append(node(6, "end", 2.3, 0))  # 2.3 m: not < 0.7 * 3 m
-    tp.edges.append(edge(0, 6, [(0, 0), (2.3, 0)]))
-    out = core.update(2.5, POSE, tp, rel({**OPEN, 6: 0.5}), None, None)
-    assert out.target_id == 4
-    tp.nodes[-1] = node(6, "end", 1.5, 0)  # 1.5 m < 0.7 * 3 m
-    tp.edges[-1] = edge(0, 6, [(0, 0), (1.5, 0)])
-    out = core.update(3.0, POSE, tp, rel({**OPEN, 6: 0.5}), None, None)
-    assert out.target_id == 4  # re-evaluated at most every replan_period (2 s)
-    out = core.update(5.0, POSE, tp, rel({**OPEN, 6: 0.5}), None, None)
-    assert out.target_id == 6 and "switched from end node 4" in out.reason
-    assert out.replans == 1
+    assert core.update(0.0, POSE, u_graph(), rel(OPEN), None).route.target_id == 4
+    out = core.update(2.5, POSE, with_node_6(2.3), rel({**OPEN, 6: 0.5}), None)
+    assert out.route.target_id == 4  # 2.3 m: not < 0.7 * 3 m
+    out = core.update(3.0, POSE, with_node_6(1.5), rel({**OPEN, 6: 0.5}), None)
+    assert out.route.target_id == 4  # re-evaluated at most every replan_period (2 s)
+    out = core.update(5.0, POSE, with_node_6(1.5), rel({**OPEN, 6: 0.5}), None)
+    assert out.route.target_id == 6 and "switched from end node 4" in out.status.reason
+    assert out.status.replans == 1
 
 
 def test_blacklists_after_no_progress_by_id_and_position():
     core = PlannerCore(params(progress_timeout=20.0, max_attempts=2))
-    out = core.update(0.0, POSE, u_graph(), rel(OPEN), None, None)
-    assert out.target_id == 4
+    out = core.update(0.0, POSE, u_graph(), rel(OPEN), None)
+    assert out.route.target_id == 4
     t = 0.0
     for _ in range(30):  # the robot never moves
         t += 1.0
-        out = core.update(t, POSE, u_graph(), rel(OPEN), None, None)
-    assert out.target_id == 4 and out.blacklisted == [] and out.replans == 1  # 1st failure
+        out = core.update(t, POSE, u_graph(), rel(OPEN), None)
+    assert out.route.target_id == 4 and out.status.blacklisted == ()
+    assert out.status.replans == 1  # the first failure
     reasons = []
     for _ in range(15):
         t += 1.0
-        out = core.update(t, POSE, u_graph(), rel(OPEN), None, None)
-        reasons.append(out.reason)
-    assert out.blacklisted == [4] and out.target_id == 5
+        out = core.update(t, POSE, u_graph(), rel(OPEN), None)
+        reasons.append(out.status.reason)
+    assert out.status.blacklisted == (4,) and out.route.target_id == 5
     assert any("blacklisted end node 4" in r and "no progress" in r for r in reasons)
-    assert "blacklisted: 4" in out.reason  # stays visible while exploring goes on
+    assert "blacklisted: 4" in out.status.reason  # stays visible while exploring goes on
     # the same place under a new id stays blacklisted
-    renamed = u_graph()
-    renamed.nodes[4] = node(9, "end", -3.1, 0)
-    renamed.edges[3] = edge(0, 9, [(0, 0), (-3.1, 0)])
-    out = core.update(t + 1, POSE, renamed, rel({3: 0.5, 9: 0.5, 5: 0.5}), None, None)
-    assert out.target_id == 5
-    out = core.update(t + 2, POSE, renamed, rel({3: 0.95, 9: 0.5, 5: 0.95}), None, None)
-    assert out.state == "done" and "1 blacklisted" in out.reason
+    nodes, edges = u_parts()
+    nodes[4] = node(9, "end", -3.1, 0)
+    edges[3] = edge(0, 9, [(0, 0), (-3.1, 0)])
+    renamed = topo(nodes, edges)
+    out = core.update(t + 1, POSE, renamed, rel({3: 0.5, 9: 0.5, 5: 0.5}), None)
+    assert out.route.target_id == 5
+    out = core.update(t + 2, POSE, renamed, rel({3: 0.95, 9: 0.5, 5: 0.95}), None)
+    assert out.state == "done" and "1 blacklisted" in out.status.reason
     snap = core.snapshot()
     assert snap["blacklist"][0]["id"] == 4 and "no progress" in snap["blacklist"][0]["reason"]
+    assert snap["state"] == "done" and snap["failures"][0]["count"] == 2
 
 
 def test_progress_along_the_path_prevents_blacklisting():
     core = PlannerCore(params(progress_timeout=5.0, max_attempts=1))
-    out = core.update(0.0, POSE, u_graph(), rel(OPEN), None, None)
-    assert out.target_id == 4
+    out = core.update(0.0, POSE, u_graph(), rel(OPEN), None)
+    assert out.route.target_id == 4
     for k in range(1, 20):  # 0.1 m/s toward node 4 along the edge
-        out = core.update(float(k), (-0.1 * k, 0.0, math.pi), u_graph(), rel(OPEN), None, None)
-    assert out.target_id == 4 and out.blacklisted == []
+        out = core.update(float(k), (-0.1 * k, 0.0, math.pi), u_graph(), rel(OPEN), None)
+    assert out.route.target_id == 4 and out.status.blacklisted == ()
 
 
 def test_entry_point_needs_line_of_sight_on_the_grid():
@@ -286,36 +306,18 @@ def test_entry_point_needs_line_of_sight_on_the_grid():
               [edge(1, 5, [(-2, 1.0), (-2.5, -0.25)]), edge(5, 3, [(-2.5, -0.25), (-2, -1.5)]),
                edge(1, 2, [(-2, 1.0), (2, 1.0)]), edge(3, 4, [(-2, -1.5), (2, -1.5)])])
     geom = GridGeometry(0.1, -4.0, -4.0, 80, 80)
-    grid = np.zeros((80, 80), dtype=np.int8)
-    grid[44:46, 20:70] = 100  # wall at y in [0.4, 0.6], x in [-2, 3]
+    g = np.zeros((80, 80), dtype=np.int8)
+    g[44:46, 20:70] = 100  # wall at y in [0.4, 0.6], x in [-2, 3]
     pr = {1: 0.95, 2: 0.95, 3: 0.95, 4: 0.5}
-    out = PlannerCore(params()).update(0.0, (0.0, 0.0, 0.0), tp, rel(pr), grid, geom)
-    assert out.target_id == 4
-    assert out.waypoints[1] == pytest.approx((0.0, -1.5), abs=1e-6)  # joins the visible edge
-    out = PlannerCore(params()).update(0.0, (0.0, 0.0, 0.0), tp, rel(pr), None, None)
-    assert out.waypoints[1] == pytest.approx((0.0, 1.0), abs=1e-6)  # no grid: nearest point
-
-
-def test_bad_inputs_raise_value_errors():
-    core = PlannerCore(params())
-    with pytest.raises(PlannerInputError):
-        core.update(float("nan"), POSE, None, None, None, None)
-    with pytest.raises(PlannerInputError):
-        core.update(0.0, (0.0, 0.0), None, None, None, None)
-    with pytest.raises(PlannerInputError):
-        core.update(0.0, POSE, None, None, np.zeros((3, 3), np.int8), None)
-    with pytest.raises(PlannerInputError):
-        core.update(0.0, POSE, None, None, np.zeros((3, 4), np.int8),
-                    GridGeometry(0.1, 0, 0, 3, 3))
-    with pytest.raises(ValueError):
-        PlannerCore(params(strategy="random"))
-    with pytest.raises(ValueError):
-        PlannerCore(params(switch_ratio=1.5))
+    out = PlannerCore(params()).update(0.0, (0.0, 0.0, 0.0), tp, rel(pr), grid(g, geom))
+    assert out.route.target_id == 4
+    assert wps(out)[1] == pytest.approx((0.0, -1.5), abs=1e-6)  # joins the visible edge
+    out = PlannerCore(params()).update(0.0, (0.0, 0.0, 0.0), tp, rel(pr), None)
+    assert wps(out)[1] == pytest.approx((0.0, 1.0), abs=1e-6)  # no grid: nearest point
 
 
 def test_astar_matches_single_source_search():
-    tp = u_graph()
-    index = gr.build_index(tp, 0.25)
+    index = gr.build_index(u_graph(), 0.25)
     entry = gr.find_entry(index, 0.3, 1.0)
     dist, _ = gr.search_from_entry(index, entry)
     for i in (3, 4, 5):
@@ -329,18 +331,20 @@ def test_astar_matches_single_source_search():
 def test_all_end_nodes_visits_reliable_nodes_and_marks_visited():
     core = PlannerCore(params(strategy="all-end-nodes"))
     allrel = {3: 0.99, 4: 0.99, 5: 0.99}
-    out = core.update(0.0, POSE, u_graph(), rel(allrel), None, None)
-    assert out.state == "exploring" and out.target_id == 4 and out.target_p == 0.0
-    out = core.update(1.0, (-2.6, 0.0, math.pi), u_graph(), rel(allrel), None, None)
-    assert out.target_id == 5 and "visited" in out.reason  # came within 0.5 m of node 4
+    out = core.update(0.0, POSE, u_graph(), rel(allrel), None)
+    assert out.state == "exploring" and out.route.target_id == 4 and out.status.target_p == 0.0
+    out = core.update(1.0, (-2.6, 0.0, math.pi), u_graph(), rel(allrel), None)
+    assert out.route.target_id == 5 and "visited" in out.status.reason  # within 0.5 m of 4
     # node 4 moves a little but stays within visit_radius of where the robot was: still visited
-    tp = u_graph()
-    tp.nodes[4] = node(4, "end", -3.05, 0)
-    tp.edges[3] = edge(0, 4, [(0, 0), (-3.05, 0)])
-    out = core.update(2.0, (0.0, -4.8, -math.pi / 2), tp, rel(allrel), None, None)
-    assert out.target_id == 3
-    out = core.update(3.0, (2.0, 0.6, -math.pi / 2), tp, rel(allrel), None, None)
-    assert out.state == "done" and "all 3 reachable end nodes visited" in out.reason
+    nodes, edges = u_parts()
+    nodes[4] = node(4, "end", -3.05, 0)
+    edges[3] = edge(0, 4, [(0, 0), (-3.05, 0)])
+    tp = topo(nodes, edges)
+    out = core.update(2.0, (0.0, -4.8, -math.pi / 2), tp, rel(allrel), None)
+    assert out.route.target_id == 3
+    out = core.update(3.0, (2.0, 0.6, -math.pi / 2), tp, rel(allrel), None)
+    assert out.state == "done" and "all 3 reachable end nodes visited" in out.status.reason
+    assert core.snapshot()["visited_positions"] == 4
 
 
 # --- frontier --------------------------------------------------------------------------------
@@ -357,83 +361,84 @@ def half_known_room():
     return g, geom
 
 
+def frontier_core(**kw):
+    return PlannerCore(params(strategy="frontier", **kw))
+
+
 def test_frontier_goal_at_the_frontier_with_grid_path_length():
     g, geom = half_known_room()
-    core = PlannerCore(params(strategy="frontier"))
-    out = core.update(0.0, (1.05, 3.05, 0.0), None, None, g, geom)
-    assert out.state == "exploring" and out.target_id == -1
-    gx, gy = out.target_xy
+    out = frontier_core().update(0.0, (1.05, 3.05, 0.0), None, None, grid(g, geom))
+    assert out.state == "exploring" and out.route.target_id == -1
+    gx, gy = out.route.target_xy
     assert gx == pytest.approx(2.95)  # the last known free column, next to unknown
     assert 2.5 < gy < 3.5  # the reachable cell nearest the centroid of the frontier group
-    wps = np.asarray(out.waypoints)
-    assert tuple(wps[0]) == pytest.approx((1.05, 3.05)) and tuple(wps[-1]) == pytest.approx(
-        (gx, gy))
-    length = float(np.sum(np.hypot(*np.diff(wps, axis=0).T)))
+    w = out.route.waypoints
+    assert tuple(w[0]) == pytest.approx((1.05, 3.05)) and tuple(w[-1]) == pytest.approx((gx, gy))
+    length = float(np.sum(np.hypot(*np.diff(w, axis=0).T)))
     assert length == pytest.approx(math.hypot(gx - 1.05, gy - 3.05), abs=0.15)
-    assert "frontier" in out.reason
+    assert "frontier" in out.status.reason and out.route.strategy == "frontier"
 
 
 def test_frontier_goal_faces_the_unknown_it_is_meant_to_reveal():
     g, geom = half_known_room()
-    out = PlannerCore(params(strategy="frontier")).update(0.0, (1.05, 3.05, 0.0), None, None,
-                                                         g, geom)
-    assert out.goal_heading is not None and abs(out.goal_heading) < 0.3  # unknown is at +x
+    out = frontier_core().update(0.0, (1.05, 3.05, 0.0), None, None, grid(g, geom))
+    heading = out.route.goal_heading
+    assert heading is not None and abs(heading) < 0.3  # unknown is at +x
     # the frontier right behind a robot that has only seen ahead: turn around at the goal
     g2 = np.full((60, 60), -1, dtype=np.int8)
     g2[:, 20:] = 0
     g2[0, 20:] = g2[-1, 20:] = g2[:, -1] = 100
-    out = PlannerCore(params(strategy="frontier")).update(0.0, (2.15, 3.05, 0.0), None, None,
-                                                         g2, geom)
-    assert out.goal_heading is not None and abs(abs(out.goal_heading) - math.pi) < 0.3
-    look = fr.look_point(np.zeros((60, 60), bool), geom, (30, 30), 1.0)
+    out = frontier_core().update(0.0, (2.15, 3.05, 0.0), None, None, grid(g2, geom))
+    heading = out.route.goal_heading
+    assert heading is not None and abs(abs(heading) - math.pi) < 0.3
+    look = gs.look_point(np.zeros((60, 60), bool), geom, (30, 30), 1.0)
     assert look is None  # nothing unknown near the goal: no heading
-    assert PlannerCore(params()).update(0.0, POSE, u_graph(), rel(OPEN), None,
-                                        None).goal_heading is None  # topological: none
+    assert PlannerCore(params()).update(0.0, POSE, u_graph(), rel(OPEN),
+                                        None).route.goal_heading is None  # topological: none
 
 
 def test_frontier_path_goes_around_a_wall():
     g, geom = half_known_room()
     g[1:50, 15] = 100  # wall with a gap at the top (rows 50..58)
-    search = fr.grid_search(g, geom, 0.55, 1.05, 0.2)
-    groups, _ = fr.find_frontiers(g, geom, search, 0.5, 3.0, 1.0)
+    view = MapView(grid(g, geom), Occupancy())
+    search = view.search(0.55, 1.05, 0.2)
+    groups, _ = gs.find_frontiers(view.free, view.unknown, view.geom, search, 0.5, 3.0, 1.0)
     assert len(groups) == 1
-    core = PlannerCore(params(strategy="frontier"))
-    out = core.update(0.0, (0.55, 1.05, 0.0), None, None, g, geom)
-    wps = np.asarray(out.waypoints)
-    length = float(np.sum(np.hypot(*np.diff(wps, axis=0).T)))
+    out = frontier_core().update(0.0, (0.55, 1.05, 0.0), None, None, grid(g, geom))
+    w = out.route.waypoints
+    length = float(np.sum(np.hypot(*np.diff(w, axis=0).T)))
     assert groups[0].path_length > 6.0  # around the wall, not the 2.4 m straight line
     assert length == pytest.approx(groups[0].path_length, rel=0.1)
-    assert wps[:, 1].max() > 5.0  # through the gap
+    assert w[:, 1].max() > 5.0  # through the gap
 
 
 def test_frontier_start_cell_unknown_and_done_when_no_frontier():
     g, geom = half_known_room()
     g[29:32, 9:12] = -1  # the robot's own cells are still unknown (enclosed: a tiny hole)
-    out = PlannerCore(params(strategy="frontier")).update(0.0, (1.05, 3.05, 0.0), None, None,
-                                                         g, geom)
-    assert out.state == "exploring" and out.waypoints
+    out = frontier_core().update(0.0, (1.05, 3.05, 0.0), None, None, grid(g, geom))
+    assert out.state == "exploring" and wps(out)
     full = np.zeros((60, 60), dtype=np.int8)
     full[0, :] = full[-1, :] = full[:, 0] = full[:, -1] = 100
-    core = PlannerCore(params(strategy="frontier"))
-    out = core.update(0.0, (1.05, 3.05, 0.0), None, None, full, geom)
-    assert out.state == "done" and out.waypoints == [] and "no frontier" in out.reason
-    out = core.update(0.0, (1.05, 3.05, 0.0), None, None, None, None)
-    assert out.state == "exploring" and "waiting for map" in out.reason
+    core = frontier_core()
+    out = core.update(0.0, (1.05, 3.05, 0.0), None, None, grid(full, geom))
+    assert out.state == "done" and wps(out) == [] and "no frontier" in out.status.reason
+    out = core.update(0.0, (1.05, 3.05, 0.0), None, None, None)
+    assert out.state == "exploring" and "waiting for map" in out.status.reason
 
 
 def test_frontier_drops_small_groups_and_blacklists_a_stuck_goal():
     g, geom = half_known_room()
     g[1:59, 29] = 100  # wall the right side off ...
     g[30:33, 29] = 0  # ... except a 0.3 m hole: a frontier of 3 cells < 0.5 m
-    out = PlannerCore(params(strategy="frontier")).update(0.0, (1.05, 3.05, 0.0), None, None,
-                                                         g, geom)
-    assert out.state == "done" and "shorter than 0.5 m" in out.reason
+    out = frontier_core().update(0.0, (1.05, 3.05, 0.0), None, None, grid(g, geom))
+    assert out.state == "done" and "shorter than 0.5 m" in out.status.reason
     g, geom = half_known_room()
-    core = PlannerCore(params(strategy="frontier", progress_timeout=5.0, max_attempts=1))
-    out = core.update(0.0, (1.05, 3.05, 0.0), None, None, g, geom)
+    core = frontier_core(progress_timeout=5.0, max_attempts=1)
+    out = core.update(0.0, (1.05, 3.05, 0.0), None, None, grid(g, geom))
     for k in range(1, 8):
-        out = core.update(float(k), (1.05, 3.05, 0.0), None, None, g, geom)
-    assert out.blacklisted == [0] and out.state == "done" and "blacklisted" in out.reason
+        out = core.update(float(k), (1.05, 3.05, 0.0), None, None, grid(g, geom))
+    assert out.status.blacklisted == (0,) and out.state == "done"
+    assert "blacklisted" in out.status.reason
 
 
 def test_frontier_undecided_band_counts_as_unknown_but_wall_specks_do_not():
@@ -441,9 +446,9 @@ def test_frontier_undecided_band_counts_as_unknown_but_wall_specks_do_not():
     g[:, 30:33] = 50  # once-seen band between free and never-seen space
     g[20, 5] = 50  # an undecided speck enclosed by free cells
     free = (g >= 0) & (g < 35)
-    unk = fr.unknown_mask(g)
+    unk = unknown_mask(g)
     assert unk[:, 30:33].all() and not unk[20, 5]
-    fm = fr.frontier_mask(free, unk)
+    fm = gs.frontier_mask(free, unk)
     assert fm[5:55, 29].all() and not fm[19:22, 4:7].any()
 
 
@@ -456,33 +461,40 @@ def corridor_grid():
     return g, geom
 
 
+def door_parts(b=2, wide=False):
+    """End node 1 and branch node 0 at the corridor's left end, end node b at its right end;
+    the edge to b bends through the door at x = 2 (or runs straight when wide)."""
+    nodes = [node(1, "end", 0.5, 0.5), node(0, "branch", 1.0, 0.5), node(b, "end", 5.5, 0.5)]
+    to_b = (edge(0, b, [(1.0, 0.5), (5.5, 0.5)], clearance=0.2) if wide else
+            edge(0, b, [(1.0, 0.5), (1.9, 0.5), (2.05, 0.85), (2.2, 0.5), (5.5, 0.5)]))
+    return nodes, [edge(1, 0, [(0.5, 0.5), (1.0, 0.5)]), to_b]
+
+
 def test_grid_clearance_lets_the_robot_into_a_dead_end_but_not_through_a_gap():
     g, geom = corridor_grid()
-    # leaf edge to a dead-end corner: the message says 0.2 m (its tip), the grid agrees only
+    # leaf edge to a dead-end corner: the graph says 0.2 m (its tip), the grid agrees only
     # at the tip; the path stops where the corridor narrows, within tip_length of the node
     tp = topo([node(1, "end", 0.5, 0.5), node(2, "end", 5.85, 0.85)],
               [edge(1, 2, [(0.5, 0.5), (5.5, 0.5), (5.85, 0.85)], clearance=0.2)])
     core = PlannerCore(params())
-    out = core.update(0.0, (0.5, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), g, geom)
-    assert out.target_id == 2, out.reason
-    end = np.asarray(out.waypoints[-1])
+    out = core.update(0.0, (0.5, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), grid(g, geom))
+    assert out.route.target_id == 2, out.status.reason
+    end = out.route.waypoints[-1]
     assert 0.0 < np.hypot(*(end - (5.85, 0.85))) <= 0.3 + 1e-6
-    # without a grid the message's clearance (0.2 m < 0.25 m) rules: no way onto the skeleton
-    out = PlannerCore(params()).update(0.0, (0.5, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), None,
-                                       None)
-    assert out.target_id == -1 and out.waypoints == [] and "cannot join" in out.reason
-    # a 0.3 m wide door in the middle of the corridor: not passable whatever the message says
+    # without a grid the graph's clearance (0.2 m < 0.25 m) rules: no way onto the skeleton
+    out = PlannerCore(params()).update(0.0, (0.5, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), None)
+    assert out.route.target_id == -1 and wps(out) == [] and "cannot join" in out.status.reason
+    # a 0.3 m wide door in the middle of the corridor: not passable whatever the graph says
     g[10:17, 30] = 100  # wall at x in [2.0, 2.1] except y in [0.7, 1.0]
-    tp2 = topo([node(1, "end", 0.5, 0.5), node(0, "branch", 1.0, 0.5), node(2, "end", 5.5, 0.5)],
-               [edge(1, 0, [(0.5, 0.5), (1.0, 0.5)]),
-                edge(0, 2, [(1.0, 0.5), (1.9, 0.5), (2.05, 0.85), (2.2, 0.5), (5.5, 0.5)])])
     core = PlannerCore(params(approach_narrow=False))
-    out = core.update(0.0, (0.6, 0.5, 0.0), tp2, rel({1: 0.95, 2: 0.5}), g, geom)
-    assert out.state == "done" and "unreachable" in out.reason and "2" in out.reason
+    out = core.update(0.0, (0.6, 0.5, 0.0), topo(*door_parts()), rel({1: 0.95, 2: 0.5}),
+                      grid(g, geom))
+    assert out.state == "done" and "unreachable" in out.status.reason
+    assert "2" in out.status.reason
     g[10:17, 30] = 0  # door gone, the skeleton runs down the middle: reachable
-    tp2.edges[1] = edge(0, 2, [(1.0, 0.5), (5.5, 0.5)], clearance=0.2)
-    out = core.update(0.2, (0.6, 0.5, 0.0), tp2, rel({1: 0.95, 2: 0.5}), g, geom)
-    assert out.target_id == 2
+    out = core.update(0.2, (0.6, 0.5, 0.0), topo(*door_parts(wide=True)),
+                      rel({1: 0.95, 2: 0.5}), grid(g, geom))
+    assert out.route.target_id == 2
 
 
 def test_trim_narrow_tip_keeps_the_wide_part():
@@ -500,40 +512,38 @@ def test_approaches_a_node_behind_a_narrow_passage_once():
     way becoming wide gives the whole path."""
     g, geom = corridor_grid()
     g[10:17, 30] = 100  # 0.3 m door at x in [2.0, 2.1]
-    tp = topo([node(1, "end", 0.5, 0.5), node(0, "branch", 1.0, 0.5), node(2, "end", 5.5, 0.5)],
-              [edge(1, 0, [(0.5, 0.5), (1.0, 0.5)]),
-               edge(0, 2, [(1.0, 0.5), (1.9, 0.5), (2.05, 0.85), (2.2, 0.5), (5.5, 0.5)])])
+    tp = topo(*door_parts())
     p = params()
     core = PlannerCore(p)
-    out = core.update(0.0, (0.6, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), g, geom)
-    assert out.state == "exploring" and out.target_id == 2, out.reason
-    assert "narrow passage" in out.reason
-    wps = np.asarray(out.waypoints)
-    clear = gr.grid_clearance(fr.clearance_map(g > 65, geom.resolution), geom)(wps)
-    assert np.all(clear >= p.robot_radius + p.clearance_margin - 1e-9)
-    stop = wps[-1]
+    out = core.update(0.0, (0.6, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), grid(g, geom))
+    assert out.state == "exploring" and out.route.target_id == 2, out.status.reason
+    assert "narrow passage" in out.status.reason
+    w = out.route.waypoints
+    clear = gr.grid_clearance(gs.clearance_map(g > 65, geom.resolution), geom)(w)
+    assert np.all(clear >= RADIUS + p.clearance_margin - 1e-9)
+    stop = w[-1]
     assert 1.3 < stop[0] < 2.0, stop  # up to the door, not through it
     # standing at the narrow point the robot has looked: the node is unreachable, done
     pose = (float(stop[0]) - 0.2, float(stop[1]), 0.0)
-    out = core.update(1.0, pose, tp, rel({1: 0.95, 2: 0.5}), g, geom)
-    assert out.state == "done" and "unreachable" in out.reason and "(ids 2)" in out.reason
+    out = core.update(1.0, pose, tp, rel({1: 0.95, 2: 0.5}), grid(g, geom))
+    assert out.state == "done" and "unreachable" in out.status.reason
+    assert "(ids 2)" in out.status.reason
     # ... and stays so once the robot has left (it used to shuttle back and forth), also when
     # the node got a new id
-    tp2 = topo([node(1, "end", 0.5, 0.5), node(0, "branch", 1.0, 0.5), node(7, "end", 5.5, 0.5)],
-               [tp.edges[0], msgspec.structs.replace(tp.edges[1], b=7)])
-    for k, tpk in enumerate((tp, tp2)):
-        out = core.update(2.0 + k, (0.6, 0.5, 0.0), tpk, rel({1: 0.95, 2: 0.5, 7: 0.5}), g, geom)
-        assert out.state == "done" and "unreachable" in out.reason, out.reason
+    for k, tpk in enumerate((tp, topo(*door_parts(b=7)))):
+        out = core.update(2.0 + k, (0.6, 0.5, 0.0), tpk, rel({1: 0.95, 2: 0.5, 7: 0.5}),
+                          grid(g, geom))
+        assert out.state == "done" and "unreachable" in out.status.reason, out.status.reason
     assert [b["id"] for b in core.snapshot()["looked"]] == [2]
     # the door opens while the robot approaches: a new path to the node itself
     core3 = PlannerCore(p)
-    out = core3.update(0.0, (0.6, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), g, geom)
-    assert "narrow passage" in out.reason
+    out = core3.update(0.0, (0.6, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), grid(g, geom))
+    assert "narrow passage" in out.status.reason
     g[10:17, 30] = 0
-    tp.edges[1] = edge(0, 2, [(1.0, 0.5), (5.5, 0.5)], clearance=0.2)
-    out = core3.update(0.2, (0.8, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), g, geom)
-    assert out.target_id == 2 and "wide now" in out.reason
-    assert np.hypot(*(np.asarray(out.waypoints[-1]) - (5.5, 0.5))) < 0.35
+    out = core3.update(0.2, (0.8, 0.5, 0.0), topo(*door_parts(wide=True)),
+                       rel({1: 0.95, 2: 0.5}), grid(g, geom))
+    assert out.route.target_id == 2 and "wide now" in out.status.reason
+    assert np.hypot(*(out.route.waypoints[-1] - (5.5, 0.5))) < 0.35
 
 
 def test_build_index_splits_an_edge_at_its_narrow_stretch():
@@ -551,12 +561,26 @@ def test_build_index_splits_an_edge_at_its_narrow_stretch():
     assert np.all(np.abs(mid.pts[1:-1, 0] - 3.0) < 0.3)
     wide = {(e.a, e.b) for e in index.edges}
     assert any(1 in ab for ab in wide) and any(2 in ab for ab in wide)
+    for e in index.edges + index.narrow:
+        assert e.cum[0] == 0.0 and e.length == pytest.approx(e.cum[-1])
     for e in index.edges:
-        assert e.clearance >= 0.25 and e.length == pytest.approx(e.cum[-1])
+        assert e.clearance >= 0.25
     # narrow over its whole length: one narrow edge, nothing cut
     index = gr.build_index(tp, 0.25, lambda p: np.full(len(p), 0.1), 0.3)
     assert len(index.narrow) == 1 and not index.edges
     assert not [i for i, n in index.nodes.items() if n[0] == "cut"]
+
+
+def test_build_index_orients_and_anchors_polylines_and_drops_self_loops():
+    tp = topo([node(1, "end", 0.0, 0.0), node(2, "branch", 2.0, 0.0)],
+              [(1, 2, [[2.0, 0.0], [1.0, 0.0]], 2.0, 0.5),  # given b -> a, not at node a
+               (2, 2, [[2.0, 0.0], [2.5, 0.5], [2.0, 0.0]], 1.4, 0.5)])
+    index = gr.build_index(tp, 0.25)
+    assert len(index.edges) == 1
+    assert index.edges[0].pts.tolist() == [[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]]
+    assert index.adj[1] == [(2, 2.0, 0, True)] and index.adj[2] == [(1, 2.0, 0, False)]
+    with pytest.raises(gr.GraphInputError):
+        gr.build_index(topo([node(1, "end", 0.0, 0.0)], [edge(1, 3, [(0, 0), (1, 0)])]), 0.25)
 
 
 def test_crosses_an_occupied_cell():
@@ -573,22 +597,21 @@ def test_new_path_when_the_path_crosses_a_wall_seen_later():
     geom = GridGeometry(0.1, -1.0, -1.0, 90, 40)
     g = np.full((40, 90), 100, dtype=np.int8)
     g[10:26, 10:70] = 0  # free: x in [0, 6), y in [0, 1.6)
-    tp = topo([node(1, "end", 0.5, 0.5), node(2, "end", 5.5, 0.5)],
-              [edge(1, 2, [(0.5, 0.5), (5.5, 0.5)])])
+    nodes = [node(1, "end", 0.5, 0.5), node(2, "end", 5.5, 0.5)]
+    tp = topo(nodes, [edge(1, 2, [(0.5, 0.5), (5.5, 0.5)])])
     # a path tolerance wide enough that the old path still "follows" the new skeleton: only
     # the crossing test can notice the wall
     core = PlannerCore(params(path_tolerance=0.8))
-    out = core.update(0.0, (0.6, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), g, geom)
-    assert out.target_id == 2
-    first = out.plan_id
+    out = core.update(0.0, (0.6, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), grid(g, geom))
+    assert out.route.target_id == 2
+    first = out.route.plan_id
     g[10:17, 39:41] = 100  # a wall piece across the old path: x in [2.9, 3.1), y < 0.7
-    tp2 = topo([node(1, "end", 0.5, 0.5), node(2, "end", 5.5, 0.5)],
-               [edge(1, 2, [(0.5, 0.5), (2.5, 0.5), (2.7, 1.1), (3.3, 1.1), (3.5, 0.5),
-                            (5.5, 0.5)])])
-    out = core.update(0.2, (0.7, 0.5, 0.0), tp2, rel({1: 0.95, 2: 0.5}), g, geom)
-    assert out.target_id == 2 and out.plan_id != first
-    assert "crosses an obstacle" in out.reason
-    assert not gr.crosses(g == 100, geom, np.asarray(out.waypoints))
+    tp2 = topo(nodes, [edge(1, 2, [(0.5, 0.5), (2.5, 0.5), (2.7, 1.1), (3.3, 1.1), (3.5, 0.5),
+                                   (5.5, 0.5)])])
+    out = core.update(0.2, (0.7, 0.5, 0.0), tp2, rel({1: 0.95, 2: 0.5}), grid(g, geom))
+    assert out.route.target_id == 2 and out.route.plan_id != first
+    assert "crosses an obstacle" in out.status.reason
+    assert not gr.crosses(g == 100, geom, out.route.waypoints)
 
 
 def test_cut_at_narrow():
@@ -601,16 +624,16 @@ def test_cut_at_narrow():
 
 def test_frontier_search_runs_at_most_once_per_frontier_period_while_following():
     g, geom = half_known_room()
-    core = PlannerCore(params(strategy="frontier", frontier_period=1.0))
-    out = core.update(0.0, (1.05, 3.05, 0.0), None, None, g, geom)
+    core = frontier_core(frontier_period=1.0)
+    out = core.update(0.0, (1.05, 3.05, 0.0), None, None, grid(g, geom))
     assert out.state == "exploring"
     full = g.copy()
     full[:, 30:] = 0  # the room is now known: no frontier left
     full[0, :] = full[-1, :] = full[:, -1] = 100
-    out = core.update(0.4, (1.10, 3.05, 0.0), None, None, full, geom)
-    assert out.state == "exploring" and out.waypoints  # still the search made at t = 0
-    out = core.update(1.0, (1.15, 3.05, 0.0), None, None, full, geom)
-    assert out.state == "done" and "no frontier" in out.reason  # a new search at t >= 1 s
+    out = core.update(0.4, (1.10, 3.05, 0.0), None, None, grid(full, geom))
+    assert out.state == "exploring" and wps(out)  # still the search made at t = 0
+    out = core.update(1.0, (1.15, 3.05, 0.0), None, None, grid(full, geom))
+    assert out.state == "done" and "no frontier" in out.status.reason  # a new search at 1 s
 
 
 # --- frontier completion (reliability / all-end-nodes) ----------------------------------------
@@ -629,13 +652,13 @@ def test_completion_goes_to_the_frontier_left_once_no_end_node_is_left(strategy)
     core = PlannerCore(params(strategy=strategy))
     if strategy == "all-end-nodes":  # visit both first
         for k, pose in enumerate([(0.6, 3.05, 0.0), (2.5, 3.05, 0.0)]):
-            core.update(0.2 * k, pose, known_left_half_topo(), rel(done), g, geom)
-    out = core.update(1.0, (1.05, 3.05, 0.0), known_left_half_topo(), rel(done), g, geom)
-    assert out.state == "exploring" and out.target_id == -1, out.reason
-    assert "completion" in out.reason and out.target_xy[0] == pytest.approx(2.95)
+            core.update(0.2 * k, pose, known_left_half_topo(), rel(done), grid(g, geom))
+    out = core.update(1.0, (1.05, 3.05, 0.0), known_left_half_topo(), rel(done), grid(g, geom))
+    assert out.state == "exploring" and out.route.target_id == -1, out.status.reason
+    assert "completion" in out.status.reason and out.route.target_xy[0] == pytest.approx(2.95)
     off = PlannerCore(params(strategy="reliability", frontier_completion=False))
-    out = off.update(1.0, (1.05, 3.05, 0.0), known_left_half_topo(), rel(done), g, geom)
-    assert out.state == "done" and "reliable" in out.reason
+    out = off.update(1.0, (1.05, 3.05, 0.0), known_left_half_topo(), rel(done), grid(g, geom))
+    assert out.state == "done" and "reliable" in out.status.reason
 
 
 def test_completion_ignores_short_groups_unless_near():
@@ -644,16 +667,17 @@ def test_completion_ignores_short_groups_unless_near():
     g[28:35, 29] = 0  # ... except a 0.7 m gap: a group >= min_frontier_size, < 1 m
     done = {1: 0.95, 2: 0.95}
     near = PlannerCore(params())
-    out = near.update(0.0, (1.05, 3.05, 0.0), known_left_half_topo(), rel(done), g, geom)
-    assert out.state == "exploring" and "completion" in out.reason, out.reason
+    out = near.update(0.0, (1.05, 3.05, 0.0), known_left_half_topo(), rel(done), grid(g, geom))
+    assert out.state == "exploring" and "completion" in out.status.reason, out.status.reason
     far = PlannerCore(params(completion_near=0.5))
-    out = far.update(0.0, (1.05, 3.05, 0.0), known_left_half_topo(), rel(done), g, geom)
-    assert out.state == "done" and "shorter than 1 m ignored, unless within 0.5 m" in out.reason
+    out = far.update(0.0, (1.05, 3.05, 0.0), known_left_half_topo(), rel(done), grid(g, geom))
+    assert out.state == "done"
+    assert "shorter than 1 m ignored, unless within 0.5 m" in out.status.reason
     tiny = PlannerCore(params())  # below min_frontier_size: never, near or not
     g[28:35, 29] = 100
     g[30:33, 29] = 0
-    out = tiny.update(0.0, (1.05, 3.05, 0.0), known_left_half_topo(), rel(done), g, geom)
-    assert out.state == "done", out.reason
+    out = tiny.update(0.0, (1.05, 3.05, 0.0), known_left_half_topo(), rel(done), grid(g, geom))
+    assert out.state == "done", out.status.reason
 
 
 def test_stop_when_mapped_ends_with_open_end_nodes_once_no_frontier_is_left():
@@ -661,17 +685,18 @@ def test_stop_when_mapped_ends_with_open_end_nodes_once_no_frontier_is_left():
     tp = topo([node(1, "end", 0.5, 0.5), node(2, "end", 5.5, 0.5)],
               [edge(1, 2, [(0.5, 0.5), (5.5, 0.5)])])
     core = PlannerCore(params(stop_when_mapped=True))
-    out = core.update(0.0, (0.5, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), g, geom)
-    assert out.state == "done" and out.target_id == -1
-    assert "the map is complete" in out.reason and "1 end node(s) below P 0.9" in out.reason
+    out = core.update(0.0, (0.5, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), grid(g, geom))
+    assert out.state == "done" and out.route.target_id == -1
+    reason = out.status.reason
+    assert "the map is complete" in reason and "1 end node(s) below P 0.9" in reason
     g2, _ = corridor_grid()
     g2[9:21, 60:71] = -1  # the far end not seen yet (walls included): a frontier, so go on
     core = PlannerCore(params(stop_when_mapped=True))
-    out = core.update(0.0, (0.5, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), g2, geom)
-    assert out.state == "exploring" and out.target_id == 2, out.reason
+    out = core.update(0.0, (0.5, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), grid(g2, geom))
+    assert out.state == "exploring" and out.route.target_id == 2, out.status.reason
     allend = PlannerCore(params(strategy="all-end-nodes", stop_when_mapped=True))
-    out = allend.update(0.0, (0.5, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), g, geom)
-    assert out.state == "exploring" and out.target_id == 2  # the baselines are unchanged
+    out = allend.update(0.0, (0.5, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), grid(g, geom))
+    assert out.state == "exploring" and out.route.target_id == 2  # baselines are unchanged
 
 
 def test_reach_only_search_reaches_the_same_cells_as_the_dijkstra():
@@ -680,8 +705,119 @@ def test_reach_only_search_reaches_the_same_cells_as_the_dijkstra():
     for _ in range(60):
         g = rng.choice(np.array([-1, 0, 0, 0, 100], np.int8), size=(30, 40))
         x, y = rng.uniform(0.0, 4.0), rng.uniform(0.0, 3.0)
-        full = fr.grid_search(g, geom, x, y, 0.1, soft_radius=0.3, soft_penalty=2.0)
-        quick = fr.grid_search(g, geom, x, y, 0.1, soft_radius=0.3, soft_penalty=2.0,
-                               reach_only=True, clearance=full.clearance)
+        view = MapView(grid(g, geom), Occupancy())
+        full = view.search(x, y, 0.1, soft_radius=0.3, soft_penalty=2.0)
+        quick = view.search(x, y, 0.1, soft_radius=0.3, soft_penalty=2.0, reach_only=True)
         assert quick.start == full.start
         assert np.array_equal(np.isfinite(quick.dist), np.isfinite(full.dist))
+
+
+# --- structure: strategy registry, decisions, map view ---------------------------------------
+
+
+def test_the_registry_has_exactly_the_strategies_of_the_params():
+    assert set(strategies.REGISTRY) == set(STRATEGIES)
+    for name in STRATEGIES:
+        s = strategies.make(Config(params(strategy=name), RADIUS, 0.9))
+        assert isinstance(s, strategies.REGISTRY[name])
+        assert callable(s.evaluate) and isinstance(s.snapshot(), dict)
+        assert PlannerCore(params(strategy=name)).update(0.0, POSE, None, None, None).state \
+            == ExploreState.EXPLORING  # every strategy waits for its inputs
+
+
+@pytest.mark.parametrize("strategy", STRATEGIES)
+def test_snapshot_is_json(strategy):
+    g, geom = half_known_room()
+    core = PlannerCore(params(strategy=strategy))
+    core.update(0.0, (1.05, 3.05, 0.0), known_left_half_topo(), rel({1: 0.5, 2: 0.5}),
+                grid(g, geom))
+    snap = json.loads(json.dumps(core.snapshot()))
+    assert snap["strategy"] == strategy and snap["state"] == "exploring"
+    assert snap["target"] is not None and snap["updates"] == 1
+
+
+def test_decisions_are_typed():
+    d = Decision.repath(1.5, "new path", cross=True)
+    assert d.action is Action.CROSS and d.progress_t == 1.5 and d.note == "new path"
+    assert Decision.repath(2.0, "x").action is Action.REPATH
+    assert Decision.keep() == Decision(Action.KEEP) and Decision.keep().note == ""
+
+
+def test_the_decision_machine_returns_decisions(monkeypatch):
+    """The switch scenario seen through _step_target: a KEEP, then a SWITCH to node 6."""
+    seen = []
+    step = PlannerCore._step_target
+
+    def spy(self, *a):
+        d = step(self, *a)
+        seen.append(d)
+        return d
+
+    monkeypatch.setattr(PlannerCore, "_step_target", spy)
+    core = PlannerCore(params())
+    core.update(0.0, POSE, u_graph(), rel(OPEN), None)
+    core.update(2.5, POSE, with_node_6(2.3), rel({**OPEN, 6: 0.5}), None)
+    core.update(5.0, POSE, with_node_6(1.5), rel({**OPEN, 6: 0.5}), None)
+    assert all(isinstance(d, Decision) for d in seen)
+    assert [d.action for d in seen] == [Action.KEEP, Action.SWITCH]
+    assert seen[1].switch_to.id == 6
+
+
+def test_map_view_derives_each_grid_from_the_observed_part():
+    g, geom = half_known_room()
+    big = np.full((100, 100), -1, dtype=np.int8)
+    big[20:80, 20:80] = g  # the room inside a wide unknown margin
+    view = MapView(grid(big, GridGeometry(0.1, -2.0, -2.0, 100, 100)), Occupancy())
+    assert view.data.shape == (62, 32) and view.geom.origin_x == pytest.approx(-0.1)
+    cls = classify(view.data, 0.35, 0.65)
+    assert np.array_equal(view.classes, cls)
+    assert np.array_equal(view.free, cls == 1) and np.array_equal(view.occupied, cls == 2)
+    assert np.array_equal(view.clearance, gs.clearance_map(cls == 2, 0.1))
+    assert np.array_equal(view.unknown, unknown_mask(view.data))
+    assert view.open_unknown(0) is view.unknown
+    assert view.passable(0.3) is view.passable(0.3)
+    assert view.clearance_at(np.array([[100.0, 100.0]]))[0] == np.inf
+
+
+@pytest.mark.parametrize("strategy", STRATEGIES)
+def test_each_derived_grid_is_computed_once_per_update(strategy, monkeypatch):
+    """The topological evaluation, the map-complete check (a quick and a full frontier search)
+    and the completion phase of one update share one map view."""
+    calls: dict[str, int] = {}
+
+    def counted(name, fn):
+        def f(*a, **kw):
+            calls[name] = calls.get(name, 0) + 1
+            return fn(*a, **kw)
+        return f
+
+    for name in ("crop_known", "classify", "unknown_mask", "open_unknown"):
+        monkeypatch.setattr(mapview, name, counted(name, getattr(mapview, name)))
+    monkeypatch.setattr(mapview.gs, "clearance_map", counted("clearance_map",
+                                                             gs.clearance_map))
+    searches: list[bool] = []
+    grid_search = gs.grid_search
+
+    def search(*a, reach_only=False, **kw):
+        searches.append(reach_only)
+        return grid_search(*a, reach_only=reach_only, **kw)
+
+    monkeypatch.setattr(mapview.gs, "grid_search", search)
+    g, geom = half_known_room()
+    g[1:59, 29] = 100  # wall the right side off except a 0.7 m gap: a short completion group
+    g[28:35, 29] = 0
+    core = PlannerCore(params(strategy=strategy, stop_when_mapped=True, frontier_period=0.0))
+    tp = topo([node(1, "end", 0.6, 3.05), node(2, "end", 2.5, 3.05), node(3, "end", 1.5, 5.0),
+               node(0, "branch", 1.5, 3.05)],
+              [edge(1, 0, [(0.6, 3.05), (1.5, 3.05)]), edge(0, 2, [(1.5, 3.05), (2.5, 3.05)]),
+               edge(0, 3, [(1.5, 3.05), (1.5, 5.0)])])
+    expected = {"reliability": [[True, False], [False]], "all-end-nodes": [[], []],
+                "frontier": [[False], [False]]}[strategy]  # reach_only of each grid search
+    for k, beliefs in enumerate(({1: 0.95, 2: 0.95, 3: 0.5}, {1: 0.95, 2: 0.95, 3: 0.95})):
+        calls.clear()
+        searches.clear()
+        out = core.update(float(k), (1.05, 3.05, 0.0), tp, rel(beliefs), grid(g, geom))
+        assert out.state == "exploring", out.status.reason
+        assert searches == expected[k]  # reliability: map-complete check, then completion
+        assert calls and max(calls.values()) == 1, calls
+        assert calls["classify"] == calls["crop_known"] == calls["clearance_map"] == 1

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from topoexplore.common import messages as m
+from topoexplore.common.domain import Graph
 from topoexplore.common.grid import GridGeometry
 
 ENTRY = -1  # pseudo node id of the entry point in predecessor chains
@@ -31,9 +31,10 @@ class GraphInputError(ValueError):
     """A topological graph or a query on it is unusable."""
 
 
-@dataclass(frozen=True)
+@dataclass(eq=False, slots=True)
 class Edge:
-    """One traversable topological edge with its polyline oriented from node a to node b."""
+    """One topological edge of the search with its polyline oriented from node a to node b
+    (made for every edge on every update: a plain slotted class, cheap to build)."""
 
     idx: int
     a: int
@@ -49,7 +50,7 @@ class Edge:
 
 @dataclass
 class TopoIndex:
-    """Search structure built from one TopoGraph message."""
+    """Search structure built from one topological graph (:func:`build_index`)."""
 
     nodes: dict[int, tuple[str, float, float]]  # id -> (kind, x [m], y [m]); kind "cut" (id
     #   < 0): where build_index split a narrow edge into its wide ends and narrow middle
@@ -95,11 +96,11 @@ def polyline_lengths(pts: np.ndarray) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(seg)])
 
 
-def _edge_polyline(e: m.TopoEdge, pa: tuple[float, float], pb: tuple[float, float]
+def _edge_polyline(pts: list[list[float]], pa: tuple[float, float], pb: tuple[float, float]
                    ) -> list[list[float]]:
-    """Edge polyline oriented a -> b and anchored at both node positions (plain lists: this
-    runs for every edge on every update, numpy per edge would cost more than the search)."""
-    pts = [list(q) for q in e.points]
+    """Edge polyline (a list the caller owns) oriented a -> b and anchored at both node
+    positions (plain lists: this runs for every edge on every update, numpy per edge would
+    cost more than the search)."""
     ax, ay = pa
     bx, by = pb
     if len(pts) >= 2:
@@ -116,15 +117,15 @@ def _edge_polyline(e: m.TopoEdge, pa: tuple[float, float], pb: tuple[float, floa
     return pts
 
 
-def build_index(topo: m.TopoGraph, min_clearance: float,
+def build_index(graph: Graph, min_clearance: float,
                 clearance_at: Callable[[np.ndarray], np.ndarray] | None = None,
                 tip_length: float = 0.0) -> TopoIndex:
-    """TopoGraph -> TopoIndex. Edges with clearance < min_clearance [m] are not traversable.
+    """Graph -> TopoIndex. Edges with clearance < min_clearance [m] are not traversable.
 
     The clearance is the edge's own ``clearance`` field, or, when ``clearance_at(points)``
     (clearance [m] at each point) is given, its least value along the polyline leaving out the
     last ``tip_length`` [m] next to an end node. The planner passes the distance to the nearest
-    *occupied* cell: a gap is narrow between obstacles (the message's clearance also counts
+    *occupied* cell: a gap is narrow between obstacles (the graph's clearance also counts
     unknown cells, so every leaf edge ending at the edge of the known map would look narrow),
     and a skeleton tip in a dead-end corner is always close to the walls, yet the robot only
     needs to get near the end node (:func:`trim_narrow_tip` stops the path there).
@@ -133,94 +134,133 @@ def build_index(topo: m.TopoGraph, min_clearance: float,
     Self-loops are dropped (never on a shortest path). Raises GraphInputError if an edge refers
     to a node that is not in the graph.
     """
-    if not math.isfinite(min_clearance) or min_clearance < 0:
-        raise GraphInputError(f"min_clearance must be finite and >= 0 (got {min_clearance})")
-    nodes = {n.id: (n.kind, float(n.x), float(n.y)) for n in topo.nodes}
-    kept: list[m.TopoEdge] = []
+    nodes = {n.id: (n.kind, float(n.x), float(n.y)) for n in graph.nodes}
+    kept, P, o = _polylines(graph, nodes)
+    b = _IndexBuilder(nodes)
+    if not kept:
+        return b.index()
+    cum_all = _arc_lengths(P, o)
+    if clearance_at is None:
+        for k, e in enumerate(kept):
+            b.add(e.a, e.b, P[o[k]:o[k + 1]], cum_all[o[k]:o[k + 1]], float(e.clearance),
+                  float(e.clearance) + 1e-9 >= min_clearance)
+        return b.index()
+    m = _PointClearance(P, o, cum_all, kept, nodes, clearance_at, min_clearance, tip_length)
+    for k, e in enumerate(kept):
+        sl = slice(o[k], o[k + 1])
+        if m.clear[k] + 1e-9 >= min_clearance:
+            b.add(e.a, e.b, P[sl], cum_all[sl], float(m.clear[k]), True)
+        else:
+            b.add_narrow(e.a, e.b, P[sl], cum_all[sl], m.inner[sl], m.c_all[sl],
+                         np.flatnonzero(m.bad[sl]), float(m.clear[k]))
+    return b.index()
+
+
+def _polylines(graph: Graph, nodes: dict[int, tuple[str, float, float]]
+               ) -> tuple[list, np.ndarray, np.ndarray]:
+    """The edges that join two different nodes, and their polylines (:func:`_edge_polyline`)
+    in one flat (P, 2) array with each edge's start offset (and the end)."""
+    pts = graph.points.tolist()  # one conversion for every edge
+    off = graph.offsets.tolist()
+    kept = []
     flat: list[list[float]] = []
     starts = [0]
-    for e in topo.edges:
+    for k, e in enumerate(graph.edges):
         if e.a not in nodes or e.b not in nodes:
             raise GraphInputError(f"edge {e.a}-{e.b} refers to a node that is not in the graph")
         if e.a == e.b:
             continue
-        flat.extend(_edge_polyline(e, nodes[e.a][1:], nodes[e.b][1:]))
+        flat.extend(_edge_polyline(pts[off[k]:off[k + 1]], nodes[e.a][1:], nodes[e.b][1:]))
         starts.append(len(flat))
         kept.append(e)
-    adj: dict[int, list[tuple[int, float, int, bool]]] = {i: [] for i in nodes}
-    if not kept:
-        return TopoIndex(nodes, [], [], adj)
-    P = np.asarray(flat, dtype=np.float64)
-    if not np.all(np.isfinite(P)):
-        raise GraphInputError("an edge polyline has a non-finite point")
-    o = np.asarray(starts)
+    return kept, np.asarray(flat, dtype=np.float64), np.asarray(starts)
+
+
+def _arc_lengths(P: np.ndarray, o: np.ndarray) -> np.ndarray:
+    """Arc length [m] of every point of the flat polylines, from its own edge's start."""
     step = np.hypot(np.diff(P[:, 0]), np.diff(P[:, 1]))
     step[o[1:-1] - 1] = 0.0  # no step across two edges
     cum_all = np.concatenate([[0.0], np.cumsum(step)])
-    base = np.repeat(cum_all[o[:-1]], np.diff(o))
-    cum_all = cum_all - base  # arc length within each edge
-    bad_all = inner = c_all = None  # per point: inner and narrow / inner / clearance [m]
-    if clearance_at is not None:
+    return cum_all - np.repeat(cum_all[o[:-1]], np.diff(o))
+
+
+class _PointClearance:
+    """Clearance of the flat polylines per point and per edge (:func:`build_index`)."""
+
+    def __init__(self, P: np.ndarray, o: np.ndarray, cum_all: np.ndarray, kept: list,
+                 nodes: dict[int, tuple[str, float, float]],
+                 clearance_at: Callable[[np.ndarray], np.ndarray], min_clearance: float,
+                 tip_length: float):
         length = cum_all[o[1:] - 1]
         lo = np.array([tip_length if nodes[e.a][0] == "end" else 0.0 for e in kept])
         hi = length - np.array([tip_length if nodes[e.b][0] == "end" else 0.0 for e in kept])
         cnt = np.diff(o)
-        inner = (cum_all >= np.repeat(lo, cnt) - 1e-9) & (cum_all <= np.repeat(hi, cnt) + 1e-9)
-        c_all = np.asarray(clearance_at(P), dtype=np.float64)
-        clear = np.minimum.reduceat(np.where(inner, c_all, np.inf), o[:-1])
-        bad_all = inner & (c_all + 1e-9 < min_clearance)
-        for k in np.nonzero(~np.isfinite(clear) & (np.add.reduceat(inner, o[:-1]) == 0))[0]:
+        # per point: not within tip_length of an end node / clearance [m] / inner and narrow
+        self.inner = ((cum_all >= np.repeat(lo, cnt) - 1e-9)
+                      & (cum_all <= np.repeat(hi, cnt) + 1e-9))
+        self.c_all = np.asarray(clearance_at(P), dtype=np.float64)
+        self.bad = self.inner & (self.c_all + 1e-9 < min_clearance)
+        # per edge: least clearance of its inner points
+        self.clear = np.minimum.reduceat(np.where(self.inner, self.c_all, np.inf), o[:-1])
+        short = ~np.isfinite(self.clear) & (np.add.reduceat(self.inner, o[:-1]) == 0)
+        for k in np.nonzero(short)[0]:
             seg = cum_all[o[k]:o[k + 1]]  # short edge: judge it by its middle point
-            clear[k] = c_all[o[k] + int(np.argmin(np.abs(seg - 0.5 * seg[-1])))]
-    else:
-        clear = np.array([float(e.clearance) for e in kept])
-    edges: list[Edge] = []
-    narrow: list[Edge] = []
-    nadj: dict[int, list[tuple[int, float, int, bool]]] = {}
+            self.clear[k] = self.c_all[o[k] + int(np.argmin(np.abs(seg - 0.5 * seg[-1])))]
 
-    def add(a: int, b: int, pts: np.ndarray, cum: np.ndarray, c: float, ok: bool) -> None:
-        cum = cum - cum[0]
-        if ok:
-            edge = Edge(len(edges), a, b, pts, cum, c)
-            edges.append(edge)
-            adj.setdefault(a, []).append((b, edge.length, edge.idx, True))
-            adj.setdefault(b, []).append((a, edge.length, edge.idx, False))
-        else:
-            edge = Edge(len(narrow), a, b, pts, cum, c)
-            narrow.append(edge)
-            nadj.setdefault(a, []).append((b, edge.length, -edge.idx - 1, True))
-            nadj.setdefault(b, []).append((a, edge.length, -edge.idx - 1, False))
 
-    cut_id = ENTRY - 1  # cut nodes: -2, -3, ... (topology ids are >= 0; ENTRY is -1)
-    for k, e in enumerate(kept):
-        pts, cum = P[o[k]:o[k + 1]], cum_all[o[k]:o[k + 1]]
-        if clear[k] + 1e-9 >= min_clearance:
-            add(e.a, e.b, pts, cum, float(clear[k]), True)
-            continue
-        bad = np.flatnonzero(bad_all[o[k]:o[k + 1]]) if bad_all is not None else np.zeros(0)
-        if bad.size == 0:  # no per-point clearance, or a short edge judged by its middle
-            add(e.a, e.b, pts, cum, float(clear[k]), False)
-            continue
-        # split at the narrow stretch: the wide parts on either side stay traversable (a long
-        # corridor edge with one narrow spot far away is still where the robot can drive);
-        # a side that is only an end node's tip (allowed narrow) is not split off
-        inn, cc = inner[o[k]:o[k + 1]], c_all[o[k]:o[k + 1]]
+class _IndexBuilder:
+    """Collects the traversable and narrow edges of a TopoIndex and their adjacency."""
+
+    def __init__(self, nodes: dict[int, tuple[str, float, float]]):
+        self.nodes = nodes
+        self.adj: dict[int, list[tuple[int, float, int, bool]]] = {i: [] for i in nodes}
+        self.nadj: dict[int, list[tuple[int, float, int, bool]]] = {}
+        self.edges: list[Edge] = []
+        self.narrow: list[Edge] = []
+        self.cut_id = ENTRY - 1  # cut nodes: -2, -3, ... (topology ids are >= 0; ENTRY is -1)
+
+    def index(self) -> TopoIndex:
+        return TopoIndex(self.nodes, self.edges, self.narrow, self.adj, self.nadj)
+
+    def add(self, a: int, b: int, pts: np.ndarray, cum: np.ndarray, c: float, ok: bool
+            ) -> None:
+        """Edge a -> b along pts (cum: arc length at each point, from 0), traversable if ok."""
+        edges, adj = (self.edges, self.adj) if ok else (self.narrow, self.nadj)
+        k = len(edges)
+        edges.append(Edge(k, a, b, pts, cum, c))
+        ei = k if ok else -k - 1
+        length = float(cum[-1])
+        adj.setdefault(a, []).append((b, length, ei, True))
+        adj.setdefault(b, []).append((a, length, ei, False))
+
+    def cut(self, x: float, y: float) -> int:
+        """A new cut node at (x, y) [m]; its id."""
+        i, self.cut_id = self.cut_id, self.cut_id - 1
+        self.nodes[i] = ("cut", float(x), float(y))
+        return i
+
+    def add_narrow(self, a: int, b: int, pts: np.ndarray, cum: np.ndarray, inn: np.ndarray,
+                   cc: np.ndarray, bad: np.ndarray, c: float) -> None:
+        """A narrow edge: split at its narrow stretch (points `bad`, inner points `inn`,
+        clearance `cc`) so that the wide parts on either side stay traversable (a long
+        corridor edge with one narrow spot far away is still where the robot can drive); a
+        side that is only an end node's tip (allowed narrow) is not split off."""
+        if bad.size == 0:  # a short edge judged by its middle point
+            self.add(a, b, pts, cum, c, False)
+            return
         i0, i1 = int(bad[0]) - 1, int(bad[-1]) + 1
         before, after = bool(inn[:i0 + 1].any()), bool(inn[i1:].any())
-        ca, cb = e.a, e.b
+        ca, cb = a, b
         if before:
-            ca, cut_id = cut_id, cut_id - 1
-            nodes[ca] = ("cut", float(pts[i0, 0]), float(pts[i0, 1]))
-            add(e.a, ca, pts[:i0 + 1], cum[:i0 + 1], float(cc[:i0 + 1][inn[:i0 + 1]].min()),
-                True)
+            ca = self.cut(pts[i0, 0], pts[i0, 1])
+            self.add(a, ca, pts[:i0 + 1], cum[:i0 + 1], float(cc[:i0 + 1][inn[:i0 + 1]].min()),
+                     True)
         if after:
-            cb, cut_id = cut_id, cut_id - 1
-            nodes[cb] = ("cut", float(pts[i1, 0]), float(pts[i1, 1]))
+            cb = self.cut(pts[i1, 0], pts[i1, 1])
         lo_i, hi_i = (i0 if before else 0), (i1 if after else len(pts) - 1)
-        add(ca, cb, pts[lo_i:hi_i + 1], cum[lo_i:hi_i + 1], float(clear[k]), False)
+        self.add(ca, cb, pts[lo_i:hi_i + 1], cum[lo_i:hi_i + 1] - cum[lo_i], c, False)
         if after:
-            add(cb, e.b, pts[i1:], cum[i1:], float(cc[i1:][inn[i1:]].min()), True)
-    return TopoIndex(nodes, edges, narrow, adj, nadj)
+            self.add(cb, b, pts[i1:], cum[i1:] - cum[i1], float(cc[i1:][inn[i1:]].min()), True)
 
 
 # --- line of sight on the grid ---------------------------------------------------------------
@@ -287,10 +327,15 @@ def find_entry(index: TopoIndex, x: float, y: float,
     """
     if not index.edges:
         return None
-    p0 = np.concatenate([e.pts[:-1] for e in index.edges])
-    p1 = np.concatenate([e.pts[1:] for e in index.edges])
-    eid = np.concatenate([np.full(len(e.pts) - 1, e.idx) for e in index.edges])
-    seg = np.concatenate([np.arange(len(e.pts) - 1) for e in index.edges])
+    pts = np.concatenate([e.pts for e in index.edges])
+    n = np.array([len(e.pts) for e in index.edges])
+    last = np.cumsum(n) - 1  # each edge's last point ...
+    first = last - n + 1  # ... and first
+    no_last, no_first = np.ones(len(pts), bool), np.ones(len(pts), bool)
+    no_last[last] = no_first[first] = False
+    p0, p1 = pts[no_last], pts[no_first]  # segment k joins p0[k] and p1[k]
+    eid = np.repeat(np.arange(len(n)), n - 1)  # edge idx (= position in index.edges)
+    seg = np.arange(len(p0)) - np.repeat(first - np.arange(len(n)), n - 1)  # segment in edge
     d = p1 - p0
     dd = np.einsum("ij,ij->i", d, d)
     q = np.array([x, y])

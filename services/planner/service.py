@@ -9,8 +9,8 @@ from __future__ import annotations
 import logging
 import time
 
+from topoexplore.common import convert
 from topoexplore.common import messages as m
-from topoexplore.common.grid import GridGeometry
 from topoexplore.common.node import Node, OdomBuffer, run_service
 from topoexplore.services.planner.core import PlannerCore
 
@@ -20,8 +20,9 @@ log = logging.getLogger("topoexplore.planner")
 class PlannerService:
     def __init__(self, node: Node):
         self.node = node
-        self.p = node.params.planner
-        self.core = PlannerCore(self.p)
+        P = node.params
+        self.p = P.planner
+        self.core = PlannerCore(P.planner, P.robot, P.reliability.p_reliable, P.mapper.occupancy)
         self.odom = OdomBuffer()
         self.pub_plan = node.publisher("plan")
         self.pub_status = node.publisher("explore/status", reliable=True)
@@ -33,7 +34,7 @@ class PlannerService:
         self.last_status_wall = 0.0
         self.last_key: tuple = ()
         self.last_decision: tuple = ()
-        self.out = None
+        self.plan = None
         node.add_state(self.state)
 
     def ready(self, rel: m.Reliability) -> bool:
@@ -54,29 +55,21 @@ class PlannerService:
         if pose is None:
             log.warning("reliability %d skipped: no pose", rel.header.src_seq)
             return
-        mp = self.node.params.mapper
-        out = self.core.update(
-            rel.header.stamp, pose, topo, rel,
-            m.grid_to_array(grid) if grid is not None else None,
-            GridGeometry.of(grid) if grid is not None else None, mp.p_free, mp.p_occ)
-        self.out = out
+        plan = self.core.update(
+            rel.header.stamp, pose, convert.graph_from_msg(topo) if topo is not None else None,
+            convert.beliefs_from_msg(rel),
+            convert.grid_from_msg(grid) if grid is not None else None)
+        self.plan = plan
         stamp, k = rel.header.stamp, rel.header.src_seq
-        self.pub_plan.put(m.Path(
-            header=self.node.header("plan", stamp, k),
-            waypoints=[[float(x), float(y)] for x, y in out.waypoints], target_id=out.target_id,
-            target_x=float(out.target_xy[0]), target_y=float(out.target_xy[1]),
-            strategy=self.p.strategy, plan_id=out.plan_id, goal_heading=out.goal_heading))
-        self.last_status = m.ExploreStatus(
-            header=self.node.header("explore/status", stamp, k), state=out.state,
-            reason=out.reason, strategy=self.p.strategy, target_id=out.target_id,
-            target_p=min(1.0, max(0.0, float(out.target_p))), candidates=out.candidates,
-            end_nodes=out.end_nodes, reliable=out.reliable, blacklisted=list(out.blacklisted),
-            replans=out.replans)
+        self.pub_plan.put(convert.route_to_msg(plan.route, self.node.header("plan", stamp, k)))
+        self.last_status = convert.status_to_msg(
+            plan.status, self.node.header("explore/status", stamp, k))
         self.node.processed += 1
-        key = (out.state, out.target_id, out.reason, tuple(out.blacklisted))
-        decision = (out.state, out.target_id, tuple(out.blacklisted))
+        st = plan.status
+        key = (st.state, st.target_id, st.reason, st.blacklisted)
+        decision = (st.state, st.target_id, st.blacklisted)
         if decision != self.last_decision:  # a new target, a blacklisting or the end: say why
-            log.info("t=%.1f s %s: %s", stamp, out.state, out.reason)
+            log.info("t=%.1f s %s: %s", stamp, st.state.value, st.reason)
             self.last_decision = decision
         self.maybe_status(force=self.node.lockstep or key != self.last_key)
         self.last_key = key

@@ -1,10 +1,11 @@
-"""Planner cost per update on synthetic inputs: ``python -m services.planner.bench``.
+"""Planner cost per update on synthetic inputs: ``python -m topoexplore.tools.bench.planner``.
 
 Prints medians in ms (no assertions; the tests do not time anything):
 - frontier strategy: one PlannerCore.update (classify, distance transform, Dijkstra, frontier
   groups) on office-like grids of 300 x 300 and 1000 x 1000 cells, half explored;
 - reliability strategy: one PlannerCore.update on a lattice-shaped topological graph
-  (edge polylines at 0.1 m spacing), with and without the grid checks.
+  (edge polylines at 0.1 m spacing), without a grid and with one (clearance from the grid,
+  line of sight to the entry point).
 """
 
 from __future__ import annotations
@@ -15,11 +16,11 @@ import time
 
 import numpy as np
 
-from topoexplore.common import messages as m
-from topoexplore.common.grid import GridGeometry
+from topoexplore.common.domain import Graph, GridMap, Node, Pose
+from topoexplore.common.grid import GridGeometry, Occupancy
 from topoexplore.common.params import PlannerParams
-from topoexplore.services.planner import frontier as fr
 from topoexplore.services.planner.core import PlannerCore
+from topoexplore.services.planner.mapview import MapView
 
 
 def office_grid(n: int, seed: int = 0) -> tuple[np.ndarray, GridGeometry]:
@@ -41,9 +42,8 @@ def office_grid(n: int, seed: int = 0) -> tuple[np.ndarray, GridGeometry]:
     return g, GridGeometry(0.1, 0.0, 0.0, n, n)
 
 
-def lattice_topo(k: int) -> m.TopoGraph:
+def lattice_topo(k: int) -> Graph:
     """k x k branch nodes 2 m apart, each edge a 0.1 m polyline; end nodes on the border."""
-    h = m.Header(seq=0, stamp=0.0, frame="map", src_seq=-1)
     nodes, edges = [], []
 
     def nid(i, j):
@@ -51,13 +51,12 @@ def lattice_topo(k: int) -> m.TopoGraph:
 
     for i in range(k):
         for j in range(k):
-            nodes.append(m.TopoNode(id=nid(i, j), kind="branch", x=2.0 * j + 1, y=2.0 * i + 1))
+            nodes.append(Node(nid(i, j), "branch", 2.0 * j + 1, 2.0 * i + 1))
 
     def add(a, ax, ay, b, bx, by):
         n = max(2, int(math.hypot(bx - ax, by - ay) / 0.1) + 1)
         pts = [[ax + (bx - ax) * s, ay + (by - ay) * s] for s in np.linspace(0, 1, n)]
-        edges.append(m.TopoEdge(a=a, b=b, points=pts, length=math.hypot(bx - ax, by - ay),
-                                clearance=0.5))
+        edges.append((a, b, pts, math.hypot(bx - ax, by - ay), 0.5))
 
     for i in range(k):
         for j in range(k):
@@ -67,10 +66,10 @@ def lattice_topo(k: int) -> m.TopoGraph:
                 add(nid(i, j), 2.0 * j + 1, 2.0 * i + 1, nid(i + 1, j), 2.0 * j + 1, 2.0 * i + 3)
     nxt = k * k
     for j in range(k):  # dead ends below the first row
-        nodes.append(m.TopoNode(id=nxt, kind="end", x=2.0 * j + 1, y=0.3))
+        nodes.append(Node(nxt, "end", 2.0 * j + 1, 0.3))
         add(nid(0, j), 2.0 * j + 1, 1.0, nxt, 2.0 * j + 1, 0.3)
         nxt += 1
-    return m.TopoGraph(header=h, nodes=nodes, edges=edges)
+    return Graph.from_edges(nodes, edges)
 
 
 def median_ms(f, n: int) -> float:
@@ -90,28 +89,29 @@ def main(argv: list[str] | None = None) -> int:
     print("planner update, median ms")
     for n in (300, 1000):
         g, geom = office_grid(n)
-        core = PlannerCore(PlannerParams(strategy="frontier"))
-        pose = (2.0, 2.0, 0.0)
-        t_upd = median_ms(lambda c=core, q=pose, g=g, s=geom: c.update(0.0, q, None, None, g, s),
+        gm = GridMap(g, geom)
+        # frontier_period 0: search on every update (a core following a target would reuse
+        # its last search for frontier_period seconds, and t stays 0 here)
+        core = PlannerCore(PlannerParams(strategy="frontier", frontier_period=0.0))
+        pose = Pose(2.0, 2.0, 0.0)
+        t_upd = median_ms(lambda c=core, q=pose, gm=gm: c.update(0.0, q, None, None, gm),
                           a.repeat)
-        t_search = median_ms(lambda g=g, s=geom: fr.grid_search(
-            g, s, 2.0, 2.0, 0.25, soft_radius=0.5, soft_penalty=2.0), a.repeat)
-        reach = int(np.isfinite(fr.grid_search(g, geom, 2.0, 2.0, 0.25).dist).sum())
+        t_search = median_ms(lambda gm=gm: MapView(gm, Occupancy()).search(
+            2.0, 2.0, 0.25, soft_radius=0.5, soft_penalty=2.0), a.repeat)
+        reach = int(np.isfinite(MapView(gm, Occupancy()).search(2.0, 2.0, 0.25).dist).sum())
         print(f"  frontier {n}x{n}: update {t_upd:.1f}  (grid search alone {t_search:.1f}; "
               f"{reach} reachable cells)")
     for k in (6, 15):
         tp = lattice_topo(k)
-        pts = sum(len(e.points) for e in tp.edges)
-        rel = m.Reliability(header=tp.header, nodes=[])
+        pts = len(tp.points)
         size = int(math.ceil((2.0 * k + 1) / 0.1))
-        grid = np.zeros((size, size), dtype=np.int8)
-        geom = GridGeometry(0.1, 0.0, 0.0, size, size)
+        gm = GridMap(np.zeros((size, size), dtype=np.int8), GridGeometry(0.1, 0.0, 0.0, size,
+                                                                         size))
         core = PlannerCore(PlannerParams())
-        pose = (1.0, 1.5, 0.0)
-        t0 = median_ms(lambda c=core, q=pose, tp=tp, r=rel: c.update(0.0, q, tp, r, None, None),
+        pose = Pose(1.0, 1.5, 0.0)
+        t0 = median_ms(lambda c=core, q=pose, tp=tp: c.update(0.0, q, tp, [], None), a.repeat)
+        t1 = median_ms(lambda c=core, q=pose, tp=tp, gm=gm: c.update(0.0, q, tp, [], gm),
                        a.repeat)
-        t1 = median_ms(lambda c=core, q=pose, tp=tp, r=rel, g=grid, s=geom:
-                       c.update(0.0, q, tp, r, g, s), a.repeat)
         print(f"  reliability, {len(tp.nodes)} nodes / {len(tp.edges)} edges / {pts} points: "
               f"update {t0:.1f} without grid, {t1:.1f} with a {size}x{size} grid")
     return 0

@@ -1,7 +1,8 @@
-"""Frontier detection and grid path search for the `frontier` baseline (pure).
+"""Grid kernels of the planner: path search over known free cells and frontier groups (pure).
 
-Yamauchi's nearest-frontier exploration as explore_lite does it (DESIGN.md §4 "Baseline
-strategies"), with the distance measured as a grid path length instead of a straight line:
+Used by the ``frontier`` strategy and the completion rules (``strategies/``). Yamauchi's
+nearest-frontier exploration as explore_lite does it (DESIGN.md §4 "Baseline strategies"),
+with the distance measured as a grid path length instead of a straight line:
 
 - a *frontier cell* is a known free cell 4-adjacent to unknown space (cells outside the grid
   count as unknown: the mapper grows the grid when a beam leaves it);
@@ -25,6 +26,7 @@ strategies"), with the distance measured as a grid path length instead of a stra
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -32,14 +34,14 @@ import cv2
 import numba
 import numpy as np
 
-from topoexplore.common.grid import FREE, OCCUPIED, GridGeometry, classify, unknown_mask
+from topoexplore.common.grid import GridGeometry
 
 SQRT2 = math.sqrt(2.0)
 LOOK_RADIUS = 1.0  # [m] unknown cells this close to a frontier goal set the heading to face
 
 
-class FrontierInputError(ValueError):
-    """A grid or query given to the frontier search is unusable."""
+class GridSearchError(ValueError):
+    """A search result is inconsistent (a parent map with a cycle)."""
 
 
 @dataclass
@@ -78,24 +80,11 @@ class GridSearch:
             idx.append(k)
             k = int(self.parent[k])
             if len(idx) > self.parent.size:  # defensive against a corrupt parent map
-                raise FrontierInputError("grid parent map has a cycle")
+                raise GridSearchError("grid parent map has a cycle")
         idx.reverse()
         idx_a = np.asarray(idx)
         x, y = self.geom.cell_to_world(idx_a // w, idx_a % w)
         return np.stack([x, y], axis=1)
-
-
-def check_grid(grid: np.ndarray, geom: GridGeometry) -> np.ndarray:
-    """Validate an int8 (height, width) grid against its geometry; return it as an array."""
-    g = np.asarray(grid)
-    if g.ndim != 2 or g.shape != (geom.height, geom.width):
-        raise FrontierInputError(
-            f"grid shape {g.shape} does not match geometry {geom.height}x{geom.width}")
-    if g.dtype != np.int8:
-        raise FrontierInputError(f"grid dtype must be int8 (got {g.dtype})")
-    if not (math.isfinite(geom.resolution) and geom.resolution > 0):
-        raise FrontierInputError(f"grid resolution must be > 0 (got {geom.resolution})")
-    return g
 
 
 def frontier_mask(free: np.ndarray, unknown: np.ndarray) -> np.ndarray:
@@ -120,7 +109,7 @@ def _dijkstra8(passable, mult, start, res):  # pragma: no cover - jitted
     A step between cells u and v costs its length (res or res*sqrt(2)) times
     (mult[u] + mult[v]) / 2 with mult >= 1, so every step costs >= the bucket width: cells in
     the same bucket cannot improve each other and each bucket is settled in FIFO order; a ring
-    of ceil(max step / res) + 2 buckets suffices. O(cells), ~3x faster than a binary heap here.
+    of ceil(max step / res) + 2 buckets suffices. O(cells), no heap.
     """
     h, w = passable.shape
     n = h * w
@@ -200,103 +189,107 @@ def nearest_cell(mask: np.ndarray, row: int, col: int, radius_cells: int) -> tup
     return int(rr[k] + r0), int(cc[k] + c0)
 
 
-def grid_search(grid: np.ndarray, geom: GridGeometry, x: float, y: float, robot_radius: float,
-                p_free: float = 0.35, p_occ: float = 0.65, start_radius: float = 1.0,
-                soft_radius: float = 0.0, soft_penalty: float = 0.0, reach_only: bool = False,
-                clearance: np.ndarray | None = None) -> GridSearch:
-    """Dijkstra path costs [m] from the robot at (x, y) [m] over traversable cells.
+def grid_search(free: np.ndarray, passable: np.ndarray, clearance: np.ndarray,
+                geom: GridGeometry, x: float, y: float, robot_radius: float,
+                start_radius: float = 1.0, soft_radius: float = 0.0, soft_penalty: float = 0.0,
+                reach_only: bool = False) -> GridSearch:
+    """Dijkstra path costs [m] from the robot at (x, y) [m] over the `passable` cells.
 
-    Traversable: known free with clearance >= robot_radius [m]. A cell with clearance below
-    soft_radius [m] costs up to (1 + soft_penalty) times its length (linearly more the closer
-    it is to the robot_radius limit), so paths keep away from walls where there is room; with
-    soft_penalty = 0 the cost is the plain path length. The search starts from the robot's
-    cell if traversable, else from the nearest traversable cell within `start_radius` [m],
-    else from the nearest known free cell (the robot may start on a cell still marked unknown
-    or occupied). start is None if none exists.
+    passable: known free cells with clearance >= robot_radius [m] (``MapView.passable``);
+    clearance: distance [m] to the nearest occupied cell; free: known free cells. A cell with
+    clearance below soft_radius [m] costs up to (1 + soft_penalty) times its length (linearly
+    more the closer it is to the robot_radius limit), so paths keep away from walls where
+    there is room; with soft_penalty = 0 the cost is the plain path length. The search starts
+    from the robot's cell if passable, else from the nearest passable cell within
+    `start_radius` [m], else from the nearest known free cell (the robot may start on a cell
+    still marked unknown or occupied). start is None if none exists.
 
     reach_only: no path costs, only which cells the search reaches (dist 0 there, inf
     elsewhere), from connected components: the same set as the Dijkstra's, since a diagonal
-    step needs both cells beside it traversable (so 4-connectivity decides), at a fraction of
-    the cost. clearance: the clearance map of this grid if the caller has it already.
+    step needs both cells beside it passable (so 4-connectivity decides), at a fraction of
+    the cost.
     """
-    g = check_grid(grid, geom)
-    if not (robot_radius >= 0 and soft_radius >= 0 and soft_penalty >= 0):
-        raise FrontierInputError("robot_radius, soft_radius and soft_penalty must be >= 0")
-    cls = classify(g, p_free, p_occ)
-    free = cls == FREE
-    if clearance is None:
-        clearance = clearance_map(cls == OCCUPIED, geom.resolution)
-    elif np.shape(clearance) != g.shape:
-        raise FrontierInputError(f"clearance shape {np.shape(clearance)} != grid {g.shape}")
-    passable = free & (clearance + 1e-6 >= robot_radius)
-    mult = np.ones(g.shape, dtype=np.float64)
-    if soft_penalty > 0 and soft_radius > robot_radius:
-        frac = (soft_radius - clearance) / (soft_radius - robot_radius)
-        mult += soft_penalty * np.clip(frac, 0.0, 1.0)
-    h, w = g.shape
+    h, w = passable.shape
+    row, col = (int(v) for v in geom.world_to_cell(x, y))
+    start = _start_cell(free, passable, row, col,
+                        max(1, int(math.ceil(start_radius / geom.resolution))))
     dist = np.full((h, w), np.inf)
     parent = np.full(h * w, -1, dtype=np.int64)
-    row, col = (int(v) for v in geom.world_to_cell(x, y))
-    rad = max(1, int(math.ceil(start_radius / geom.resolution)))
-    start = None
-    if 0 <= row < h and 0 <= col < w and passable[row, col]:
-        start = (row, col)
-    if start is None:
-        start = nearest_cell(passable, row, col, rad)
-    if start is None:
-        start = nearest_cell(free, row, col, rad)
     if start is not None and reach_only:
-        _, labels = cv2.connectedComponents(passable.view(np.uint8), connectivity=4)
-        r0, c0 = start
-        if passable[r0, c0]:
-            comps = {int(labels[r0, c0])}
-        else:  # a start off the traversable cells steps to its 4-neighbours
-            comps = {int(labels[r, c]) for r, c in ((r0 - 1, c0), (r0 + 1, c0), (r0, c0 - 1),
-                                                     (r0, c0 + 1))
-                     if 0 <= r < h and 0 <= c < w and passable[r, c]}
-        reach = np.isin(labels, list(comps)) if comps else np.zeros(g.shape, dtype=bool)
-        reach[r0, c0] = True
-        dist = np.where(reach, 0.0, np.inf)
+        dist = np.where(_reached(passable, start), 0.0, np.inf)
     elif start is not None:
+        mult = np.ones((h, w), dtype=np.float64)
+        if soft_penalty > 0 and soft_radius > robot_radius:
+            frac = (soft_radius - clearance) / (soft_radius - robot_radius)
+            mult += soft_penalty * np.clip(frac, 0.0, 1.0)
         d, parent = _dijkstra8(passable, mult, start[0] * w + start[1], float(geom.resolution))
         dist = d.reshape(h, w)
     return GridSearch(geom, passable, clearance, start, dist, parent)
+
+
+def _start_cell(free: np.ndarray, passable: np.ndarray, row: int, col: int, rad: int
+                ) -> tuple[int, int] | None:
+    """The robot's cell if passable, else the nearest passable cell, else the nearest free
+    cell within rad cells; None if there is none."""
+    h, w = passable.shape
+    if 0 <= row < h and 0 <= col < w and passable[row, col]:
+        return row, col
+    start = nearest_cell(passable, row, col, rad)
+    return start if start is not None else nearest_cell(free, row, col, rad)
+
+
+def _reached(passable: np.ndarray, start: tuple[int, int]) -> np.ndarray:
+    """The cells a search from start reaches (4-connected components of passable)."""
+    h, w = passable.shape
+    _, labels = cv2.connectedComponents(passable.view(np.uint8), connectivity=4)
+    r0, c0 = start
+    if passable[r0, c0]:
+        comps = {int(labels[r0, c0])}
+    else:  # a start off the passable cells steps to its 4-neighbours
+        comps = {int(labels[r, c]) for r, c in ((r0 - 1, c0), (r0 + 1, c0), (r0, c0 - 1),
+                                                 (r0, c0 + 1))
+                 if 0 <= r < h and 0 <= c < w and passable[r, c]}
+    reach = np.isin(labels, list(comps)) if comps else np.zeros(passable.shape, dtype=bool)
+    reach[r0, c0] = True
+    return reach
 
 
 def look_point(unknown: np.ndarray, geom: GridGeometry, rc: tuple[int, int],
                radius: float) -> tuple[float, float] | None:
     """Mean world position [m] of the `unknown` cells within `radius` [m] of cell rc (cells
     outside the grid count as unknown, as in frontier_mask); None if there are none."""
-    row, col = rc
-    n = max(1, int(math.ceil(radius / geom.resolution)))
-    rr, cc = np.mgrid[row - n:row + n + 1, col - n:col + n + 1]
-    disk = (rr - row) ** 2 + (cc - col) ** 2 <= n * n
+    dr, dc = _disk(max(1, int(math.ceil(radius / geom.resolution))))
+    rr, cc = rc[0] + dr, rc[1] + dc
     h, w = unknown.shape
     inside = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
     unk = np.ones(rr.shape, dtype=bool)
     unk[inside] = unknown[rr[inside], cc[inside]]
-    sel = disk & unk
-    if not sel.any():
+    if not unk.any():
         return None
-    x, y = geom.cell_to_world(rr[sel].astype(np.float64), cc[sel].astype(np.float64))
+    x, y = geom.cell_to_world(rr[unk].astype(np.float64), cc[unk].astype(np.float64))
     return float(np.mean(x)), float(np.mean(y))
 
 
-def find_frontiers(grid: np.ndarray, geom: GridGeometry, search: GridSearch,
-                   min_frontier_size: float, potential_scale: float, gain_scale: float,
-                   p_free: float = 0.35, p_occ: float = 0.65, unknown: np.ndarray | None = None
-                   ) -> tuple[list[FrontierGroup], int]:
+@functools.lru_cache(maxsize=8)
+def _disk(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(row, col) offsets of the cells within n cells of a centre, in row-major order."""
+    dr, dc = np.mgrid[-n:n + 1, -n:n + 1]
+    disk = dr ** 2 + dc ** 2 <= n * n
+    dr, dc = dr[disk], dc[disk]
+    dr.setflags(write=False)  # shared by every call
+    dc.setflags(write=False)
+    return dr, dc
+
+
+def find_frontiers(free: np.ndarray, unknown: np.ndarray, geom: GridGeometry,
+                   search: GridSearch, min_frontier_size: float, potential_scale: float,
+                   gain_scale: float) -> tuple[list[FrontierGroup], int]:
     """Frontier groups (size >= min_frontier_size [m]) with goal, path length and cost.
 
-    Returns (groups, number of groups dropped as too small). Unreachable groups are returned
-    with goal None and cost inf.
+    free: known free cells; unknown: the cells that count as unexplored
+    (``MapView.unknown`` / ``MapView.open_unknown``). Returns (groups, number of groups
+    dropped as too small). Unreachable groups are returned with goal None and cost inf.
     """
-    g = check_grid(grid, geom)
-    free = classify(g, p_free, p_occ) == FREE
-    if unknown is None:
-        unknown = unknown_mask(g, p_free, p_occ)
-    elif np.shape(unknown) != g.shape:
-        raise FrontierInputError(f"unknown mask shape {np.shape(unknown)} != grid {g.shape}")
     fmask = frontier_mask(free, unknown)
     if not fmask.any():
         return [], 0
@@ -315,22 +308,31 @@ def find_frontiers(grid: np.ndarray, geom: GridGeometry, search: GridSearch,
         if size * res < min_frontier_size - 1e-9:
             dropped += 1
             continue
-        r = rows[bounds[k - 1]:bounds[k]]
-        c = cols[bounds[k - 1]:bounds[k]]
         cx, cy = geom.cell_to_world(cents[k, 1], cents[k, 0])  # centroid is (x=col, y=row)
-        wx, wy = geom.cell_to_world(r, c)
-        d = search.dist[r, c]
-        reach = np.isfinite(d)
-        if reach.any():
-            d2 = np.where(reach, (wx - cx) ** 2 + (wy - cy) ** 2, np.inf)
-            j = int(np.argmin(d2))
-            goal_rc = (int(r[j]), int(c[j]))
-            goal_xy = (float(wx[j]), float(wy[j]))
-            plen = float(d[j])
-            cost = potential_scale * plen - gain_scale * size * res
-            look = look_point(unknown, geom, goal_rc, LOOK_RADIUS)
-        else:
-            goal_rc, goal_xy, plen, cost, look = None, None, math.inf, math.inf, None
-        groups.append(FrontierGroup(k, size, (float(cx), float(cy)), np.stack([wx, wy], axis=1),
-                                    goal_rc, goal_xy, plen, cost, look))
+        groups.append(_group(k, size, (float(cx), float(cy)), rows[bounds[k - 1]:bounds[k]],
+                             cols[bounds[k - 1]:bounds[k]], unknown, geom, search,
+                             potential_scale, gain_scale))
     return groups, dropped
+
+
+def _group(k: int, size: int, centroid: tuple[float, float], r: np.ndarray, c: np.ndarray,
+           unknown: np.ndarray, geom: GridGeometry, search: GridSearch,
+           potential_scale: float, gain_scale: float) -> FrontierGroup:
+    """Frontier group k of cells (r, c): its goal (the reachable cell nearest the centroid),
+    path length and explore_lite cost."""
+    cx, cy = centroid
+    wx, wy = geom.cell_to_world(r, c)
+    d = search.dist[r, c]
+    reach = np.isfinite(d)
+    if reach.any():
+        d2 = np.where(reach, (wx - cx) ** 2 + (wy - cy) ** 2, np.inf)
+        j = int(np.argmin(d2))
+        goal_rc = (int(r[j]), int(c[j]))
+        goal_xy = (float(wx[j]), float(wy[j]))
+        plen = float(d[j])
+        cost = potential_scale * plen - gain_scale * size * geom.resolution
+        look = look_point(unknown, geom, goal_rc, LOOK_RADIUS)
+    else:
+        goal_rc, goal_xy, plen, cost, look = None, None, math.inf, math.inf, None
+    return FrontierGroup(k, size, centroid, np.stack([wx, wy], axis=1), goal_rc, goal_xy,
+                         plen, cost, look)

@@ -1,0 +1,126 @@
+"""One update's map and the grids derived from it, shared by every strategy of the update.
+
+The planner searches only the observed part of the map (:meth:`GridMap.crop_known`: the same
+distances, frontiers and paths on a smaller array). Each derived grid (cell classes, free and
+occupied masks, clearance map, unknown masks, passable cells) is computed at most once, when
+first asked for: the topological evaluation, the frontier search and the completion rules of
+one update all read the same arrays.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from topoexplore.common.domain import GridMap
+from topoexplore.common.grid import (
+    FREE,
+    OCCUPIED,
+    GridGeometry,
+    Occupancy,
+    classify,
+    crop_known,
+    open_unknown,
+    unknown_mask,
+)
+from topoexplore.services.planner import graph as gr
+from topoexplore.services.planner import gridsearch as gs
+
+
+class _once:
+    """A property computed on first access and then stored on the instance (as
+    functools.cached_property, without its lock: a view belongs to one update)."""
+
+    def __init__(self, fn: Callable[[Any], Any]):
+        self.fn = fn
+        self.__doc__ = fn.__doc__
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    def __get__(self, obj: Any, owner: type | None = None) -> Any:
+        if obj is None:
+            return self
+        value = obj.__dict__[self.name] = self.fn(obj)
+        return value
+
+
+class MapView:
+    """Lazily derived grids of one map (on its observed part) for one planning update."""
+
+    def __init__(self, grid: GridMap, occ: Occupancy):
+        self._grid = grid
+        self.occ = occ
+        self._open: dict[int, np.ndarray] = {}
+        self._passable: dict[float, np.ndarray] = {}
+
+    @_once
+    def _crop(self) -> tuple[np.ndarray, GridGeometry]:
+        return crop_known(self._grid.data, self._grid.geom)
+
+    @_once
+    def data(self) -> np.ndarray:
+        """int8 cells of the observed part plus a ring of unknown (a view of the map's)."""
+        return self._crop[0]
+
+    @_once
+    def geom(self) -> GridGeometry:
+        return self._crop[1]
+
+    @_once
+    def classes(self) -> np.ndarray:
+        """UNKNOWN / FREE / OCCUPIED per cell (:func:`common.grid.classify`)."""
+        return classify(self.data, self.occ.p_free, self.occ.p_occ)
+
+    @_once
+    def free(self) -> np.ndarray:
+        return self.classes == FREE
+
+    @_once
+    def occupied(self) -> np.ndarray:
+        return self.classes == OCCUPIED
+
+    @_once
+    def clearance(self) -> np.ndarray:
+        """float32 distance [m] to the nearest occupied cell (unknown is no obstacle)."""
+        return gs.clearance_map(self.occupied, self.geom.resolution)
+
+    @_once
+    def unknown(self) -> np.ndarray:
+        """Unexplored cells as the frontier baseline sees them (:func:`common.grid
+        .unknown_mask`)."""
+        return unknown_mask(self.data, self.occ.p_free, self.occ.p_occ)
+
+    def open_unknown(self, pocket_cells: int) -> np.ndarray:
+        """Unexplored cells without the enclosed pockets smaller than pocket_cells
+        (:func:`common.grid.open_unknown`); pocket_cells <= 0: :attr:`unknown`."""
+        if pocket_cells <= 0:
+            return self.unknown
+        if pocket_cells not in self._open:
+            self._open[pocket_cells] = open_unknown(self.data, pocket_cells, self.occ.p_free,
+                                                    self.occ.p_occ)
+        return self._open[pocket_cells]
+
+    def passable(self, radius: float) -> np.ndarray:
+        """Known free cells at least radius [m] from every occupied cell."""
+        if radius not in self._passable:
+            self._passable[radius] = self.free & (self.clearance + 1e-6 >= radius)
+        return self._passable[radius]
+
+    def clearance_at(self, pts: np.ndarray) -> np.ndarray:
+        """Clearance [m] at (n, 2) points [m]; inf outside the grid."""
+        return self._clearance_lookup(pts)
+
+    @_once
+    def _clearance_lookup(self):
+        return gr.grid_clearance(self.clearance, self.geom)
+
+    def search(self, x: float, y: float, radius: float, soft_radius: float = 0.0,
+               soft_penalty: float = 0.0, reach_only: bool = False) -> gs.GridSearch:
+        """Grid path search from (x, y) [m] over the cells passable for radius [m]
+        (:func:`gridsearch.grid_search`)."""
+        return gs.grid_search(self.free, self.passable(radius), self.clearance, self.geom, x, y,
+                              radius, soft_radius=soft_radius, soft_penalty=soft_penalty,
+                              reach_only=reach_only)

@@ -1,0 +1,103 @@
+"""What a strategy takes and returns: one update's inputs, the candidates it finds, and the
+protocol every strategy follows (``evaluate(update) -> Evaluation``).
+
+A strategy says *where* the robot could go (candidates with a cost and a path) and why there is
+nowhere to go; the decision machine in :mod:`..core` decides which candidate to follow and when
+to give it up, the same way for every strategy.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from topoexplore.common.domain import Belief, Graph
+from topoexplore.common.params import PlannerParams
+from topoexplore.services.planner.mapview import MapView
+
+
+@dataclass(frozen=True)
+class Config:
+    """The settings every strategy reads."""
+
+    params: PlannerParams
+    radius: float  # [m] robot radius
+    p_reliable: float  # an end node with P at or above this is reliable
+
+    @property
+    def need(self) -> float:
+        """[m] least clearance of a place the robot may use (robot radius + margin)."""
+        return self.radius + self.params.clearance_margin
+
+
+@dataclass(eq=False)
+class Candidate:
+    """A place the robot could go next."""
+
+    id: int  # end node id, -1 for a frontier group
+    x: float  # [m]
+    y: float  # [m]
+    cost: float  # selection cost (topological: path length [m]; frontier: explore_lite cost)
+    dist: float  # [m] path length robot -> target
+    scale: float  # cost per metre of path (1 for topological strategies, potential_scale)
+    p: float  # position probability (reliability strategy), else 0
+    path: Callable[[], np.ndarray]  # dense polyline from the entry / start cell to the target
+    cells: np.ndarray | None = None  # frontier: the group's cell centres (identity matching)
+    label: str = ""
+    partial: bool = False  # the path stops at a narrow passage before the target
+    face: tuple[float, float] | None = None  # [m] point to face at the end of the path
+
+
+def _no_longer(c: Candidate) -> str:
+    return "is no longer a candidate"
+
+
+def _always(wps: np.ndarray) -> bool:
+    return True
+
+
+@dataclass
+class Evaluation:
+    """What one strategy sees in one update."""
+
+    waiting: str | None = None  # an input is missing: stop and say what for
+    failed: str | None = None  # the robot cannot plan at all (confirmed by the core)
+    cands: list[Candidate] = field(default_factory=list)
+    end_nodes: int = 0
+    reliable: int = 0
+    done: str = ""  # summary when no candidate is left
+    status_of: Callable[[Candidate], str] = _no_longer  # why a target is no candidate now
+    path_ok: Callable[[np.ndarray], bool] = _always  # the rest of a path still fits the map
+    path_clear: Callable[[np.ndarray], bool] = _always  # no segment crosses a wall
+
+
+@dataclass(frozen=True, eq=False)
+class Update:
+    """One planning update: the inputs, the shared map view, and what the core follows."""
+
+    t: float  # [s]
+    x: float  # [m] robot pose
+    y: float  # [m]
+    theta: float  # [rad]
+    graph: Graph | None
+    beliefs: Sequence[Belief] | None  # None: no reliability message yet
+    view: MapView | None  # None: no map yet
+    target: Candidate | None  # the target followed since the previous update
+    blacklisted: Callable[[Candidate], bool]
+
+
+class Strategy(Protocol):
+    """An exploration strategy: built from a :class:`Config`, asked once per update."""
+
+    def evaluate(self, u: Update) -> Evaluation: ...
+
+    def snapshot(self) -> dict[str, Any]: ...
+
+
+def id_list(ids: Sequence[int], limit: int = 8) -> str:
+    """Ids for a status text: sorted, at most `limit` of them."""
+    s = ", ".join(str(i) for i in sorted(ids)[:limit])
+    return s + (", ..." if len(ids) > limit else "")

@@ -1,0 +1,80 @@
+"""The completion rules of the topological strategies (DESIGN.md §4, docs/design.md
+"Completion phase" and "Stop when the map is complete").
+
+- Completion phase (``frontier_completion``): once no end node is left to visit, the frontier
+  groups still on the map are the candidates, so that "done" means the map is complete and not
+  only that every end node is reliable (an opening at the side of a room or a corridor that
+  bends away may give no end node at all).
+- Map complete (``stop_when_mapped``, reliability only): no frontier group is left by the same
+  rules, so no trip can add to the map.
+
+Only groups of at least ``completion_min_size`` count, or shorter ones (down to
+``min_frontier_size``) whose path is at most ``completion_near``, and none next to an enclosed
+unknown pocket smaller than ``completion_pocket_area``. Both searches run at most once per
+``frontier_period``.
+"""
+
+from __future__ import annotations
+
+import math
+
+from topoexplore.services.planner.strategies.base import Config, Evaluation, Update
+from topoexplore.services.planner.strategies.frontier import frontier_evaluation
+
+COMPLETION_NOTE = " (completion: no end node left)"
+
+
+class Completion:
+    """The completion phase and the map-complete check, with their caches."""
+
+    def __init__(self, cfg: Config):
+        self.cfg = cfg
+        self._ev: Evaluation | None = None  # completion phase: the last search ...
+        self._t = -math.inf  # ... and its time [s]
+        self._mapped_t = -math.inf  # map-complete check: time [s] of the last check ...
+        self._mapped_ok = False  # ... its answer ...
+        self.why = ""  # ... and the frontier summary behind it
+
+    def phase(self, u: Update, ev: Evaluation) -> Evaluation:
+        """The topological evaluation ev found no candidate: the frontier groups as
+        candidates (ev unchanged if the robot is off the known free space)."""
+        cached = self._ev
+        if (cached is not None and u.target is not None and u.target.id < 0 and cached.cands
+                and 0.0 <= u.t - self._t < self.cfg.params.frontier_period):
+            fe = cached  # following a completion target: keep the last search
+        else:
+            fe = self._search(u)
+            self._ev, self._t = fe, u.t
+        if fe.failed is not None:
+            return ev
+        # NOTE: a kept search is labelled (and its done text prefixed) again on every update
+        # that reuses it, so the note repeats; kept as the recorded behaviour (a known quirk)
+        for c in fe.cands:
+            c.label = f"{c.label}{COMPLETION_NOTE}"
+        fe.end_nodes, fe.reliable = ev.end_nodes, ev.reliable
+        fe.done = f"{ev.done}; {fe.done}"
+        return fe
+
+    def mapped(self, u: Update) -> bool:
+        """Is no frontier left by the completion rules? First a cheap pass (a reachable group
+        of completion_min_size or more, no path costs, means no); the full search (path
+        lengths for the shorter groups within completion_near) only without one."""
+        if 0.0 <= u.t - self._mapped_t < self.cfg.params.frontier_period:
+            return self._mapped_ok
+        self._mapped_t = u.t
+        quick = self._search(u, quick=True)
+        if quick.failed is None and quick.cands:
+            self._mapped_ok = False
+            return False
+        fe = self._search(u)
+        self._mapped_ok = fe.failed is None and not fe.cands
+        self.why = fe.done
+        return self._mapped_ok
+
+    def _search(self, u: Update, quick: bool = False) -> Evaluation:
+        """The frontier groups the completion rules count. quick: only the long groups, and
+        only whether they are reachable."""
+        p = self.cfg.params
+        return frontier_evaluation(self.cfg, u, max(p.min_frontier_size, p.completion_min_size),
+                                   p.completion_pocket_area, 0.0 if quick else p.completion_near,
+                                   reach_only=quick)

@@ -1,0 +1,133 @@
+"""The ``frontier`` strategy (Yamauchi / explore_lite, with grid path lengths): the frontier
+groups of the map are the candidates, cost = potential_scale * path - gain_scale * size.
+
+:func:`frontier_evaluation` is also what the completion rules (:mod:`.completion`) search with.
+While the core follows a target, the search runs at most once per ``frontier_period`` (as
+explore_lite's ``planner_frequency``); with no target it runs on every update.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from topoexplore.services.planner import gridsearch as gs
+from topoexplore.services.planner.mapview import MapView
+from topoexplore.services.planner.strategies.base import Candidate, Config, Evaluation, Update
+
+SOFT_RADIUS_FACTOR = 2.0  # cells with clearance < this x (radius + margin) cost more ...
+SOFT_PENALTY = 2.0  # ... up to (1 + this) x their length at the hard limit
+
+
+def frontier_evaluation(cfg: Config, u: Update, min_size: float | None = None,
+                        pocket_area: float = 0.0, near: float = 0.0, reach_only: bool = False
+                        ) -> Evaluation:
+    """Frontier groups on u.view as candidates: those at least min_size [m] long (default
+    min_frontier_size), and the shorter ones (down to min_frontier_size) whose path is at
+    most near [m]; with pocket_area > 0 [m^2], not those bordering a smaller enclosed unknown
+    pocket. reach_only: no path costs (see :func:`gridsearch.grid_search`)."""
+    p = cfg.params
+    view = u.view
+    min_size = p.min_frontier_size if min_size is None else min_size
+    floor = min(min_size, p.min_frontier_size) if near > 0 else min_size
+    ev = Evaluation()
+    hard = cfg.need
+    search = view.search(u.x, u.y, hard, soft_radius=SOFT_RADIUS_FACTOR * hard,
+                         soft_penalty=SOFT_PENALTY, reach_only=reach_only)
+    if search.start is None:
+        ev.failed = "the robot is not near known free space (no start cell for the search)"
+        ev.done = ev.failed
+        return ev
+    res = view.geom.resolution
+    unknown = view.open_unknown(int(pocket_area / res ** 2)) if pocket_area > 0 else view.unknown
+    groups, dropped = gs.find_frontiers(view.free, unknown, view.geom, search, floor,
+                                        p.potential_scale, p.gain_scale)
+    unreachable, black = 0, 0
+    for g in groups:
+        if g.size * res < min_size - 1e-9 and not (
+                g.goal_xy is not None and g.path_length <= near):
+            dropped += 1
+        elif g.goal_xy is None:
+            unreachable += 1
+        else:
+            c = _candidate(g, search, res, p.potential_scale)
+            if u.blacklisted(c):
+                black += 1
+            else:
+                ev.cands.append(c)
+    done = "no frontier left"
+    if dropped:
+        done += f" ({dropped} group(s) shorter than {min_size:g} m ignored" + (
+            f", unless within {near:g} m)" if near > 0 and floor < min_size else ")")
+    if black:
+        done += f"; {black} blacklisted"
+    if unreachable:
+        done += f"; {unreachable} frontier group(s) unreachable for the robot"
+    ev.done = done
+    ev.status_of = lambda c: "was cleared (no frontier group there any more)"
+    ev.path_ok = _path_fits(view, search, cfg.radius)
+    return ev
+
+
+def _candidate(g: gs.FrontierGroup, search: gs.GridSearch, res: float, scale: float
+               ) -> Candidate:
+    gx, gy = g.goal_xy
+    return Candidate(-1, gx, gy, g.cost, g.path_length, scale, 0.0,
+                     lambda: search.path_to(*g.goal_rc), g.cells_xy,
+                     label=f"frontier at ({gx:.2f}, {gy:.2f}) size {g.size * res:.1f} m",
+                     face=g.look_xy)
+
+
+def _path_fits(view: MapView, search: gs.GridSearch, radius: float):
+    """path_ok of a frontier path: every waypoint on the grid, on no occupied cell and with
+    at least half the robot radius of clearance."""
+    geom = view.geom
+
+    def path_ok(wps: np.ndarray) -> bool:
+        if len(wps) == 0:
+            return True
+        rows, cols = geom.world_to_cell(wps[:, 0], wps[:, 1])
+        inside = geom.inside(rows, cols)
+        if not np.all(inside):
+            return False
+        bad = view.occupied[rows, cols] | (search.clearance[rows, cols] < 0.5 * radius)
+        return not bool(np.any(bad))
+
+    return path_ok
+
+
+class Frontier:
+    """Nearest-frontier exploration (explore_lite's cost form, grid path lengths)."""
+
+    def __init__(self, cfg: Config):
+        self.cfg = cfg
+        self._ev: Evaluation | None = None  # the last search ...
+        self._t = -math.inf  # ... and its time [s]
+
+    def evaluate(self, u: Update) -> Evaluation:
+        cached = self._ev
+        if (cached is not None and u.target is not None and cached.cands
+                and 0.0 <= u.t - self._t < self.cfg.params.frontier_period):
+            return cached  # following a target: keep the last search
+        if u.view is None:
+            ev = Evaluation(waiting="waiting for map")
+        else:
+            ev = frontier_evaluation(self.cfg, u)
+            self._count_end_nodes(u, ev)
+        self._ev, self._t = ev, u.t
+        return ev
+
+    def _count_end_nodes(self, u: Update, ev: Evaluation) -> None:
+        """The end node counts of the status (informational only)."""
+        if u.graph is None:
+            return
+        ends = [n.id for n in u.graph.nodes if n.kind == "end"]
+        ev.end_nodes = len(ends)
+        if u.beliefs is not None:
+            pm = {b.id: b.p for b in u.beliefs}
+            ev.reliable = sum(1 for i in ends if pm.get(i, 0.0) >= self.cfg.p_reliable)
+
+    def snapshot(self) -> dict[str, Any]:
+        return {"frontier_search_t": self._t if math.isfinite(self._t) else None}

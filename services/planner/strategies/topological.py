@@ -1,0 +1,270 @@
+"""What the two topological strategies share (the paper, §3.2; DESIGN.md §4 "Planner").
+
+Candidates are the *open* end nodes (the strategy says which are open) reachable along edges
+wide enough for the robot; cost = path length over the topological graph from the robot's
+entry point on the skeleton. The path runs robot -> entry point -> edge polylines -> target.
+
+Approach through a narrow passage (``approach_narrow``): an open end node reachable only over
+an edge too narrow for the robot is a candidate whose path stops at the first narrow point,
+with the whole path length as its cost (a corridor seen at an angle has a skeleton hugging one
+wall that looks narrow; from the narrow point the robot sees the corridor). Once the robot has
+stood within goal_tolerance of that point, the node counts as unreachable unless the way
+becomes wide or its narrow point lies more than blacklist_radius from every point looked from
+(by position: node ids change as the skeleton is rebuilt).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from topoexplore.services.planner import graph as gr
+from topoexplore.services.planner.strategies.base import (
+    Candidate,
+    Config,
+    Evaluation,
+    Update,
+    id_list,
+)
+from topoexplore.services.planner.strategies.completion import Completion
+
+P_UNSEEN = 0.5  # P of an end node the reliability message does not list yet (paper: initial P)
+
+
+@dataclass
+class Scene:
+    """One update's topological search: the index, the end nodes and the search from the
+    robot's entry point."""
+
+    u: Update
+    index: gr.TopoIndex
+    pmap: dict[int, float]  # P by end node id (from the beliefs)
+    ends: list[int]
+    clearance_at: Callable[[np.ndarray], np.ndarray] | None  # None: no map
+    open_ids: list[int] = field(default_factory=list)
+    entry: gr.Entry | None = None
+    dist: dict[int, float] = field(default_factory=dict)
+    pred: dict[int, tuple[int, int, bool]] = field(default_factory=dict)
+    wide: tuple | None = None  # the search through narrow edges too, made when first needed
+
+    def prob(self, i: int) -> float:
+        return self.pmap.get(i, P_UNSEEN)
+
+
+@dataclass
+class _Look:
+    """A narrow point the robot has stood at (approach_narrow)."""
+
+    id: int
+    x: float
+    y: float
+    t: float
+
+
+class Topological:
+    """Base of the reliability and all-end-nodes strategies; subclasses say which end nodes
+    are open and how to word it."""
+
+    needs_beliefs = False  # wait for the first reliability message
+    unresolved = "unvisited"  # what an open end node is, in the status
+
+    def __init__(self, cfg: Config):
+        self.cfg = cfg
+        self.completion = Completion(cfg)
+        self._rel_updates = 0  # updates that came with a reliability message
+        self._looked: list[_Look] = []
+
+    # --- what a subclass says ----------------------------------------------------------------
+
+    def observe(self, u: Update) -> None:
+        """Called first on every update."""
+
+    def is_open(self, i: int, s: Scene) -> bool:
+        raise NotImplementedError
+
+    def label(self, i: int, s: Scene) -> str:
+        return f"end node {i}"
+
+    def target_p(self, i: int, s: Scene) -> float:
+        return 0.0
+
+    def all_done(self, n: int) -> str:
+        """Done text for n reachable end nodes, none of them open."""
+        raise NotImplementedError
+
+    def resolved(self, i: int, s: Scene) -> str:
+        """Why end node i is no longer open."""
+        raise NotImplementedError
+
+    # --- evaluation --------------------------------------------------------------------------
+
+    def evaluate(self, u: Update) -> Evaluation:
+        return self.complete(u, self.evaluate_graph(u))
+
+    def complete(self, u: Update, ev: Evaluation) -> Evaluation:
+        """The completion phase once no end node is left (frontier_completion)."""
+        if (self.cfg.params.frontier_completion and not ev.cands and ev.waiting is None
+                and ev.failed is None and u.view is not None):
+            return self.completion.phase(u, ev)
+        return ev
+
+    def evaluate_graph(self, u: Update) -> Evaluation:
+        """The open end nodes as candidates."""
+        rel_before = self._rel_updates
+        if u.beliefs is not None:
+            self._rel_updates += 1
+        self.observe(u)
+        if u.graph is None:
+            return Evaluation(waiting="waiting for topo")
+        if self.needs_beliefs and u.beliefs is None:
+            return Evaluation(waiting="waiting for reliability")
+        s = self._scene(u)
+        if not s.index.nodes:
+            return Evaluation(waiting="waiting: the topological map is empty")
+        if not s.ends and rel_before == 0:
+            return Evaluation(waiting="waiting: the topo has no end nodes yet and no earlier "
+                                      "reliability update")
+        self._search(s)
+        return self._evaluation(s)
+
+    def _scene(self, u: Update) -> Scene:
+        clearance_at = u.view.clearance_at if u.view is not None else None
+        index = gr.build_index(u.graph, self.cfg.need, clearance_at, self.cfg.params.tip_length)
+        pmap = {b.id: float(b.p) for b in u.beliefs} if u.beliefs is not None else {}
+        return Scene(u, index, pmap, index.end_ids(), clearance_at)
+
+    def _search(self, s: Scene) -> None:
+        """Open end nodes, entry point (in line of sight on the map) and path costs."""
+        s.open_ids = [i for i in s.ends if self.is_open(i, s)]
+        u, visible = s.u, None
+        if u.view is not None:
+            free, geom, radius = u.view.free, u.view.geom, self.cfg.radius
+
+            def visible(x0: float, y0: float, x1: float, y1: float) -> bool:
+                return gr.line_of_sight(free, geom, x0, y0, x1, y1, radius)
+
+        s.entry = gr.find_entry(s.index, u.x, u.y, visible)
+        if s.entry is not None:
+            s.dist, s.pred = gr.search_from_entry(s.index, s.entry)
+
+    def _evaluation(self, s: Scene) -> Evaluation:
+        ev = Evaluation(end_nodes=len(s.ends),
+                        reliable=sum(1 for i in s.ends if s.prob(i) >= self.cfg.p_reliable))
+        unreachable, black = [], []
+        for i in s.open_ids:
+            c = self._candidate(s, i)
+            if c is None:
+                unreachable.append(i)
+            elif s.u.blacklisted(c):
+                black.append(i)
+            else:
+                ev.cands.append(c)
+        if s.entry is None and s.open_ids:
+            ev.failed = (f"cannot join the skeleton: no edge with clearance >= "
+                         f"{self.cfg.need:.2f} m (of {len(s.index.narrow)} narrow); "
+                         f"{len(s.open_ids)} end node(s) still open (ids {id_list(s.open_ids)})")
+        ev.done = self._done(s, unreachable, black)
+        ev.status_of = lambda c: self._status_of(s, c)
+        ev.path_ok = _near_skeleton(s.index, self.cfg.params.path_tolerance)
+        if s.u.view is not None:
+            view = s.u.view
+            ev.path_clear = lambda wps: not gr.crosses(view.occupied, view.geom, wps)
+        return ev
+
+    def _candidate(self, s: Scene, i: int) -> Candidate | None:
+        """Open end node i as a candidate; None if it is unreachable."""
+        _, nx, ny = s.index.nodes[i]
+        if i not in s.dist:
+            return self._approach(s, i, nx, ny)
+        need, tip, clearance_at = self.cfg.need, self.cfg.params.tip_length, s.clearance_at
+
+        def path() -> np.ndarray:
+            pts = gr.path_points(s.index, s.entry, s.pred, i)
+            if clearance_at is None:
+                return pts
+            return gr.trim_narrow_tip(pts, clearance_at, need, tip)
+
+        return Candidate(i, nx, ny, s.dist[i], s.dist[i], 1.0, self.target_p(i, s), path,
+                         label=self.label(i, s))
+
+    def _approach(self, s: Scene, i: int, nx: float, ny: float) -> Candidate | None:
+        """Candidate for open end node i behind a narrow edge: the path up to the narrow point
+        (approach_narrow); None if there is none or the robot has looked from there."""
+        if not (self.cfg.params.approach_narrow and s.entry is not None
+                and s.clearance_at is not None):
+            return None
+        if s.wide is None:
+            s.wide = gr.search_from_entry(s.index, s.entry, through_narrow=True)
+        dist, pred = s.wide
+        if i not in dist:
+            return None
+        full = gr.path_points(s.index, s.entry, pred, i)
+        pts = gr.cut_at_narrow(full, s.clearance_at, self.cfg.need)
+        if len(pts) < 2 or len(pts) == len(full):
+            return None
+        reach = float(gr.polyline_lengths(pts)[-1])
+        px, py = float(pts[-1, 0]), float(pts[-1, 1])
+        u = s.u
+        if math.hypot(px - u.x, py - u.y) <= self.cfg.params.goal_tolerance:
+            if not self._has_looked(px, py):
+                self._looked.append(_Look(i, px, py, u.t))
+            return None
+        if self._has_looked(px, py):
+            return None
+        to_entry = math.hypot(pts[0, 0] - u.x, pts[0, 1] - u.y)
+        return Candidate(i, nx, ny, dist[i], to_entry + reach, 1.0, self.target_p(i, s),
+                         lambda: pts, label=f"{self.label(i, s)} up to a narrow passage",
+                         partial=True)
+
+    def _has_looked(self, px: float, py: float) -> bool:
+        r2 = self.cfg.params.blacklist_radius ** 2
+        return any((b.x - px) ** 2 + (b.y - py) ** 2 <= r2 for b in self._looked)
+
+    def _done(self, s: Scene, unreachable: list[int], black: list[int]) -> str:
+        """Why there is no candidate (if there is none)."""
+        open_set = set(s.open_ids)
+        done = self.all_done(sum(1 for i in s.ends if i in s.dist and i not in open_set))
+        if not s.ends:
+            done = "the topological map has no end nodes"
+        if black:
+            done += f"; {len(black)} blacklisted (ids {id_list(black)})"
+        if unreachable:
+            done += (f"; {len(unreachable)} {self.unresolved} end node(s) unreachable for the "
+                     f"robot (ids {id_list(unreachable)})")
+        return done
+
+    def _status_of(self, s: Scene, c: Candidate) -> str:
+        if c.id not in s.index.nodes or s.index.nodes[c.id][0] != "end":
+            return "vanished"
+        if c.id not in s.open_ids:
+            return self.resolved(c.id, s)
+        if c.id not in s.dist:
+            return "became unreachable"
+        return "was blacklisted"
+
+    def snapshot(self) -> dict[str, Any]:
+        return {"looked": [{"id": b.id, "x": b.x, "y": b.y, "t": b.t} for b in self._looked]}
+
+
+def _near_skeleton(index: gr.TopoIndex, tolerance: float) -> Callable[[np.ndarray], bool]:
+    """path_ok of a topological path: every waypoint within tolerance [m] of the skeleton
+    (the KD-tree is built on the first call)."""
+    tree: list = []
+
+    def path_ok(wps: np.ndarray) -> bool:
+        if len(wps) == 0:
+            return True
+        if not tree:
+            pts = index.all_points()
+            tree.append(cKDTree(pts) if len(pts) else None)
+        if tree[0] is None:
+            return False
+        d, _ = tree[0].query(wps, k=1, distance_upper_bound=tolerance + 1e-9)
+        return bool(np.all(np.isfinite(d)))
+
+    return path_ok
