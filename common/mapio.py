@@ -20,8 +20,11 @@ Writing produces what ROS map_saver produces in trinary mode: 254 free, 0 occupi
 with ``free_thresh: 0.196`` and ``occupied_thresh: 0.65`` in the YAML (205 reads back as unknown
 under those thresholds; the grid itself is classified with ``p_free`` / ``p_occ``).
 
-Only a flat ``key: value`` YAML subset is parsed (what map_server files contain), so no YAML
-dependency is needed. Every problem raises :class:`MapIOError` with a one-line message.
+The YAML is read with PyYAML's safe loader (any YAML: block or flow lists, comments, quotes;
+a key given twice is refused, and ``1e-2`` is a number as in YAML 1.2 and ROS's yaml-cpp) and
+written with ``yaml.safe_dump`` (keys in map_server order, ``origin`` as a flow list, floats as
+Python's shortest exact repr, so the geometry reads back exactly). Every problem raises
+:class:`MapIOError` with a one-line message.
 """
 
 from __future__ import annotations
@@ -34,14 +37,23 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import yaml
 
-from topoexplore.common.grid import FREE, OCCUPIED, GridGeometry, classify
+from topoexplore.common.grid import (
+    FREE,
+    OCCUPIED,
+    GridError,
+    GridGeometry,
+    check_grid,
+    classify,
+)
 
 __all__ = [
     "MapIOError",
     "write_map_server",
     "read_map_server",
     "read_map_yaml",
+    "parse_yaml",
     "write_png",
     "PIX_FREE",
     "PIX_OCCUPIED",
@@ -61,68 +73,69 @@ class MapIOError(ValueError):
     """A map file is missing, malformed or cannot be written."""
 
 
-# --- YAML subset -----------------------------------------------------------------------------
+# --- YAML ------------------------------------------------------------------------------------
 
 
-def _scalar(text: str):
-    t = text.strip()
-    if len(t) >= 2 and t[0] == t[-1] and t[0] in "\"'":
-        return t[1:-1]
-    low = t.lower()
-    if low in ("true", "yes", "on"):
-        return True
-    if low in ("false", "no", "off"):
-        return False
+class _MapYamlLoader(yaml.SafeLoader):
+    """``yaml.safe_load``'s loader, but a key given twice is an error (PyYAML would keep the
+    last one silently) and ``1e-2`` / ``5e3`` are floats (YAML 1.2, as ROS's yaml-cpp reads
+    them; PyYAML's YAML 1.1 wants a dot and a signed exponent)."""
+
+
+def _construct_checked_mapping(loader: _MapYamlLoader, node: yaml.MappingNode,
+                               deep: bool = False) -> dict:
+    seen = set()
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=deep)
+        try:
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key {key!r}", key_node.start_mark)
+            seen.add(key)
+        except TypeError:  # unhashable: construct_mapping says so
+            break
+    return loader.construct_mapping(node, deep=deep)
+
+
+_MapYamlLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG,
+                               _construct_checked_mapping)
+_MapYamlLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"))
+
+
+def _yaml_problem(exc: yaml.YAMLError) -> str:
+    """A PyYAML error in one line: what, and where (line, column)."""
+    mark = getattr(exc, "problem_mark", None)
+    problem = getattr(exc, "problem", None)
+    if problem and mark is not None:
+        context = getattr(exc, "context", None)
+        text = f"{context}: {problem}" if context else problem
+        return f"{text} (line {mark.line + 1}, column {mark.column + 1})"
+    return " ".join(str(exc).split())
+
+
+def parse_yaml(text: str, where: str = "YAML") -> dict:
+    """A map_server YAML document -> its top-level mapping (empty document: ``{}``).
+
+    Malformed YAML, a key given twice, or a document that is not a ``key: value`` mapping
+    raises MapIOError (one line).
+    """
     try:
-        return int(t)
-    except ValueError:
-        pass
-    try:
-        return float(t)
-    except ValueError:
-        return t
+        doc = yaml.load(text, Loader=_MapYamlLoader)  # safe: a SafeLoader subclass
+    except yaml.YAMLError as exc:
+        raise MapIOError(f"{where}: not valid YAML: {_yaml_problem(exc)}") from None
+    if doc is None:
+        return {}
+    if not isinstance(doc, dict):
+        raise MapIOError(f"{where}: expected 'key: value' lines (a YAML mapping), got "
+                         f"{type(doc).__name__} {_short(doc)}")
+    return doc
 
 
-def _strip_comment(line: str) -> str:
-    # a '#' starts a comment at line start or after whitespace, outside quotes
-    quote = None
-    for i, ch in enumerate(line):
-        if quote:
-            if ch == quote:
-                quote = None
-        elif ch in "\"'":
-            quote = ch
-        elif ch == "#" and (i == 0 or line[i - 1].isspace()):
-            return line[:i]
-    return line
-
-
-_KEY = re.compile(r"^([A-Za-z_][A-Za-z0-9_]*)\s*:(?:\s+(.*))?$")
-
-
-def parse_flat_yaml(text: str, where: str = "YAML") -> dict:
-    """Parse flat ``key: value`` lines; values are scalars or one-line ``[a, b, c]`` lists."""
-    out: dict = {}
-    for n, raw in enumerate(text.splitlines(), 1):
-        line = _strip_comment(raw).rstrip()
-        if not line.strip() or line.strip() in ("---", "..."):
-            continue
-        if line[0].isspace():
-            raise MapIOError(f"{where}:{n}: nested or indented YAML is not supported: {raw!r}")
-        mk = _KEY.match(line)
-        if not mk:
-            raise MapIOError(f"{where}:{n}: expected 'key: value', got {raw!r}")
-        key, value = mk.group(1), (mk.group(2) or "").strip()
-        if key in out:
-            raise MapIOError(f"{where}:{n}: duplicate key {key!r}")
-        if value.startswith("["):
-            if not value.endswith("]"):
-                raise MapIOError(f"{where}:{n}: list for {key!r} must be on one line in [...]")
-            inner = value[1:-1].strip()
-            out[key] = [_scalar(v) for v in inner.split(",")] if inner else []
-        else:
-            out[key] = _scalar(value)
-    return out
+def _short(value, limit: int = 60) -> str:
+    text = " ".join(repr(value).split())
+    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 def _number(meta: dict, key: str, where: str) -> float:
@@ -143,7 +156,7 @@ def read_map_yaml(yaml_path: str | os.PathLike) -> dict:
         raise MapIOError(f"map YAML not found: {path}") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise MapIOError(f"cannot read map YAML {path}: {exc}") from None
-    meta = parse_flat_yaml(text, str(path))
+    meta = parse_yaml(text, str(path))
     missing = [k for k in REQUIRED_KEYS if k not in meta]
     if missing:
         raise MapIOError(f"{path}: missing key(s) {', '.join(missing)}")
@@ -157,7 +170,8 @@ def read_map_yaml(yaml_path: str | os.PathLike) -> dict:
     if (not isinstance(origin, list) or len(origin) != 3
             or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
                        and math.isfinite(v) for v in origin)):
-        raise MapIOError(f"{path}: origin must be [x, y, yaw] with 3 finite numbers (got {origin!r})")
+        raise MapIOError(f"{path}: origin must be [x, y, yaw] with 3 finite numbers "
+                         f"(got {origin!r})")
     negate = meta["negate"]
     if negate not in (0, 1, True, False):
         raise MapIOError(f"{path}: negate must be 0 or 1 (got {negate!r})")
@@ -279,15 +293,11 @@ def _atomic_write(path: Path, data: bytes) -> None:
 
 
 def _check_grid(grid_int8: np.ndarray, geom: GridGeometry) -> np.ndarray:
-    g = np.asarray(grid_int8)
-    if g.ndim != 2 or g.shape != (geom.height, geom.width) or g.size == 0:
-        raise MapIOError(f"grid shape {g.shape} does not match geometry {geom.height}x{geom.width}")
-    if not np.issubdtype(g.dtype, np.integer):
-        raise MapIOError(f"grid must be an integer array (got {g.dtype})")
-    if not (math.isfinite(geom.resolution) and geom.resolution > 0
-            and math.isfinite(geom.origin_x) and math.isfinite(geom.origin_y)):
-        raise MapIOError(f"bad geometry {geom}")
-    return g
+    """:func:`common.grid.check_grid`, as a MapIOError."""
+    try:
+        return check_grid(grid_int8, geom)
+    except GridError as exc:
+        raise MapIOError(str(exc)) from None
 
 
 def write_map_server(yaml_path: str | os.PathLike, grid_int8: np.ndarray, geom: GridGeometry,
@@ -307,24 +317,16 @@ def write_map_server(yaml_path: str | os.PathLike, grid_int8: np.ndarray, geom: 
     img = occupancy_to_pixels(g, p_free, p_occ)
     h, w = img.shape
     header = f"P5\n# topoexplore map, {geom.resolution} m/pixel\n{w} {h}\n255\n".encode("ascii")
-    text = (
-        f"image: {pgm.name}\n"
-        f"resolution: {geom.resolution:.6f}\n"
-        f"origin: [{geom.origin_x:.6f}, {geom.origin_y:.6f}, 0.000000]\n"
-        "negate: 0\n"
-        f"occupied_thresh: {YAML_OCCUPIED_THRESH}\n"
-        f"free_thresh: {YAML_FREE_THRESH}\n"
-        "mode: trinary\n"
-    )
-    if float(f"{geom.resolution:.6f}") != geom.resolution or any(
-        float(f"{v:.6f}") != v for v in (geom.origin_x, geom.origin_y)
-    ):
-        text = (  # keep full precision when 6 decimals would change the geometry
-            f"image: {pgm.name}\n"
-            f"resolution: {geom.resolution!r}\n"
-            f"origin: [{geom.origin_x!r}, {geom.origin_y!r}, 0.0]\n"
-            + text.split("\n", 3)[3]
-        )
+    meta = {
+        "image": pgm.name,
+        "resolution": float(geom.resolution),
+        "origin": [float(geom.origin_x), float(geom.origin_y), 0.0],
+        "negate": 0,
+        "occupied_thresh": YAML_OCCUPIED_THRESH,
+        "free_thresh": YAML_FREE_THRESH,
+        "mode": "trinary",
+    }
+    text = yaml.safe_dump(meta, sort_keys=False, default_flow_style=None)
     try:
         ypath.parent.mkdir(parents=True, exist_ok=True)
         _atomic_write(pgm, header + img.tobytes())

@@ -63,7 +63,7 @@ def test_bad_world_file_one_line(tmp_path, content):
 @pytest.mark.parametrize("args", [
     ["run", "--world", "no-such-world"],
     ["run", "--set", "planner.strategy=random"],
-    ["run", "--set", "sim.scan_hz=-5"],
+    ["run", "--set", "laser.scan_hz=-5"],
     ["run", "--params", "/nonexistent.toml"],
     ["run", "--speed", "0"],
     ["up", "--profile", "/nonexistent.toml"],

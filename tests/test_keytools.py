@@ -21,6 +21,7 @@ import uuid
 from pathlib import Path
 
 import pytest
+import yaml
 
 from topoexplore.common.keys import Keys
 from topoexplore.tools.keys import (
@@ -106,17 +107,23 @@ def test_select_fields_and_errors():
 def test_format_yaml_and_json():
     obj = {"header": {"seq": 1, "frame": "map"}, "ranges": Summary("<3 floats: ...>"),
            "nodes": [{"id": 1, "kind": "end"}, {"id": 2, "kind": "branch"}],
-           "pts": [[1.0, 2.0]], "empty": [], "s": "two words", "r": math.inf, "ok": True}
-    lines = format_yaml(obj)
-    assert lines[:3] == ["header:", "  seq: 1", "  frame: map"]
-    assert "ranges: <3 floats: ...>" in lines
+           "pts": [[1.0, 2.0]], "empty": [], "s": "two words", "r": math.inf, "ok": True,
+           "w": "yes", "u": "Zürich", "b": b"\x01\x02"}
+    lines = format_yaml(obj).splitlines()
+    assert lines[:3] == ["header:", "  seq: 1", "  frame: map"]  # block style, message order
+    assert "ranges: <3 floats: ...>" in lines  # a summary is printed plainly
     assert lines[lines.index("nodes:") + 1:lines.index("nodes:") + 5] == [
-        "  - id: 1", "    kind: end", "  - id: 2", "    kind: branch"]
-    assert "pts: [[1.0, 2.0]]" in lines and "empty: []" in lines
-    assert 's: "two words"' in lines and "r: .inf" in lines and "ok: true" in lines
-    assert format_yaml(3.5) == ["3.5"]
-    assert format_yaml({"x": 9.350000000000001, "t": 1712345678.25, "e": 1e-12}) == [
-        "x: 9.35", "t: 1712345678.25", "e: 1e-12"]  # binary noise dropped, precision kept
+        "- id: 1", "  kind: end", "- id: 2", "  kind: branch"]
+    assert lines[lines.index("pts:") + 1] == "- [1.0, 2.0]"  # a list of scalars inline
+    assert "empty: []" in lines and "s: two words" in lines and "u: Zürich" in lines
+    assert "w: 'yes'" in lines  # a string that would read back as a bool is quoted
+    assert "r: .inf" in lines and "ok: true" in lines
+    assert lines[lines.index("b: !!binary |") + 1] == "  AQI="
+    plain = {k: v for k, v in obj.items() if k != "ranges"}  # all but summaries read back
+    assert yaml.safe_load(format_yaml(plain)) == plain
+    assert format_yaml(3.5) == "3.5" and format_yaml(Summary("<x>")) == "<x>"
+    assert format_yaml({"x": 9.350000000000001, "t": 1712345678.25, "e": 1e-12}) == (
+        "x: 9.35\nt: 1712345678.25\ne: 1.0e-12")  # binary noise dropped, precision kept
     j = json.loads(json.dumps(to_jsonable({"r": math.inf, "b": b"\x01\x02", 1: Summary("<x>")})))
     assert j == {"r": "inf", "b": "AQI=", "1": "<x>"}
     table = format_table(["KEY", "HZ"], [["scan", 20.0], ["map", None]]).splitlines()
@@ -241,7 +248,8 @@ class Stack:
         self.procs: list[subprocess.Popen] = []
         script = tmp_path / "fake_publisher.py"
         script.write_text(PUBLISHER)
-        router = self._popen([sys.executable, "-m", "topoexplore.tools.router", "--listen", self.endpoint])
+        router = self._popen([sys.executable, "-m", "topoexplore.tools.router", "--listen",
+                              self.endpoint])
         _wait_line(router, "router listening")
         if with_publisher:
             pub = self._popen([sys.executable, str(script), self.endpoint, self.ns])
@@ -355,7 +363,7 @@ def test_get(stack):
     rc, out, err = finish(full)
     assert rc == 0, err
     assert "service: fake" in out and "processed: 7" in out and "blob: <1000 bytes>" in out
-    assert "  a: [1, 2, 3]" in out
+    assert "nested:\n  a: [1, 2, 3]\n" in out
     rc, out, err = finish(field)
     assert rc == 0 and json.loads(out) == [1, 2, 3], err
     rc, out, err = finish(key)

@@ -7,6 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import yaml
 
 from topoexplore.common.grid import FREE, OCCUPIED, UNKNOWN, GridGeometry, classify
 from topoexplore.common.mapio import (
@@ -14,7 +15,7 @@ from topoexplore.common.mapio import (
     PIX_OCCUPIED,
     PIX_UNKNOWN,
     MapIOError,
-    parse_flat_yaml,
+    parse_yaml,
     pixels_to_occupancy,
     read_map_server,
     write_map_server,
@@ -157,13 +158,44 @@ def test_color_png_map(tmp_path):
     assert g[1, 0] == 0 and g[0, 1] == -1 and g[1, 1] == 100 and g[0, 0] == 100
 
 
-def test_yaml_subset_parser():
-    d = parse_flat_yaml("# c\nimage: 'a b.pgm'  # x\nn: 3\nf: -1.5e-2\nl: [1, 2.5, 0]\nb: true\n")
-    assert d == {"image": "a b.pgm", "n": 3, "f": -0.015, "l": [1, 2.5, 0], "b": True}
-    with pytest.raises(MapIOError, match="duplicate"):
-        parse_flat_yaml("a: 1\na: 2\n")
-    with pytest.raises(MapIOError, match="nested"):
-        parse_flat_yaml("a:\n  b: 1\n")
+def test_yaml_parser():
+    d = parse_yaml("# c\nimage: 'a b.pgm'  # x\nn: 3\nf: -1.5e-2\nl: [1, 2.5, 0]\nb: true\n"
+                   "e: 1e-2\n")
+    assert d == {"image": "a b.pgm", "n": 3, "f": -0.015, "l": [1, 2.5, 0], "b": True, "e": 0.01}
+    assert parse_yaml("a:\n  b: 1\n") == {"a": {"b": 1}}  # nested YAML is YAML
+    assert parse_yaml("") == {} and parse_yaml("# only a comment\n") == {}
+    with pytest.raises(MapIOError, match="duplicate key 'a'"):
+        parse_yaml("a: 1\na: 2\n")
+
+
+BLOCK_ORIGIN = (
+    "# saved by hand\nimage: m.pgm   # the picture\nresolution: 0.1\norigin:\n  - 1.0\n"
+    "  - -2.0\n  - 0.0\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n"
+)
+
+
+@pytest.mark.parametrize("body", [
+    BLOCK_ORIGIN,
+    BLOCK_ORIGIN.replace("  - ", "- "),  # block list at the key's indentation
+    "{image: m.pgm, resolution: 0.1, origin: [1.0, -2.0, 0.0], negate: 0,\n"
+    " occupied_thresh: 0.65, free_thresh: 0.196}\n",  # flow style
+    "---\n" + GOOD.replace("0.1", "1e-1", 1) + "...\n",  # markers, YAML 1.2 float
+])
+def test_valid_yaml_styles_read_the_same(tmp_path, body):
+    want = read_map_server(_yaml(tmp_path, GOOD, np.full((2, 3), 254, np.uint8)))
+    grid, geom = read_map_server(_yaml(tmp_path, body, name="other"))  # same m.pgm
+    assert geom == want[1] and np.array_equal(grid, want[0])
+    assert (geom.resolution, geom.origin_x, geom.origin_y) == (0.1, 1.0, -2.0)
+
+
+def test_written_yaml_is_plain_map_server_yaml(tmp_path):
+    geom = GridGeometry(0.05, -12.5, 1 / 3, 4, 3)
+    y, _ = write_map_server(tmp_path / "m.yaml", np.zeros((3, 4), np.int8), geom)
+    assert yaml.safe_load(y.read_text()) == {
+        "image": "m.pgm", "resolution": 0.05, "origin": [-12.5, 1 / 3, 0.0], "negate": 0,
+        "occupied_thresh": 0.65, "free_thresh": 0.196, "mode": "trinary"}
+    assert list(yaml.safe_load(y.read_text()))[0] == "image"  # map_server's key order
+    assert "origin: [-12.5, 0.3333333333333333, 0.0]\n" in y.read_text()
 
 
 # --- strictness --------------------------------------------------------------------------------
@@ -183,6 +215,15 @@ def test_yaml_subset_parser():
         (GOOD + "mode: fancy\n", "mode"),
         (GOOD.replace("m.pgm", "missing.pgm"), "not found"),
         ("just text\n", "expected 'key: value'"),
+        ("- image: m.pgm\n- resolution: 0.1\n", "expected 'key: value'.*list"),
+        (GOOD + "origin: [0, 0, 0]\n", "duplicate key 'origin'"),
+        (GOOD.replace("[1.0, -2.0, 0.0]", "[1.0, -2.0, 0.0"), "not valid YAML.*line 4"),
+        ("image: m.pgm\n  resolution: 0.1\n", "not valid YAML"),
+        (GOOD + "\tmode: trinary\n", "not valid YAML"),
+        (GOOD.replace("origin: [1.0, -2.0, 0.0]", "origin:\n  - 1.0\n  - .nan\n  - 0.0"),
+         "origin"),
+        (GOOD.replace("origin: [1.0, -2.0, 0.0]", "origin: {x: 1.0, y: -2.0, yaw: 0.0}"),
+         "origin"),
     ],
 )
 def test_bad_yaml_is_one_line_error(tmp_path, body, match):

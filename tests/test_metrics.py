@@ -117,3 +117,8 @@ def test_bad_inputs():
     with pytest.raises(MetricsError):
         map_accuracy(np.zeros((3, 3), np.int8), (0.1, 0, 0, 3, 3), truth, (0, 0), 0.1)
     assert coverage(np.zeros((3, 3), np.int8), geom, np.zeros((3, 3), bool), (0, 0), 0.1) == 0.0
+    # the one grid check (common.grid.check_grid), as a MetricsError
+    with pytest.raises(MetricsError, match="integer"):
+        coverage(np.zeros((3, 3), np.float32), geom, truth, (0, 0), 0.1)
+    with pytest.raises(MetricsError, match="geometry"):
+        coverage(np.zeros((3, 3), np.int8), GridGeometry(0.0, 0.0, 0.0, 3, 3), truth, (0, 0), 0.1)

@@ -6,9 +6,10 @@ from __future__ import annotations
 import threading
 import time
 
+from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.bus import Bus
-from topoexplore.common.grid import OCCUPIED, GridGeometry, classify
+from topoexplore.common.grid import OCCUPIED, classify
 from topoexplore.common.keys import Keys
 from topoexplore.sim.world import load_world, rasterize
 from topoexplore.tools.launch.core import load_profile
@@ -42,8 +43,8 @@ def test_sim_mapper_topology_over_the_bus(endpoint, namespace):
         sup.stop()
     topo: m.TopoGraph = got["topo"]
     grid: m.OccupancyGrid = got["map"]
-    geom = GridGeometry.of(grid)
-    cls = classify(m.grid_to_array(grid))
+    g = convert.grid_from_msg(grid)
+    geom, cls = g.geom, classify(g.data)
     solid, ox, oy = rasterize(load_world("paper-room"), 0.1)
     for n in topo.nodes:
         if n.kind in ("end", "branch"):

@@ -14,7 +14,7 @@ from topoexplore.common.keys import Keys
 def test_sim_process_driven_over_the_bus(procs, endpoint, namespace):
     procs.router(endpoint)
     sim = procs.python("-m", "topoexplore.sim.service", "--connect", endpoint, "--namespace", namespace,
-                       "--set", "sim.lockstep=true", "--set", "sim.lockstep_wait_for=[]",
+                       "--set", "runtime.lockstep=true", "--set", "runtime.lockstep_wait_for=[]",
                        "--set", 'sim.world="dead-end"', "--set", "sim.range_noise=0.0")
     keys = Keys(namespace, "robot1")
     scans: list[m.LaserScan] = []

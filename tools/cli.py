@@ -59,7 +59,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         return _err(str(exc))
     overrides = list(args.set)
     if args.lockstep:
-        overrides.append("sim.lockstep=true")
+        overrides.append("runtime.lockstep=true")
     if args.world:
         overrides.append(f'sim.world="{args.world}"')
     keys = Keys(params.bus.namespace, params.bus.robot)
@@ -98,7 +98,7 @@ def cmd_map_save(args: argparse.Namespace) -> int:
         keys = Keys(params.bus.namespace, params.bus.robot)
         with Bus.client(params.bus.connect, config_file=args.zenoh_config) as bus:
             grid, geom = map_from_state(fetch_state(bus, keys, "mapper", args.timeout))
-        pgm, yml = write_map_server(args.output, grid, geom, params.mapper.p_free,
+        yml, pgm = write_map_server(args.output, grid, geom, params.mapper.p_free,
                                     params.mapper.p_occ)
     except (ParamError, BusError, StateError, MapIOError) as exc:
         return _err(str(exc))

@@ -8,8 +8,9 @@ and the robot's trail coloured by target segment (Fig. 11's "paths 1..5"), with 
 marked, a title bar and a legend.
 
 Arrays in, ``uint8`` BGR image out; no file I/O (save with :func:`common.mapio.write_png`).
-The y axis points up: image row 0 is the map's max y. Use :func:`make_frame` (same arguments as
-:func:`render`) to find where a world point lands in the image.
+``render(grid, geom, Overlays(...), Style(...))``: :class:`Overlays` holds what is drawn over
+the grid, :class:`Style` how it is drawn. The y axis points up: image row 0 is the map's max y.
+Use :func:`make_frame` (same arguments as :func:`render`) to find where a world point lands.
 """
 
 from __future__ import annotations
@@ -21,11 +22,13 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from topoexplore.common import messages as m
-from topoexplore.common.grid import GridGeometry
+from topoexplore.common.domain import Belief, Graph
+from topoexplore.common.grid import GridError, GridGeometry, check_grid
 
 __all__ = [
     "RenderError",
+    "Style",
+    "Overlays",
     "Frame",
     "make_frame",
     "render",
@@ -79,6 +82,49 @@ DEFAULT_PX_PER_CELL = 6
 MIN_LONG_SIDE = 800  # [px]
 MAX_LONG_SIDE = 2400  # [px]
 FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+# --- what to draw and how -------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Style:
+    """How to draw: the drawing options of :func:`render` (plain values, shareable)."""
+
+    p_free: float = 0.35  # cells below p_free * 100 are free (white), as common.grid.classify
+    p_occ: float = 0.65  # cells above p_occ * 100 are occupied (black); between: uncertain
+    p_reliable: float = 0.9  # end nodes with P >= p_reliable are drawn green
+    robot_radius: float = 0.2  # [m] drawn radius of the robot
+    px_per_cell: int | None = None  # image pixels per cell; None: :func:`choose_scale`
+    crop: bool = False  # only the known cells and the overlays, plus a 1 m margin
+    title: str = ""  # title bar text ("" -> "topoexplore map")
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.p_free <= self.p_occ < 1.0:
+            raise RenderError(f"need 0 < p_free <= p_occ < 1 (got {self.p_free}, {self.p_occ})")
+
+
+@dataclass(frozen=True, eq=False)  # eq=False: arrays have no plain ==
+class Overlays:
+    """What to draw over the grid (all optional; checked by :func:`render`).
+
+    - ``topo``: nodes by kind (end = circle, branch = square, corner = diamond) with their ids,
+      edges from their polylines.
+    - ``rel``: end nodes labelled ``id(P)``; green when P >= ``Style.p_reliable``, red below.
+      Entries whose id is not in ``topo`` (or all, without ``topo``) are drawn as end nodes.
+    - ``robot_pose``: (x, y, theta) [m, m, rad], a circle with a heading tick.
+    - ``trail``: [(x, y, segment)], one colour per segment index (labelled with the index as
+      given at its first point), start marked with a square, end with a cross.
+    - ``target_id``: ring around that node.
+    - ``truth_occupied``: bool array like the grid; true walls not mapped as occupied are tinted.
+    """
+
+    topo: Graph | None = None
+    rel: Sequence[Belief] | None = None
+    robot_pose: Sequence[float] | None = None
+    trail: Sequence[tuple[float, float, int]] | None = None
+    target_id: int = -1
+    truth_occupied: np.ndarray | None = None
 
 
 # --- geometry of the image ------------------------------------------------------------------------
@@ -155,40 +201,45 @@ def crop_to_content(grid: np.ndarray, geom: GridGeometry, points: np.ndarray | N
     return (slice(r0, r1), slice(c0, c1)), sub
 
 
-def _overlay_points(topo, rel, robot_pose, trail) -> np.ndarray:
+def _overlay_points(ov: Overlays) -> np.ndarray:
+    """World points of every overlay (N x 2) [m]: what a cropped image must still show."""
     pts: list[tuple[float, float]] = []
-    if topo is not None:
-        pts += [(n.x, n.y) for n in topo.nodes]
-    if rel is not None:
-        pts += [(n.x, n.y) for n in rel.nodes]
-    if robot_pose is not None:
-        pts.append((float(robot_pose[0]), float(robot_pose[1])))
-    if trail:
-        pts += [(float(t[0]), float(t[1])) for t in trail]
+    if ov.topo is not None:
+        pts += [(n.x, n.y) for n in ov.topo.nodes]
+    if ov.rel is not None:
+        pts += [(n.x, n.y) for n in ov.rel]
+    if ov.robot_pose is not None:
+        pts.append((float(ov.robot_pose[0]), float(ov.robot_pose[1])))
+    if ov.trail:
+        pts += [(float(t[0]), float(t[1])) for t in ov.trail]
     return np.asarray(pts, dtype=np.float64).reshape(-1, 2)
 
 
-def make_frame(grid_int8: np.ndarray, geom: GridGeometry, topo: m.TopoGraph | None = None,
-               rel: m.Reliability | None = None, robot_pose=None, trail=None,
-               px_per_cell: int | None = None, crop: bool = False, **_ignored) -> Frame:
+def _layout(g: np.ndarray, geom: GridGeometry, ov: Overlays,
+            style: Style) -> tuple[Frame, tuple[slice, slice]]:
+    """The frame and the (rows, cols) of ``g`` it shows (all of it unless ``style.crop``)."""
+    window = (slice(0, geom.height), slice(0, geom.width))
+    if style.crop:
+        window, geom = crop_to_content(g, geom, _overlay_points(ov))
+    s = choose_scale(geom.width, geom.height, style.px_per_cell)
+    frame = Frame(geom, s, TITLE_H, max(1, int(round(geom.width * s))),
+                  max(1, int(round(geom.height * s))))
+    return frame, window
+
+
+def make_frame(grid_int8: np.ndarray, geom: GridGeometry, overlays: Overlays | None = None,
+               style: Style | None = None) -> Frame:
     """The image frame :func:`render` uses for the same arguments (for locating points)."""
     g = _check_grid(grid_int8, geom)
-    if crop:
-        _, geom = crop_to_content(g, geom, _overlay_points(topo, rel, robot_pose, trail))
-    s = choose_scale(geom.width, geom.height, px_per_cell)
-    return Frame(geom, s, TITLE_H, max(1, int(round(geom.width * s))),
-                 max(1, int(round(geom.height * s))))
+    return _layout(g, geom, overlays or Overlays(), style or Style())[0]
 
 
 def _check_grid(grid_int8, geom: GridGeometry) -> np.ndarray:
-    g = np.asarray(grid_int8)
-    if g.ndim != 2 or g.shape != (geom.height, geom.width) or g.size == 0:
-        raise RenderError(f"grid shape {g.shape} does not match geometry {geom.height}x{geom.width}")
-    if not np.issubdtype(g.dtype, np.integer):
-        raise RenderError(f"grid must be an integer array (got {g.dtype})")
-    if not (geom.resolution > 0 and math.isfinite(geom.origin_x) and math.isfinite(geom.origin_y)):
-        raise RenderError(f"bad geometry {geom}")
-    return g
+    """:func:`common.grid.check_grid`, as a RenderError."""
+    try:
+        return check_grid(grid_int8, geom)
+    except GridError as exc:
+        raise RenderError(str(exc)) from None
 
 
 # --- drawing helpers --------------------------------------------------------------------------
@@ -312,59 +363,75 @@ def _scale_bar(frame: Frame, max_px: int) -> tuple[int, str]:
 # --- the renderer ---------------------------------------------------------------------------
 
 
-def render(grid_int8: np.ndarray, geom: GridGeometry, topo: m.TopoGraph | None = None,
-           rel: m.Reliability | None = None, robot_pose=None,
-           trail: Sequence[tuple[float, float, int]] | None = None, target_id: int = -1,
-           title: str = "", px_per_cell: int | None = None, p_free: float = 0.35,
-           p_occ: float = 0.65, truth_occupied: np.ndarray | None = None,
-           p_reliable: float = 0.9, robot_radius: float = 0.2, crop: bool = False) -> np.ndarray:
-    """Draw the map (paper Figs. 4/10/11 style) -> uint8 BGR image (H, W, 3).
+@dataclass(frozen=True)
+class _Checked:
+    """The overlays that need checking, in the form the drawing steps use."""
 
-    - ``topo``: nodes by kind (end = circle, branch = square, corner = diamond) with their ids,
-      edges from their polylines.
-    - ``rel``: end nodes labelled ``id(P)``; green when P >= ``p_reliable``, red below. Reliability
-      entries whose id is not in ``topo`` (or all, without ``topo``) are drawn as end nodes.
-    - ``robot_pose``: (x, y, theta) [m, m, rad], circle of ``robot_radius`` with a heading tick.
-    - ``trail``: [(x, y, segment)], one colour per segment index (labelled with the index as
-      given at its first point), start marked with a square, end with a cross.
-    - ``target_id``: ring around that node. ``truth_occupied``: bool array like the grid; true
-      walls not mapped as occupied are tinted.
-    - ``crop``: render only the known cells and overlays plus a 1 m margin.
-    """
-    g = _check_grid(grid_int8, geom)
-    if not 0.0 < p_free <= p_occ < 1.0:
-        raise RenderError(f"need 0 < p_free <= p_occ < 1 (got {p_free}, {p_occ})")
+    truth: np.ndarray | None  # bool, like the grid
+    robot_pose: tuple[float, float, float] | None
+    trail: np.ndarray | None  # (N, 3): x, y, segment
+
+
+def _check_overlays(ov: Overlays, shape: tuple[int, ...]) -> _Checked:
+    """Check truth, robot pose and trail against the grid ``shape``; RenderError otherwise."""
     truth = None
-    if truth_occupied is not None:
-        truth = np.asarray(truth_occupied)
-        if truth.shape != g.shape:
-            raise RenderError(f"truth_occupied shape {truth.shape} differs from grid {g.shape}")
+    if ov.truth_occupied is not None:
+        truth = np.asarray(ov.truth_occupied)
+        if truth.shape != shape:
+            raise RenderError(f"truth_occupied shape {truth.shape} differs from grid {shape}")
         truth = truth.astype(bool)
-    if robot_pose is not None:
+    pose = None
+    if ov.robot_pose is not None:
         try:
-            robot_pose = tuple(float(v) for v in robot_pose)
+            pose = tuple(float(v) for v in ov.robot_pose)
         except (TypeError, ValueError):
-            raise RenderError(f"robot_pose must be (x, y, theta), got {robot_pose!r}") from None
-        if len(robot_pose) != 3 or not all(math.isfinite(v) for v in robot_pose):
-            raise RenderError(f"robot_pose must be 3 finite numbers, got {robot_pose!r}")
-    trail_pts = None
-    if trail:
+            raise RenderError(f"robot_pose must be (x, y, theta), got {ov.robot_pose!r}") from None
+        if len(pose) != 3 or not all(math.isfinite(v) for v in pose):
+            raise RenderError(f"robot_pose must be 3 finite numbers, got {pose!r}")
+    trail = None
+    if ov.trail:
         try:
-            trail_pts = np.asarray([(float(t[0]), float(t[1]), int(t[2])) for t in trail])
+            trail = np.asarray([(float(t[0]), float(t[1]), int(t[2])) for t in ov.trail])
         except (TypeError, ValueError, IndexError):
             raise RenderError("trail must be a list of (x, y, segment index)") from None
-        if not np.isfinite(trail_pts).all():
+        if not np.isfinite(trail).all():
             raise RenderError("trail has non-finite points")
+    return _Checked(truth, pose, trail)
 
-    frame = make_frame(g, geom, topo, rel, robot_pose, trail, px_per_cell, crop)
-    if crop:
-        (rs, cs), _ = crop_to_content(g, geom, _overlay_points(topo, rel, robot_pose, trail))
-        g = g[rs, cs]
-        truth = truth[rs, cs] if truth is not None else None
-    fg = frame.geom
 
-    # grid, flipped so that row 0 of the image is max y, scaled to the frame
-    cells = _grid_image(g, p_free, p_occ, truth)[::-1]
+def render(grid_int8: np.ndarray, geom: GridGeometry, overlays: Overlays | None = None,
+           style: Style | None = None) -> np.ndarray:
+    """Draw the map (paper Figs. 4/10/11 style) -> uint8 BGR image (H, W, 3).
+
+    ``overlays`` says what to draw over the grid (:class:`Overlays`: graph, reliabilities,
+    robot, trail, target, truth), ``style`` how (:class:`Style`: thresholds, scale, crop, robot
+    radius, title). The image is the title bar, the map, then the legend strip.
+    """
+    ov = overlays or Overlays()
+    style = style or Style()
+    g = _check_grid(grid_int8, geom)
+    checked = _check_overlays(ov, g.shape)
+    frame, window = _layout(g, geom, ov, style)
+    truth = checked.truth[window] if checked.truth is not None else None
+    img = _draw_grid(g[window], truth, frame, style)
+    if ov.topo is not None:
+        _draw_edges(img, frame, ov.topo)
+    if checked.trail is not None:
+        _draw_trail(img, frame, checked.trail)
+    _draw_nodes(img, frame, ov, style.p_reliable)
+    if checked.robot_pose is not None:
+        _draw_robot(img, frame, checked.robot_pose, style.robot_radius)
+    _draw_title(img, frame, style.title)
+    width = img.shape[1]
+    items = _legend_items(truth is not None, ov.rel is not None, style.p_reliable, checked.trail)
+    legend = _legend(width, items, _scale_bar(frame, width // 3))
+    return np.ascontiguousarray(np.vstack([img, legend]))
+
+
+def _draw_grid(g: np.ndarray, truth: np.ndarray | None, frame: Frame, style: Style) -> np.ndarray:
+    """The canvas: title bar, the grid scaled into the frame (row 0 of the image = max y), and
+    the background right of a map narrower than :data:`MIN_WIDTH`."""
+    cells = _grid_image(g, style.p_free, style.p_occ, truth)[::-1]
     interp = cv2.INTER_NEAREST if frame.scale >= 1.0 else cv2.INTER_AREA
     map_img = cv2.resize(np.ascontiguousarray(cells), (frame.map_w, frame.map_h),
                          interpolation=interp)
@@ -373,45 +440,53 @@ def render(grid_int8: np.ndarray, geom: GridGeometry, topo: m.TopoGraph | None =
     canvas[:] = COL_LEGEND_BG
     canvas[TITLE_H:, :frame.map_w] = map_img
     canvas[:TITLE_H] = COL_TITLE_BG
-    img = canvas
+    return canvas
 
-    node_r = 6
-    # skeleton edges
-    if topo is not None:
-        thick = 2 if frame.px_per_m < 40 else 3
-        for e in topo.edges:
-            if len(e.points) < 2:
-                continue
-            pts = np.asarray(e.points, dtype=np.float64)
-            u, v = frame.to_pixel(pts[:, 0], pts[:, 1])
-            poly = np.round(np.stack([u, v], axis=1)).astype(np.int32)
-            cv2.polylines(img, [poly], False, COL_EDGE, thick, cv2.LINE_AA)
 
-    # trail, one colour per segment
-    if trail_pts is not None:
-        u, v = frame.to_pixel(trail_pts[:, 0], trail_pts[:, 1])
-        px = np.round(np.stack([u, v], axis=1)).astype(np.int32)
-        seg = trail_pts[:, 2].astype(int)
-        starts = [0] + [i for i in range(1, len(seg)) if seg[i] != seg[i - 1]]
-        ends = starts[1:] + [len(seg)]
-        for a, b in zip(starts, ends, strict=True):
-            colour = TRAIL_COLOURS[seg[a] % len(TRAIL_COLOURS)]
-            lo = max(0, a - 1)  # connect to the previous segment's last point
-            if b - lo >= 2:
-                cv2.polylines(img, [px[lo:b]], False, colour, 2, cv2.LINE_AA)
-        for a in starts:
-            colour = TRAIL_COLOURS[seg[a] % len(TRAIL_COLOURS)]
-            _text(img, str(seg[a]), (int(px[a, 0]) + 6, int(px[a, 1]) + 16), 0.5, colour, 2)
-        _marker_start(img, int(px[0, 0]), int(px[0, 1]), 6)
-        _marker_end(img, int(px[-1, 0]), int(px[-1, 1]), 7)
+def _draw_edges(img: np.ndarray, frame: Frame, topo: Graph) -> None:
+    """The skeleton: each edge's polyline."""
+    thick = 2 if frame.px_per_m < 40 else 3
+    for e in topo.edges:
+        if len(e.points) < 2:
+            continue
+        pts = np.asarray(e.points, dtype=np.float64)
+        u, v = frame.to_pixel(pts[:, 0], pts[:, 1])
+        poly = np.round(np.stack([u, v], axis=1)).astype(np.int32)
+        cv2.polylines(img, [poly], False, COL_EDGE, thick, cv2.LINE_AA)
 
-    # nodes
-    rel_by_id = {n.id: n for n in rel.nodes} if rel is not None else {}
+
+def _draw_trail(img: np.ndarray, frame: Frame, trail: np.ndarray) -> None:
+    """The robot's path, one colour per segment, each labelled with its index at its start;
+    the start marked with a square, the end with a cross."""
+    u, v = frame.to_pixel(trail[:, 0], trail[:, 1])
+    px = np.round(np.stack([u, v], axis=1)).astype(np.int32)
+    seg = trail[:, 2].astype(int)
+    starts = [0] + [i for i in range(1, len(seg)) if seg[i] != seg[i - 1]]
+    ends = starts[1:] + [len(seg)]
+    for a, b in zip(starts, ends, strict=True):
+        colour = TRAIL_COLOURS[seg[a] % len(TRAIL_COLOURS)]
+        lo = max(0, a - 1)  # connect to the previous segment's last point
+        if b - lo >= 2:
+            cv2.polylines(img, [px[lo:b]], False, colour, 2, cv2.LINE_AA)
+    for a in starts:
+        colour = TRAIL_COLOURS[seg[a] % len(TRAIL_COLOURS)]
+        _text(img, str(seg[a]), (int(px[a, 0]) + 6, int(px[a, 1]) + 16), 0.5, colour, 2)
+    _marker_start(img, int(px[0, 0]), int(px[0, 1]), 6)
+    _marker_end(img, int(px[-1, 0]), int(px[-1, 1]), 7)
+
+
+NODE_R = 6  # [px] base node size
+
+
+def _draw_nodes(img: np.ndarray, frame: Frame, ov: Overlays, p_reliable: float) -> None:
+    """Graph nodes and reliability entries (corners, then branches, then end nodes on top),
+    the target ring, then every label (so no shape covers a label)."""
+    rel_by_id = {n.id: n for n in ov.rel} if ov.rel is not None else {}
     drawn: list[tuple[int, str, float, float]] = []  # (id, kind, x, y)
-    if topo is not None:
-        drawn += [(n.id, n.kind, n.x, n.y) for n in topo.nodes]
+    if ov.topo is not None:
+        drawn += [(n.id, n.kind, n.x, n.y) for n in ov.topo.nodes]
     topo_ids = {d[0] for d in drawn}
-    drawn += [(n.id, "end", n.x, n.y) for n in rel.nodes if n.id not in topo_ids] if rel else []
+    drawn += [(n.id, "end", n.x, n.y) for n in ov.rel if n.id not in topo_ids] if ov.rel else []
     order = {"corner": 0, "branch": 1, "end": 2}
     drawn.sort(key=lambda d: order.get(d[1], 3))
     labels = []
@@ -421,21 +496,23 @@ def render(grid_int8: np.ndarray, geom: GridGeometry, topo: m.TopoGraph | None =
             r = rel_by_id.get(nid)
             colour = COL_END_RELIABLE if (r is not None and r.p >= p_reliable) else COL_END
             label = f"{nid}({r.p:.2f})" if r is not None else f"{nid}"
-            _node_shape(img, "end", uu, vv, node_r + 1, colour)
+            _node_shape(img, "end", uu, vv, NODE_R + 1, colour)
             labels.append((label, uu, vv, colour, 0.5))
         else:
-            _node_shape(img, kind, uu, vv, node_r - 1,
+            _node_shape(img, kind, uu, vv, NODE_R - 1,
                         COL_BRANCH if kind == "branch" else COL_CORNER)
             labels.append((str(nid), uu, vv, (70, 70, 70), 0.4))
-        if nid == target_id:
-            cv2.circle(img, (uu, vv), node_r + 7, COL_TARGET, 3, cv2.LINE_AA)
+        if nid == ov.target_id:
+            cv2.circle(img, (uu, vv), NODE_R + 7, COL_TARGET, 3, cv2.LINE_AA)
     for label, uu, vv, colour, sc in labels:
-        _text(img, label, (uu + node_r + 3, vv - node_r - 1), sc, colour, 1)
+        _text(img, label, (uu + NODE_R + 3, vv - NODE_R - 1), sc, colour, 1)
 
-    if robot_pose is not None:
-        _draw_robot(img, frame, robot_pose, robot_radius)
 
-    # title bar
+def _draw_title(img: np.ndarray, frame: Frame, title: str) -> None:
+    """The title on the left of the title bar; the grid's size and extent on the right if
+    both fit."""
+    fg = frame.geom
+    width = img.shape[1]
     head = title or "topoexplore map"
     _text(img, head, (10, 23), 0.6, (255, 255, 255), 1, halo=None)
     info = (f"{fg.width}x{fg.height} cells @ {fg.resolution:g} m  "
@@ -446,38 +523,43 @@ def render(grid_int8: np.ndarray, geom: GridGeometry, topo: m.TopoGraph | None =
     if 10 + hw + 20 + tw < width - 10:
         _text(img, info, (width - tw - 10, 22), 0.4, (200, 200, 200), 1, halo=None)
 
-    # legend
+
+def _draw_robot_item(im, cx: int, cy: int) -> None:
+    cv2.circle(im, (cx, cy), 7, COL_ROBOT, -1)
+    cv2.circle(im, (cx, cy), 7, (0, 0, 0), 1)
+    cv2.line(im, (cx, cy), (cx + 11, cy), COL_HEADING, 2)
+
+
+def _legend_items(with_truth: bool, with_rel: bool, p_reliable: float,
+                  trail: np.ndarray | None) -> list[tuple[str, object]]:
+    """(label, draw) of every legend entry that applies to the image."""
     items: list[tuple[str, object]] = [
         ("free", _swatch(COL_FREE)),
         ("occupied", _swatch(COL_OCCUPIED)),
         ("unknown", _swatch(COL_UNKNOWN)),
         ("uncertain", _swatch(COL_UNCERTAIN)),
     ]
-    if truth is not None:
+    if with_truth:
         items.append(("true wall, not mapped", _swatch(COL_TRUTH)))
     items += [
         ("edge", _line_item(COL_EDGE)),
-        (f"end node (P < {p_reliable:g})" if rel is not None else "end node",
+        (f"end node (P < {p_reliable:g})" if with_rel else "end node",
          _node_item("end", COL_END)),
     ]
-    if rel is not None:
+    if with_rel:
         items.append((f"end node reliable (P >= {p_reliable:g})",
                       _node_item("end", COL_END_RELIABLE)))
     items += [("branch node", _node_item("branch", COL_BRANCH)),
               ("corner node", _node_item("corner", COL_CORNER)),
               ("target", lambda im, cx, cy: cv2.circle(im, (cx, cy), 8, COL_TARGET, 3,
                                                        cv2.LINE_AA)),
-              ("robot", lambda im, cx, cy: (cv2.circle(im, (cx, cy), 7, COL_ROBOT, -1),
-                                            cv2.circle(im, (cx, cy), 7, (0, 0, 0), 1),
-                                            cv2.line(im, (cx, cy), (cx + 11, cy), COL_HEADING,
-                                                     2)))]
-    if trail_pts is not None:
-        segs = list(dict.fromkeys(int(s) for s in trail_pts[:, 2]))
+              ("robot", _draw_robot_item)]
+    if trail is not None:
+        segs = list(dict.fromkeys(int(s) for s in trail[:, 2]))
         for s in segs[:10]:
             items.append((f"path {s}", _line_item(TRAIL_COLOURS[s % len(TRAIL_COLOURS)])))
         if len(segs) > 10:
             items.append((f"... {len(segs)} paths", _line_item((127, 127, 127))))
         items += [("start", lambda im, cx, cy: _marker_start(im, cx, cy, 6)),
                   ("end", lambda im, cx, cy: _marker_end(im, cx, cy, 6))]
-    legend = _legend(width, items, _scale_bar(frame, width // 3))
-    return np.ascontiguousarray(np.vstack([img, legend]))
+    return items

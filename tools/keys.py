@@ -37,10 +37,12 @@ from typing import Any
 
 import msgspec
 import numpy as np
+import yaml
 
 from topoexplore.common import messages as m
-from topoexplore.common.bus import DEFAULT_ENDPOINT, Bus, BusError, init_logging
+from topoexplore.common.bus import Bus, BusError, init_logging
 from topoexplore.common.keys import (
+    DEFAULT_ENDPOINT,
     DEFAULT_NAMESPACE,
     DEFAULT_ROBOT,
     SERVICES,
@@ -293,88 +295,64 @@ def select_fields(obj: Any, paths: list[str]) -> dict[str, Any]:
 
 # --- output formatting -------------------------------------------------------------------------
 
-_PLAIN_STR = re.compile(r"^[A-Za-z_/][\w./:+\-]*$")
-_YAML_WORDS = {"true", "false", "null", "yes", "no", "on", "off", "~"}
+class _YamlDumper(yaml.SafeDumper):
+    """``yaml.safe_dump``'s dumper with four changes for display: a :class:`Summary` is written
+    as it is (plain, never quoted: a note for the reader, not a value to read back), a list of
+    scalars is written inline (a point is ``[x, y]``), objects met twice are written twice (no
+    anchors), and other types are written as their ``str``."""
+
+    def represent_list(self, data: list) -> yaml.Node:
+        flow = bool(data) and not any(isinstance(v, (dict, list)) for v in data)
+        return self.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=flow)
+
+    def choose_scalar_style(self):
+        if isinstance(self.event.value, Summary):
+            return ""
+        return super().choose_scalar_style()
+
+    def ignore_aliases(self, data: Any) -> bool:
+        return True
 
 
-def format_scalar(v: Any) -> str:
-    """One scalar in YAML-ish form."""
-    if v is None:
-        return "null"
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, float):
-        if math.isnan(v):
-            return ".nan"
-        if math.isinf(v):
-            return ".inf" if v > 0 else "-.inf"
-        # drop binary noise (9.350000000000001 -> 9.35) but keep ns of wall-clock stamps
-        return repr(v) if v == 0.0 or abs(v) < 1e-3 else repr(round(v, 9))
-    if isinstance(v, Summary):
-        return str(v)
-    if isinstance(v, str):
-        if _PLAIN_STR.match(v) and v.lower() not in _YAML_WORDS:
-            return v
-        return json.dumps(v)
-    if isinstance(v, (bytes, bytearray)):
-        return "!!binary " + base64.b64encode(bytes(v)).decode()
-    return str(v)
+_YamlDumper.add_representer(
+    Summary, lambda d, s: d.represent_scalar("tag:yaml.org,2002:str", s))
+_YamlDumper.add_representer(list, _YamlDumper.represent_list)
+_YamlDumper.add_multi_representer(object, lambda d, v: d.represent_str(str(v)))
+
+
+def _for_yaml(obj: Any) -> Any:
+    """What the dumper should write: tuples as lists, byte buffers as bytes (``!!binary``),
+    number subclasses as plain numbers, floats without binary noise (9.350000000000001 ->
+    9.35) but with the ns of wall-clock stamps; non-finite floats stay (``.nan``, ``.inf``)."""
+    if isinstance(obj, dict):
+        return {k: _for_yaml(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_for_yaml(v) for v in obj]
+    if isinstance(obj, (bytearray, memoryview)):
+        return bytes(obj)
+    if isinstance(obj, float):
+        v = float(obj)
+        return v if v == 0.0 or abs(v) < 1e-3 or not math.isfinite(v) else round(v, 9)
+    if isinstance(obj, int) and not isinstance(obj, bool):
+        return int(obj)
+    return obj
+
+
+def format_yaml(obj: Any) -> str:
+    """A decoded message, part of one or a scalar as YAML text (no final newline), written by
+    the PyYAML safe dumper: block style with short lists of scalars inline (a point is
+    ``[x, y]``), keys in message order, unicode as is, no line folding;
+    :class:`Summary` strings plain, bytes as ``!!binary``, non-finite floats as ``.nan``/``.inf``.
+    """
+    text = yaml.dump(_for_yaml(obj), Dumper=_YamlDumper, default_flow_style=False,
+                     sort_keys=False, allow_unicode=True, width=math.inf)
+    if text.endswith("\n...\n"):  # the document end marker after a lone plain scalar
+        text = text[:-4]
+    return text.rstrip("\n")
 
 
 def _is_scalar(v: Any) -> bool:
     return not isinstance(v, (dict, list, tuple))
-
-
-def _inline(v: Any) -> str | None:
-    """Flow style for a short list of scalars (or of short scalar lists), else None."""
-    if isinstance(v, (list, tuple)):
-        parts = []
-        for x in v:
-            if _is_scalar(x):
-                parts.append(format_scalar(x))
-            elif isinstance(x, (list, tuple)) and all(_is_scalar(y) for y in x):
-                parts.append("[" + ", ".join(format_scalar(y) for y in x) + "]")
-            else:
-                return None
-        text = "[" + ", ".join(parts) + "]"
-        return text if len(text) <= 100 else None
-    if isinstance(v, dict) and not v:
-        return "{}"
-    return None
-
-
-def format_yaml(obj: Any, indent: int = 0) -> list[str]:
-    """Nested dicts/lists -> YAML-ish lines (two spaces per level)."""
-    pad = "  " * indent
-    if _is_scalar(obj):
-        return [pad + format_scalar(obj)]
-    flow = _inline(obj)
-    if flow is not None and (isinstance(obj, dict) or indent == 0):
-        return [pad + flow]
-    lines: list[str] = []
-    if isinstance(obj, dict):
-        for k, v in obj.items():
-            head = f"{pad}{k}:"
-            flow = None if _is_scalar(v) else _inline(v)
-            if _is_scalar(v):
-                lines.append(f"{head} {format_scalar(v)}")
-            elif flow is not None:
-                lines.append(f"{head} {flow}")
-            else:
-                lines.append(head)
-                lines.extend(format_yaml(v, indent + 1))
-        return lines
-    for item in obj:  # list, block style: "- " items
-        flow = None if _is_scalar(item) else _inline(item)
-        if _is_scalar(item) or flow is not None:
-            lines.append(f"{pad}- {flow if flow is not None else format_scalar(item)}")
-            continue
-        sub = format_yaml(item, indent + 1)
-        sub[0] = f"{pad}- {sub[0].lstrip()}"
-        lines.extend(sub)
-    if not lines:
-        lines.append(pad + "[]")
-    return lines
 
 
 def to_jsonable(obj: Any) -> Any:
@@ -420,7 +398,8 @@ def format_table(headers: list[str], rows: list[list[Any]]) -> str:
     ]
     out = []
     for r in cells:
-        parts = [c.rjust(w) if num else c.ljust(w) for c, w, num in zip(r, widths, numeric, strict=True)]
+        parts = [c.rjust(w) if num else c.ljust(w)
+                 for c, w, num in zip(r, widths, numeric, strict=True)]
         out.append("  ".join(parts).rstrip())
     return "\n".join(out)
 
@@ -663,6 +642,24 @@ class _KeyCollector:
                 self.bad[key] = self.bad.get(key, 0) + 1
                 self.last_error[key] = err
 
+    def rows(self) -> list[dict[str, Any]]:
+        """One row per key seen (sorted): type, count, rate, last size, bad count, last error."""
+        with self.lock:
+            rows = []
+            for key in sorted(self.stats):
+                st = self.stats[key]
+                su = st.summary()
+                rows.append({
+                    "key": key,
+                    "type": self.types.get(key, "?"),
+                    "count": su["count"],
+                    "rate_hz": None if su["rate_hz"] is None else round(su["rate_hz"], 3),
+                    "size": st.last_size,
+                    "bad": self.bad.get(key, 0),
+                    "last_error": self.last_error.get(key, ""),
+                })
+        return rows
+
 
 def _probe_state(bus: Bus, key: str, timeout: float) -> dict[str, Any]:
     """Query one state queryable -> {key, ok, size, error}."""
@@ -696,33 +693,35 @@ def cmd_list(args: argparse.Namespace, bus: Bus, keys: Keys, stop: _Stop) -> int
     window = time.monotonic() - t0
     if stop.event.is_set():
         return 130 if stop.interrupted else 0
-    with col.lock:  # snapshot at the end of the window
-        rows = []
-        for key in sorted(col.stats):
-            st = col.stats[key]
-            su = st.summary()
-            rows.append({
-                "key": key,
-                "type": col.types.get(key, "?"),
-                "count": su["count"],
-                "rate_hz": None if su["rate_hz"] is None else round(su["rate_hz"], 3),
-                "size": st.last_size,
-                "bad": col.bad.get(key, 0),
-                "last_error": col.last_error.get(key, ""),
-            })
-    services = []
-    states = []
-    for k in bus.alive(alive_key, timeout=args.timeout):
-        robot_prefix, service = k.rsplit("/alive/", 1)
-        services.append({"service": service, "robot": short_key(robot_prefix, keys.namespace),
-                         "token": k})
-        # one query per live service: replies carry the query's key, not the queryable's
-        states.append(_probe_state(bus, f"{robot_prefix}/{service}/state", args.timeout))
-    states.sort(key=lambda s: s["key"])
+    rows = col.rows()  # snapshot at the end of the window
+    services, states = _live_services(bus, alive_key, keys.namespace, args.timeout)
     if args.json:
         _out(dumps_json({"base": base, "duration": round(window, 3), "services": services,
                          "states": states, "keys": rows}))
         return 0
+    _print_list(base, window, services, states, rows, args.all_robots)
+    return 0
+
+
+def _live_services(bus: Bus, alive_key: str, namespace: str,
+                   timeout: float) -> tuple[list[dict], list[dict]]:
+    """The services with a liveliness token under ``alive_key``, and the answer of each one's
+    state queryable (sorted by key)."""
+    services = []
+    states = []
+    for k in bus.alive(alive_key, timeout=timeout):
+        robot_prefix, service = k.rsplit("/alive/", 1)
+        services.append({"service": service, "robot": short_key(robot_prefix, namespace),
+                         "token": k})
+        # one query per live service: replies carry the query's key, not the queryable's
+        states.append(_probe_state(bus, f"{robot_prefix}/{service}/state", timeout))
+    states.sort(key=lambda s: s["key"])
+    return services, states
+
+
+def _print_list(base: str, window: float, services: list[dict], states: list[dict],
+                rows: list[dict], all_robots: bool) -> None:
+    """``keys list`` as text: the live services, their state queryables, the keys seen."""
     _out(f"services alive under {base}/ ({len(services)}):")
     if services:
         _out(format_table(["SERVICE", "ROBOT", "TOKEN"], [
@@ -743,10 +742,9 @@ def cmd_list(args: argparse.Namespace, bus: Bus, keys: Keys, stop: _Stop) -> int
         if r["bad"]:
             _out(f"  {short_key(r['key'], base)}: last error: {r['last_error']}")
     if not rows and not services:
-        hint = "" if args.all_robots else " or --all-robots"
+        hint = "" if all_robots else " or --all-robots"
         _out(f"nothing under {base}/: is the stack running there? (check --namespace/--robot"
              f"{hint}, --connect)")
-    return 0
 
 
 def _render(value: Any, args: argparse.Namespace, name: str = "") -> Any:
@@ -771,11 +769,11 @@ def _print_value(key: str, tname: str, size: int, value: Any, fields: list[str],
             _out(dumps_json(value))
         return
     if _is_scalar(value) and fields:
-        _out(f"{key}: {format_scalar(value)}" if many_keys else format_scalar(value))
+        _out(format_yaml({key: value} if many_keys else value))
         return
     if many_keys:
         _out(f"# {key} [{tname}] {size} B")
-    _out("\n".join(format_yaml(value)))
+    _out(format_yaml(value))
     _out("---")
 
 

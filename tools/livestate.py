@@ -7,8 +7,10 @@ from typing import Any
 import msgspec
 import numpy as np
 
+from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.bus import Bus
+from topoexplore.common.domain import Belief, Graph
 from topoexplore.common.grid import GridGeometry
 from topoexplore.common.keys import Keys
 
@@ -48,4 +50,18 @@ def map_from_state(state: dict[str, Any]) -> tuple[np.ndarray, GridGeometry]:
     grid = as_message(state.get("map"), m.OccupancyGrid)
     if grid is None:
         raise StateError("the mapper has no map yet")
-    return m.grid_to_array(grid).copy(), GridGeometry.of(grid)
+    g = convert.grid_from_msg(grid)
+    return g.data.copy(), g.geom
+
+
+def graph_from_state(value: Any) -> Graph | None:
+    """The topological graph nested in a state reply (or a saved topology.json), as a domain
+    Graph; None when absent."""
+    msg = as_message(value, m.TopoGraph)
+    return None if msg is None else convert.graph_from_msg(msg)
+
+
+def beliefs_from_state(value: Any) -> list[Belief] | None:
+    """The reliability message nested in a state reply, as a list of Belief; None when absent."""
+    msg = as_message(value, m.Reliability)
+    return None if msg is None else convert.beliefs_from_msg(msg)

@@ -13,7 +13,15 @@ import math
 
 import numpy as np
 
-from topoexplore.common.grid import FREE, OCCUPIED, UNKNOWN, GridGeometry, classify
+from topoexplore.common.grid import (
+    FREE,
+    OCCUPIED,
+    UNKNOWN,
+    GridError,
+    GridGeometry,
+    check_grid,
+    classify,
+)
 
 __all__ = ["MetricsError", "sample_classes", "coverage", "map_accuracy", "accuracy_counts"]
 
@@ -23,15 +31,15 @@ class MetricsError(ValueError):
 
 
 def _check_map(grid_int8, geom: GridGeometry) -> np.ndarray:
-    if not isinstance(geom, GridGeometry):
-        raise MetricsError(f"geom must be a GridGeometry (got {type(geom).__name__})")
+    """:func:`common.grid.check_grid`, as a MetricsError; a flat array of width x height cells
+    (the wire layout, row by row) is taken as the grid."""
     g = np.asarray(grid_int8)
-    if g.ndim == 1 and g.size == geom.width * geom.height:
+    if isinstance(geom, GridGeometry) and g.ndim == 1 and g.size == geom.width * geom.height:
         g = g.reshape(geom.height, geom.width)
-    if g.shape != (geom.height, geom.width):
-        raise MetricsError(f"map shape {g.shape} does not match geometry "
-                           f"{geom.height}x{geom.width} (rows x cols)")
-    return g
+    try:
+        return check_grid(g, geom)
+    except GridError as exc:
+        raise MetricsError(str(exc)) from None
 
 
 def _check_truth(truth, truth_origin, resolution, what: str) -> np.ndarray:

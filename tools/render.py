@@ -12,8 +12,7 @@ import json
 import sys
 from pathlib import Path
 
-from topoexplore.common import messages as m
-from topoexplore.tools.livestate import StateError, as_message
+from topoexplore.tools.livestate import StateError, beliefs_from_state, graph_from_state
 
 
 def _err(text: str) -> int:
@@ -35,8 +34,8 @@ def load_run(run_dir: Path):
             raise StateError(f"{tj}: not valid JSON ({exc})") from None
         if not isinstance(doc, dict):
             raise StateError(f"{tj}: expected an object with 'topo' and 'reliability'")
-        topo = as_message(doc.get("topo"), m.TopoGraph)
-        rel = as_message(doc.get("reliability"), m.Reliability)
+        topo = graph_from_state(doc.get("topo"))
+        rel = beliefs_from_state(doc.get("reliability"))
     trail = []
     tc = run_dir / "trail.csv"
     if tc.exists():
@@ -61,10 +60,9 @@ def load_live(args: argparse.Namespace):
         grid, geom = map_from_state(fetch_state(bus, keys, "mapper", args.timeout))
         topo = rel = None
         try:
-            topo = as_message(fetch_state(bus, keys, "topology", args.timeout).get("topo"),
-                              m.TopoGraph)
-            rel = as_message(fetch_state(bus, keys, "reliability", args.timeout).get("last"),
-                             m.Reliability)
+            topo = graph_from_state(fetch_state(bus, keys, "topology", args.timeout).get("topo"))
+            rel = beliefs_from_state(
+                fetch_state(bus, keys, "reliability", args.timeout).get("last"))
         except StateError:
             pass
     return grid, geom, topo, rel, []
@@ -73,9 +71,9 @@ def load_live(args: argparse.Namespace):
 def main(argv: list[str] | None = None) -> int:
     from topoexplore.common.bus import BusError
     from topoexplore.common.mapio import MapIOError, write_png
-    from topoexplore.common.node import add_bus_args, add_param_args
+    from topoexplore.common.node import add_bus_args, add_param_args, params_from_args
     from topoexplore.common.params import ParamError
-    from topoexplore.tools.draw import render
+    from topoexplore.tools.draw import Overlays, Style, render
 
     ap = argparse.ArgumentParser(prog="topoexplore render", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -101,7 +99,11 @@ def main(argv: list[str] | None = None) -> int:
             grid, geom, topo, rel, trail = load_run(run_dir)
         title = args.title if args.title is not None else (
             "live" if args.live else Path(args.run_dir).name)
-        img = render(grid, geom, topo=topo, rel=rel, trail=trail or None, title=title)
+        P = params_from_args(args)  # the thresholds and robot size of --params / --set
+        style = Style(p_free=P.mapper.p_free, p_occ=P.mapper.p_occ,
+                      p_reliable=P.reliability.p_reliable, robot_radius=P.robot.radius,
+                      title=title)
+        img = render(grid, geom, Overlays(topo=topo, rel=rel, trail=trail or None), style)
         write_png(out, img)
     except (StateError, MapIOError, BusError, ParamError) as exc:
         return _err(str(exc))

@@ -1,6 +1,6 @@
 """A Zenoh router process (there is no zenohd on PyPI: a Python session in router mode is one).
 
-``python -m common.router --listen tcp/127.0.0.1:7447`` (the supervisor starts it).
+``python -m topoexplore.tools.router --listen tcp/127.0.0.1:7447`` (the supervisor starts it).
 """
 
 from __future__ import annotations
@@ -10,7 +10,8 @@ import signal
 import sys
 import threading
 
-from topoexplore.common.bus import DEFAULT_ENDPOINT, Bus, BusError, init_logging
+from topoexplore.common.bus import Bus, BusError, init_logging
+from topoexplore.common.keys import DEFAULT_ENDPOINT
 
 
 def main(argv: list[str] | None = None) -> int:

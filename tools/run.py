@@ -27,10 +27,10 @@ from typing import Any
 
 import msgspec
 
+from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.bus import Bus, BusError
-from topoexplore.common.grid import GridGeometry
-from topoexplore.common.keys import Keys
+from topoexplore.common.keys import DEFAULT_ENDPOINT, Keys
 from topoexplore.common.node import add_bus_args, add_param_args, params_from_args
 from topoexplore.common.params import STRATEGIES, ParamError, Params
 
@@ -120,7 +120,8 @@ class Monitor:
         with self.lock:
             p = msg.pose
             self.pose = (p.x, p.y, p.theta)
-            if not self.trail or math.hypot(p.x - self.trail[-1][0], p.y - self.trail[-1][1]) > 0.02:
+            last = self.trail[-1] if self.trail else None
+            if last is None or math.hypot(p.x - last[0], p.y - last[1]) > 0.02:
                 self.trail.append((p.x, p.y, self.segment))
 
     def on_plan(self, msg: m.Path) -> None:
@@ -191,16 +192,18 @@ class Truth:
 
         if grid is None:
             return 0.0
-        return float(coverage(m.grid_to_array(grid), GridGeometry.of(grid), self.free,
-                              self.free_origin, self.resolution, p.mapper.p_free, p.mapper.p_occ))
+        g = convert.grid_from_msg(grid)
+        return float(coverage(g.data, g.geom, self.free, self.free_origin, self.resolution,
+                              p.mapper.p_free, p.mapper.p_occ))
 
     def accuracy(self, grid: m.OccupancyGrid | None, p: Params) -> float:
         from topoexplore.tools.metrics import map_accuracy
 
         if grid is None:
             return 0.0
-        return float(map_accuracy(m.grid_to_array(grid), GridGeometry.of(grid), self.occ,
-                                  self.origin, self.resolution, p.mapper.p_free, p.mapper.p_occ))
+        g = convert.grid_from_msg(grid)
+        return float(map_accuracy(g.data, g.geom, self.occ, self.origin, self.resolution,
+                                  p.mapper.p_free, p.mapper.p_occ))
 
 
 def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_reason: str,
@@ -255,7 +258,7 @@ def _bad_message_total(bus: Bus, keys: Keys) -> int:
 def write_outputs(out: Path, report: dict, mon: Monitor, truth: Truth, p: Params,
                   title: str) -> None:
     from topoexplore.common.mapio import write_map_server, write_png
-    from topoexplore.tools.draw import render
+    from topoexplore.tools.draw import Overlays, Style, render
 
     out.mkdir(parents=True, exist_ok=True)
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
@@ -274,104 +277,238 @@ def write_outputs(out: Path, report: dict, mon: Monitor, truth: Truth, p: Params
     (out / "topology.json").write_text(json.dumps(topo_doc, indent=1) + "\n")
     if mon.grid is None:
         return
-    grid = m.grid_to_array(mon.grid)
-    geom = GridGeometry.of(mon.grid)
+    g = convert.grid_from_msg(mon.grid)
+    grid, geom = g.data, g.geom
     write_map_server(out / "map.yaml", grid, geom, p.mapper.p_free, p.mapper.p_occ)
-    img = render(grid, geom, topo=mon.topo, rel=mon.rel, robot_pose=mon.pose, trail=mon.trail,
-                 target_id=mon.plan.target_id if mon.plan else -1, title=title,
-                 p_free=p.mapper.p_free, p_occ=p.mapper.p_occ, p_reliable=p.planner.p_reliable,
-                 robot_radius=p.sim.robot_radius, crop=True)
+    topo = convert.graph_from_msg(mon.topo) if mon.topo is not None else None
+    rel = convert.beliefs_from_msg(mon.rel) if mon.rel is not None else None
+    overlays = Overlays(topo=topo, rel=rel, robot_pose=mon.pose, trail=mon.trail,
+                        target_id=mon.plan.target_id if mon.plan else -1)
+    style = Style(p_free=p.mapper.p_free, p_occ=p.mapper.p_occ,
+                  p_reliable=p.reliability.p_reliable, robot_radius=p.robot.radius, crop=True,
+                  title=title)
+    img = render(grid, geom, overlays, style)
     write_png(out / "final.png", img)
 
 
 def run(args: argparse.Namespace) -> int:
-    from topoexplore.sim.world import WorldError, load_world
-    from topoexplore.tools.launch.core import load_profile
-    from topoexplore.tools.launch.supervisor import Supervisor, profile_path
+    """``topoexplore run``: check the input, run the stack until exploration ends, write the
+    outputs. Returns the exit code (0 finished, 1 not finished, 2 bad input)."""
+    try:
+        setup = check_input(args)
+    except InputError as exc:
+        return _fail(str(exc), 2)
+    truth = Truth(args.world, setup.params.mapper.resolution)
+    console = Console.for_args(args)
+    session = StackRun(args, setup, truth, console)
+    outcome = session.execute()
+    report = write_results(args, setup, truth, session.mon, outcome)
+    console.echo(summary_line(report, setup.out))
+    if not outcome.finished:
+        print(f"topoexplore: exploration did not finish: {outcome.reason}", file=sys.stderr)
+        return 1
+    return 0
 
-    # -- validate everything before starting anything -------------------------------------
+
+# --- step 1: arguments and parameters ---------------------------------------------------------
+
+
+class InputError(ValueError):
+    """A bad argument or parameter: ``run`` exits 2 with this line before starting anything."""
+
+
+@dataclass(frozen=True)
+class Setup:
+    """What the checked input gives a run: parameters (with the run's overrides), key space,
+    the overrides the services get, and the output directory (created)."""
+
+    params: Params
+    keys: Keys
+    overrides: list[str]
+    out: Path
+
+    @property
+    def endpoint(self) -> str:
+        return self.params.bus.connect
+
+
+def check_input(args: argparse.Namespace) -> Setup:
+    """Check every argument and parameter before anything starts; InputError otherwise."""
+    from topoexplore.sim.world import WorldError, load_world
+
     if not (args.speed > 0 and math.isfinite(args.speed)):
-        return _fail("--speed must be a positive number", 2)
+        raise InputError("--speed must be a positive number")
     if not (args.max_sim_time > 0):
-        return _fail("--max-sim-time must be positive", 2)
+        raise InputError("--max-sim-time must be positive")
     try:
         load_world(args.world)
     except WorldError as exc:
-        return _fail(str(exc), 2)
-    overrides = [f"sim.world={json.dumps(args.world)}", f"sim.seed={args.seed}",
-                 f"sim.lockstep={'true' if args.lockstep else 'false'}",
-                 f"sim.speed={args.speed}", f'planner.strategy="{args.strategy}"'] + list(args.set)
-    if args.connect is None:
-        endpoint = "tcp/127.0.0.1:7447"
-        if port_in_use(endpoint):
-            endpoint = f"tcp/127.0.0.1:{free_port()}"
-        overrides.append(f'bus.connect="{endpoint}"')
-    saved_set = args.set
-    args.set = overrides
-    try:
-        params = params_from_args(args)
-    except ParamError as exc:
-        return _fail(str(exc), 2)
-    finally:
-        args.set = saved_set
+        raise InputError(str(exc)) from None
+    overrides = run_overrides(args)
+    params = _params_with(args, overrides)
     keys = Keys(params.bus.namespace, params.bus.robot)
-    endpoint = params.bus.connect
     out = Path(args.out)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        return _fail(f"cannot create output directory {out}: {exc}", 2)
-    truth = Truth(args.world, params.mapper.resolution)
+        raise InputError(f"cannot create output directory {out}: {exc}") from None
+    return Setup(params, keys, overrides, out)
 
-    logf = (out / "logs.txt").open("w")
-    log_lock = threading.Lock()
-    quiet = args.quiet
 
-    def sink(line: str) -> None:
-        with log_lock:
-            logf.write(line + "\n")
-            logf.flush()
-        if not quiet and ("WARNING" in line or "ERROR" in line or "Traceback" in line
-                          or "[supervisor]" in line and "exited" in line):
-            _echo(line)
+def run_overrides(args: argparse.Namespace) -> list[str]:
+    """The ``--set`` overrides every service gets: world, seed, mode, speed and strategy of the
+    run, the user's own ``--set``, and a free router port unless ``--connect`` names one."""
+    overrides = [f"sim.world={json.dumps(args.world)}", f"sim.seed={args.seed}",
+                 f"runtime.lockstep={'true' if args.lockstep else 'false'}",
+                 f"sim.speed={args.speed}", f'planner.strategy="{args.strategy}"'] + list(args.set)
+    if args.connect is None:
+        endpoint = DEFAULT_ENDPOINT
+        if port_in_use(endpoint):
+            endpoint = f"tcp/127.0.0.1:{free_port()}"
+        overrides.append(f'bus.connect="{endpoint}"')
+    return overrides
 
-    bar = None
-    if not (args.no_progress or quiet):
+
+def _params_with(args: argparse.Namespace, overrides: list[str]) -> Params:
+    """The parameters as the services will see them (``args.set`` is left as it was)."""
+    saved_set = args.set
+    args.set = overrides
+    try:
+        return params_from_args(args)
+    except ParamError as exc:
+        raise InputError(str(exc)) from None
+    finally:
+        args.set = saved_set
+
+
+# --- the console: progress bar and messages ------------------------------------------------
+
+
+class Console:
+    """Where ``run`` talks: stderr, through the progress bar when there is one (so a message
+    does not tear the bar)."""
+
+    def __init__(self, bar: Any = None):
+        self.bar = bar
+
+    @classmethod
+    def for_args(cls, args: argparse.Namespace) -> Console:
+        """With a tqdm bar over the sim time, unless ``--no-progress`` or ``--quiet``."""
+        if args.no_progress or args.quiet:
+            return cls()
         from tqdm import tqdm
 
-        bar = tqdm(total=round(args.max_sim_time), unit="s", desc=f"{args.world}",
-                   dynamic_ncols=True, mininterval=0.3, file=sys.stderr,
-                   bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} sim s "
-                              "[{elapsed}{postfix}]")
-        global _BAR
-        _BAR = bar
+        return cls(tqdm(total=round(args.max_sim_time), unit="s", desc=f"{args.world}",
+                        dynamic_ncols=True, mininterval=0.3, file=sys.stderr,
+                        bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} sim s "
+                                   "[{elapsed}{postfix}]"))
 
-    profile = load_profile(profile_path("sim"))
-    sup = Supervisor(profile, keys, endpoint, params_file=args.params, overrides=overrides,
-                     zenoh_config=args.zenoh_config, sink=sink)
-    stop = threading.Event()
-    interrupted = []
+    def echo(self, line: str) -> None:
+        if self.bar is not None:
+            self.bar.write(line, file=sys.stderr)
+        else:
+            print(line, file=sys.stderr, flush=True)
 
-    def on_signal(signum: int, frame: Any) -> None:
-        interrupted.append(signum)
-        stop.set()
+    def progress(self, sim_t: float, coverage: float, st: m.ExploreStatus | None) -> None:
+        """Show the sim time, coverage and the current target or state (only with a bar)."""
+        tgt = ""
+        if st is not None and st.target_id >= 0:
+            tgt = f" target {st.target_id} (P={st.target_p:.2f})"
+        elif st is not None:
+            tgt = f" {st.state}"
+        self.bar.set_postfix_str(f"coverage {coverage:.2f}{tgt}", refresh=False)
+        self.bar.n = min(self.bar.total, sim_t)
+        self.bar.refresh()
 
-    old_int = signal.signal(signal.SIGINT, on_signal)
-    old_term = signal.signal(signal.SIGTERM, on_signal)
-    mon = Monitor()
-    mon.coverage_fn = lambda g: truth.coverage(g, params)
-    bus: Bus | None = None
-    t0 = time.monotonic()
-    finished, reason = False, ""
-    startup = 0.0
-    restarts = bad = 0
-    try:
-        if not quiet:
-            _echo(f"exploring {args.world} with strategy {args.strategy} "
-                  f"({'lockstep' if args.lockstep else f'real time x{args.speed:g}'}, seed "
-                  f"{args.seed}) on {endpoint} as {keys.prefix}; logs in {out / 'logs.txt'}")
-        sup.start_router()  # first, so the monitor below sees the run from its first message
-        bus = Bus.client(endpoint, name="run", config_file=args.zenoh_config, wait_for_router=True)
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+# --- steps 2-4: start the stack, watch the run, stop -------------------------------------------
+
+
+@dataclass
+class Outcome:
+    """How the run went, for the report."""
+
+    finished: bool = False
+    reason: str = ""
+    startup: float = 0.0  # [s] wall time until every service was up
+    wall: float = 0.0  # [s] wall time of the run after startup
+    sim: m.SimStatus | None = None  # the last sim status (the one of the final scan if done)
+    restarts: int = 0
+    bad: int = 0  # bad messages counted by the services
+
+
+class StackRun:
+    """One run of the ``sim`` profile under the supervisor: :meth:`execute` starts router and
+    services, watches the run until it ends (with the progress bar) and stops everything."""
+
+    def __init__(self, args: argparse.Namespace, setup: Setup, truth: Truth, console: Console):
+        from topoexplore.tools.launch.core import load_profile
+        from topoexplore.tools.launch.supervisor import Supervisor, profile_path
+
+        self.args, self.setup, self.truth, self.console = args, setup, truth, console
+        self.mon = Monitor()
+        self.mon.coverage_fn = lambda g: truth.coverage(g, setup.params)
+        self.log = (setup.out / "logs.txt").open("w")
+        self.log_lock = threading.Lock()
+        self.sup = Supervisor(load_profile(profile_path("sim")), setup.keys, setup.endpoint,
+                              params_file=args.params, overrides=setup.overrides,
+                              zenoh_config=args.zenoh_config, sink=self.sink)
+        self.stop = threading.Event()  # set by SIGINT / SIGTERM
+        self.bus: Bus | None = None
+        self.outcome = Outcome()
+
+    def sink(self, line: str) -> None:
+        """A log line of the stack: into logs.txt; warnings, errors and exits also shown."""
+        with self.log_lock:
+            self.log.write(line + "\n")
+            self.log.flush()
+        if not self.args.quiet and ("WARNING" in line or "ERROR" in line or "Traceback" in line
+                                    or "[supervisor]" in line and "exited" in line):
+            self.console.echo(line)
+
+    def execute(self) -> Outcome:
+        """Start, watch, collect; always stop the stack and restore the signal handlers."""
+        old_int = signal.signal(signal.SIGINT, self._on_signal)
+        old_term = signal.signal(signal.SIGTERM, self._on_signal)
+        out = self.outcome
+        try:
+            t_run = self._start()
+            self._watch(t_run)
+            self._collect()
+        except BusError as exc:
+            out.reason = f"bus error: {exc}"
+            out.wall = 0.0
+            out.sim = None
+        finally:
+            self.console.close()
+            self.sup.stop()
+            if self.bus is not None:
+                self.bus.close()
+            signal.signal(signal.SIGINT, old_int)
+            signal.signal(signal.SIGTERM, old_term)
+            self.log.close()
+        return out
+
+    def _on_signal(self, signum: int, frame: Any) -> None:
+        self.stop.set()
+
+    def _start(self) -> float:
+        """Router first (so the monitor sees the run from its first message), the monitor's
+        subscriptions, then the services. Returns the wall time [monotonic s] the run began."""
+        args, keys, mon = self.args, self.setup.keys, self.mon
+        t0 = time.monotonic()
+        if not args.quiet:
+            mode = "lockstep" if args.lockstep else f"real time x{args.speed:g}"
+            self.console.echo(f"exploring {args.world} with strategy {args.strategy} ({mode}, "
+                              f"seed {args.seed}) on {self.setup.endpoint} as {keys.prefix}; "
+                              f"logs in {self.setup.out / 'logs.txt'}")
+        self.sup.start_router()
+        self.bus = bus = Bus.client(self.setup.endpoint, name="run",
+                                    config_file=args.zenoh_config, wait_for_router=True)
         bus.subscribe(keys.explore_status, m.ExploreStatus, lambda msg, k: mon.on_status(msg))
         bus.subscribe(keys.sim_status, m.SimStatus, lambda msg, k: mon.on_sim(msg))
         bus.subscribe(keys.truth, m.Pose, lambda msg, k: mon.on_truth(msg))
@@ -379,85 +516,82 @@ def run(args: argparse.Namespace) -> int:
         bus.subscribe(keys.reliability, m.Reliability, lambda msg, k: mon.on_rel(msg))
         bus.subscribe(keys.topo, m.TopoGraph, lambda msg, k: mon.on_topo(msg))
         bus.subscribe(keys.map, m.OccupancyGrid, lambda msg, k: mon.on_map(msg))
-        if not sup.start():
-            reason = "stack did not come up (see logs.txt)"
-        startup = time.monotonic() - t0
-        t_run = time.monotonic()
+        if not self.sup.start():
+            self.outcome.reason = "stack did not come up (see logs.txt)"
+        self.outcome.startup = time.monotonic() - t0
+        return time.monotonic()
+
+    def _watch(self, t_run: float) -> None:
+        """Until the run ends: keep the services running, show progress, check the limits."""
+        out, mon = self.outcome, self.mon
         last_cov_wall = 0.0
-        cov = 0.0
-        while not reason and not stop.is_set():
-            sup.poll()
+        while not out.reason and not self.stop.is_set():
+            self.sup.poll()
             mon.event.wait(0.1)
             with mon.lock:
                 st, sim, grid = mon.status, mon.sim, mon.grid
             sim_t = sim.sim_time if sim else 0.0
             now = time.monotonic()
-            if bar is not None and now - last_cov_wall > 1.0:
+            if self.console.bar is not None and now - last_cov_wall > 1.0:
                 last_cov_wall = now
-                cov = truth.coverage(grid, params)
-                tgt = ""
-                if st is not None and st.target_id >= 0:
-                    tgt = f" target {st.target_id} (P={st.target_p:.2f})"
-                elif st is not None:
-                    tgt = f" {st.state}"
-                bar.set_postfix_str(f"coverage {cov:.2f}{tgt}", refresh=False)
-                bar.n = min(bar.total, sim_t)
-                bar.refresh()
+                self.console.progress(sim_t, self.truth.coverage(grid, self.setup.params), st)
             if st is not None and st.state in ("done", "failed"):
-                finished = st.state == "done"
-                reason = f"{st.state}: {st.reason}"
-                break
-            if sim_t >= args.max_sim_time:
-                reason = f"max sim time {args.max_sim_time:g} s reached"
-                break
-            if args.max_wall_time and now - t_run > args.max_wall_time:
-                reason = f"max wall time {args.max_wall_time:g} s reached"
-                break
-            if any(s.given_up for s in sup.states.values()):
-                reason = "a service kept crashing (see logs.txt)"
-                break
-        if stop.is_set() and not reason:
-            reason = "interrupted"
-        wall = time.monotonic() - t_run if startup else 0.0
+                out.finished = st.state == "done"
+                out.reason = f"{st.state}: {st.reason}"
+            else:
+                out.reason = self._limit_reached(sim_t, now - t_run)
+        if self.stop.is_set() and not out.reason:
+            out.reason = "interrupted"
+        out.wall = time.monotonic() - t_run if out.startup else 0.0
+
+    def _limit_reached(self, sim_t: float, wall: float) -> str:
+        """Why the run must stop although exploration has not ended ("" while it may go on)."""
+        args = self.args
+        if sim_t >= args.max_sim_time:
+            return f"max sim time {args.max_sim_time:g} s reached"
+        if args.max_wall_time and wall > args.max_wall_time:
+            return f"max wall time {args.max_wall_time:g} s reached"
+        if any(s.given_up for s in self.sup.states.values()):
+            return "a service kept crashing (see logs.txt)"
+        return ""
+
+    def _collect(self) -> None:
+        """The final sim status (of the very scan that ended a finished run: deterministic in
+        lockstep), the restarts and the services' bad-message counts."""
+        out, mon = self.outcome, self.mon
         with mon.lock:
             st = mon.status
-            sim = mon.sim
-            if finished and st is not None and st.header.src_seq in mon.sim_by_seq:
-                sim = mon.sim_by_seq[st.header.src_seq]  # deterministic: the scan of 'done'
-        restarts = sup.restarts
-        bad = _bad_message_total(bus, keys) if startup else 0
-    except BusError as exc:
-        reason = f"bus error: {exc}"
-        wall = 0.0
-        sim = None
-    finally:
-        if bar is not None:
-            bar.close()
-        sup.stop()
-        if bus is not None:
-            bus.close()
-        signal.signal(signal.SIGINT, old_int)
-        signal.signal(signal.SIGTERM, old_term)
-        logf.close()
+            out.sim = mon.sim
+            if out.finished and st is not None and st.header.src_seq in mon.sim_by_seq:
+                out.sim = mon.sim_by_seq[st.header.src_seq]
+        out.restarts = self.sup.restarts
+        out.bad = _bad_message_total(self.bus, self.setup.keys) if out.startup else 0
+
+
+# --- step 5: the report and the files ------------------------------------------------------
+
+
+def write_results(args: argparse.Namespace, setup: Setup, truth: Truth, mon: Monitor,
+                  outcome: Outcome) -> dict[str, Any]:
+    """Final coverage and accuracy, the report, and every output file. Returns the report."""
+    params, sim = setup.params, outcome.sim
     with mon.lock:
         coverage = truth.coverage(mon.grid, params)
         if sim is not None:
             mon.timeline.append((sim.sim_time, sim.path_length, coverage))
         accuracy = truth.accuracy(mon.grid, params)
         report = make_report(world=args.world, strategy=args.strategy, seed=args.seed,
-                             finished=finished, stop_reason=reason, mon=mon, sim=sim, wall=wall,
-                             startup=startup, coverage=coverage, accuracy=accuracy,
-                             restarts=restarts, bad_messages=bad,
-                             p_reliable=params.planner.p_reliable, lockstep=args.lockstep)
+                             finished=outcome.finished, stop_reason=outcome.reason, mon=mon,
+                             sim=sim, wall=outcome.wall, startup=outcome.startup,
+                             coverage=coverage, accuracy=accuracy, restarts=outcome.restarts,
+                             bad_messages=outcome.bad, p_reliable=params.reliability.p_reliable,
+                             lockstep=args.lockstep)
         title = (f"{args.world} / {args.strategy} / seed {args.seed}: "
-                 f"{'finished' if finished else 'not finished'}, {report['path_length_m']:.1f} m, "
-                 f"{report['sim_time_s']:.0f} s, coverage {coverage:.2f}")
-        write_outputs(out, report, mon, truth, params, title)
-    _echo(summary_line(report, out))
-    if not finished:
-        print(f"topoexplore: exploration did not finish: {reason}", file=sys.stderr)
-        return 1
-    return 0
+                 f"{'finished' if outcome.finished else 'not finished'}, "
+                 f"{report['path_length_m']:.1f} m, {report['sim_time_s']:.0f} s, "
+                 f"coverage {coverage:.2f}")
+        write_outputs(setup.out, report, mon, truth, params, title)
+    return report
 
 
 def summary_line(r: dict, out: Path) -> str:
@@ -467,16 +601,6 @@ def summary_line(r: dict, out: Path) -> str:
             f"{r['map_accuracy']:.3f}, collisions {r['collisions']}, end nodes seen "
             f"{r['end_nodes_seen']} / visited {r['end_nodes_visited']} / accepted remotely "
             f"{r['end_nodes_accepted_remote']} -> {out}/report.json, {out}/final.png")
-
-
-_BAR = None
-
-
-def _echo(line: str) -> None:
-    if _BAR is not None:
-        _BAR.write(line, file=sys.stderr)
-    else:
-        print(line, file=sys.stderr, flush=True)
 
 
 def _fail(text: str, code: int) -> int:

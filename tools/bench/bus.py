@@ -128,7 +128,7 @@ def bench_lockstep_sim(world: str = "paper-room", scans: int = 400) -> dict:
     try:
         procs.python("-m", "topoexplore.tools.router", "--listen", ep)
         procs.python("-m", "topoexplore.sim.service", "--connect", ep, "--namespace", "bench", "--robot",
-                     "sim", "--set", "sim.lockstep=true", "--set", "sim.lockstep_wait_for=[]",
+                     "sim", "--set", "runtime.lockstep=true", "--set", "runtime.lockstep_wait_for=[]",
                      "--set", f'sim.world="{world}"')
         stamps: list[float] = []
         done = threading.Event()
@@ -161,9 +161,9 @@ def bench_core_sim(world: str = "paper-room", scans: int = 500) -> dict:
     from topoexplore.sim.core import SimCore
     from topoexplore.sim.world import load_world
 
-    p = load_params().sim
-    core = SimCore(load_world(world), p, np.random.default_rng(0))
-    steps = max(1, round(p.physics_hz / p.scan_hz))
+    P = load_params()
+    core = SimCore(load_world(world), P.sim, np.random.default_rng(0), P.robot, P.laser)
+    steps = max(1, round(P.sim.physics_hz / P.laser.scan_hz))
     core.command(0.0, 0.3)
     t0 = time.perf_counter()
     for _ in range(scans):

@@ -53,10 +53,10 @@ from typing import Any
 
 import numpy as np
 
+from topoexplore.common.params import STRATEGIES
 from topoexplore.tools.paths import checkout_root, shared_maps_dir
 
 EXTRA_MAPS = ("lse_arena.yaml",)  # real map_server maps added to the default suite
-STRATEGIES = ("reliability", "all-end-nodes", "frontier")
 QUICK_WORLDS = ("paper-room", "dead-end")
 RATIO_PAIRS = (("reliability", "frontier"), ("reliability", "all-end-nodes"))
 RATIO_METRICS = ("path_length_m", "sim_time_s")
@@ -382,13 +382,21 @@ def _fmt_stats(s: dict, dec: int) -> str:
 
 
 def format_summary(doc: dict) -> str:
+    """``summary.md`` of a results document: how it was made, the per world tables, the
+    ratios, the distances to 90 / 95 % coverage, the curves and the runs."""
+    worlds = [w for w in doc["config"]["world_labels"] if w in doc["aggregate"]]
+    lines = (_summary_head(doc) + _summary_worlds(doc, worlds) + _summary_ratios(doc)
+             + _summary_distances(doc, worlds) + _summary_files(doc, worlds))
+    return "\n".join(lines) + "\n"
+
+
+def _summary_head(doc: dict) -> list[str]:
+    """Title, what ran, how to run it again, the machine and the notes."""
     cfg = doc["config"]
-    runs = doc["runs"]
     strategies = cfg["strategies"]
-    worlds = [w for w in cfg["world_labels"] if w in doc["aggregate"]]
     mach = doc["machine"]
     L = ["# Exploration strategy comparison (`topoexplore bench explore`)", ""]
-    L.append(f"Made {doc['created']}. {len(runs)} of {cfg['planned_runs']} planned runs "
+    L.append(f"Made {doc['created']}. {len(doc['runs'])} of {cfg['planned_runs']} planned runs "
              f"({_n(len(cfg['world_labels']), 'world')} x {_n(len(strategies), 'strategy')} x "
              f"{_n(cfg['seeds'], 'seed')}), lockstep, max sim time {cfg['max_sim_time']:g} s, "
              f"max wall time {cfg['max_wall_time']:g} s per run, {cfg['jobs']} at a time.")
@@ -401,14 +409,21 @@ def format_summary(doc: dict) -> str:
     L.append("Packages: " + ", ".join(f"{k} {v}" for k, v in mach["packages"].items()) + ".")
     for note in doc.get("notes", []):
         L += ["", f"Note: {note}"]
-    L += ["", "## Per world and strategy", "",
-          "Mean over seeds, finished or not (min–max in brackets when they differ). "
-          "`accepted from a distance` = end nodes reliable at the end without a visit."]
+    return L
+
+
+def _summary_worlds(doc: dict, worlds: list[str]) -> list[str]:
+    """One table per world (a row per strategy), the runs that did not finish, and the
+    finished runs with a low coverage."""
+    runs = doc["runs"]
+    L = ["", "## Per world and strategy", "",
+         "Mean over seeds, finished or not (min–max in brackets when they differ). "
+         "`accepted from a distance` = end nodes reliable at the end without a visit."]
     cols = ["strategy", "finished"] + [t for t, _ in AGG_FIELDS.values()]
     for w in worlds:
         L += ["", f"### {w}", "", "| " + " | ".join(cols) + " |",
               "|" + "---|" * len(cols)]
-        for st in strategies:
+        for st in doc["config"]["strategies"]:
             a = doc["aggregate"][w].get(st)
             if a is None:
                 continue
@@ -425,7 +440,13 @@ def format_summary(doc: dict) -> str:
     if low:
         L += ["", f"Caution: finished with coverage below {LOW_COVERAGE:g} (they still count as "
               "finished in the ratios): " + "; ".join(low) + "."]
-    L += ["", "## Ratios (per run pair: same world, same seed)", ""]
+    return L
+
+
+def _summary_ratios(doc: dict) -> list[str]:
+    """The geometric means (overall and per world), the excluded pairs with their reasons,
+    and every pair's ratio."""
+    L = ["", "## Ratios (per run pair: same world, same seed)", ""]
     if not doc["ratios"]:
         L.append("No ratio: the suite does not hold both strategies of a pair.")
     for key, rr in doc["ratios"].items():
@@ -457,26 +478,36 @@ def format_summary(doc: dict) -> str:
         for key, p in pair_rows:
             L.append(f"| {key.replace(':', ' ')} | {p['world']} | {p['seed']} | "
                      f"{_fmt(p['ratio'], 3)} | {'yes' if p['included'] else 'no'} |")
-    L += ["", "## Distance to 90 % and 95 % coverage [m]", "",
-          "Distance travelled at the first timeline sample (every 0.25 m of travel) with at "
-          "least that coverage; mean over the seeds that reached it (seeds reached / seeds); "
-          "– = never.", "", "| world | strategy | 90 % | 95 % |", "|---|---|---|---|"]
+    return L
+
+
+def _summary_distances(doc: dict, worlds: list[str]) -> list[str]:
+    """The distance travelled to 90 % and 95 % coverage per world and strategy."""
+    L = ["", "## Distance to 90 % and 95 % coverage [m]", "",
+         "Distance travelled at the first timeline sample (every 0.25 m of travel) with at "
+         "least that coverage; mean over the seeds that reached it (seeds reached / seeds); "
+         "– = never.", "", "| world | strategy | 90 % | 95 % |", "|---|---|---|---|"]
     for w in worlds:
-        for st in strategies:
+        for st in doc["config"]["strategies"]:
             row = doc["coverage_distance"].get(w, {}).get(st)
             if row is None:
                 continue
             L.append(f"| {w} | {st} | {_fmt(row['d90_mean'], 1)} ({row['d90_reached']}) | "
                      f"{_fmt(row['d95_mean'], 1)} ({row['d95_reached']}) |")
-    L += ["", "## Curves and runs", ""]
+    return L
+
+
+def _summary_files(doc: dict, worlds: list[str]) -> list[str]:
+    """Links to the coverage curves and to every run's directory."""
+    L = ["", "## Curves and runs", ""]
     for w in worlds:
         if (doc.get("curves") or {}).get(w):
             L.append(f"- {w}: ![{w}]({doc['curves'][w]})")
     L.append("")
     L.append("Each run's directory (report.json, final.png, map.pgm/yaml, timeline.csv, "
              "logs.txt): " + ", ".join(f"[{Path(r['run_dir']).name}]({r['run_dir']}/final.png)"
-                                       for r in runs if r.get("run_dir")) + ".")
-    return "\n".join(L) + "\n"
+                                       for r in doc["runs"] if r.get("run_dir")) + ".")
+    return L
 
 
 def write_all(out: Path, doc: dict) -> None:
@@ -646,7 +677,7 @@ def default_worlds() -> tuple[list[str], list[str]]:
     return worlds, notes
 
 
-RESERVED_KEYS = ("planner.strategy", "sim.world", "sim.seed", "sim.lockstep")  # set per run
+RESERVED_KEYS = ("planner.strategy", "sim.world", "sim.seed", "runtime.lockstep")  # set per run
 
 
 def check_overrides(params_file: str | None, overrides: Sequence[str]) -> None:
@@ -773,6 +804,29 @@ def run_one(label: str, world_arg: str, strategy: str, seed: int, out: Path,
     if run_dir.exists():
         shutil.rmtree(run_dir)  # never read a stale report
     run_dir.mkdir(parents=True)
+    cmd = _run_command(label, world_arg, strategy, seed, run_dir, max_sim_time, max_wall_time,
+                       params, overrides)
+    # safety net above the runner's own wall limit: startup, shutdown and the final picture
+    timeout = max_wall_time + 180.0 if max_wall_time > 0 else None
+    code, note = _wait_run(cmd, run_dir / "bench-stderr.txt", timeout)
+    report = _read_report(run_dir, world_arg, strategy, seed, code, note)
+    run = dict(report)
+    run["world_label"] = label
+    run["exit_code"] = code
+    run["run_dir"] = rel
+    tl_path = run_dir / "timeline.csv"
+    try:
+        run["timeline"] = read_timeline(tl_path) if tl_path.is_file() else []
+    except (OSError, ValueError, KeyError):
+        run["timeline"] = []
+    return derive(run)
+
+
+def _run_command(label: str, world_arg: str, strategy: str, seed: int, run_dir: Path,
+                 max_sim_time: float, max_wall_time: float, params: str | None,
+                 overrides: Sequence[str]) -> list[str]:
+    """The ``topoexplore run`` command line of one run: quiet, lockstep, on its own router port
+    and namespace (runs in parallel must not hear each other)."""
     cmd = [sys.executable, "-m", "topoexplore.tools.cli", "run", "--world", world_arg, "--strategy",
            strategy, "--seed", str(seed), "--lockstep", "--quiet", "--out", str(run_dir.resolve()),
            "--connect", f"tcp/127.0.0.1:{_free_port()}",
@@ -783,26 +837,34 @@ def run_one(label: str, world_arg: str, strategy: str, seed: int, out: Path,
         cmd += ["--params", params]
     for o in overrides:
         cmd += ["--set", o]
-    # safety net above the runner's own wall limit: startup, shutdown and the final picture
-    timeout = max_wall_time + 180.0 if max_wall_time > 0 else None
-    with (run_dir / "bench-stderr.txt").open("w") as err:
+    return cmd
+
+
+def _wait_run(cmd: list[str], stderr_path: Path, timeout: float | None) -> tuple[int | None, str]:
+    """Run ``cmd`` in its own session (stderr to ``stderr_path``), registered in ``_ACTIVE`` so
+    an interrupt can stop it. Returns (exit code, note: why the bench killed it, or "")."""
+    with stderr_path.open("w") as err:
         p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err,
                              start_new_session=True)
         with _ACTIVE_LOCK:
             _ACTIVE.add(p)
         try:
-            code = p.wait(timeout=timeout)
-            note = ""
+            return p.wait(timeout=timeout), ""
         except subprocess.TimeoutExpired:
             _stop(p)
-            code = p.returncode
-            note = f"killed by the bench after {timeout:g} wall s"
+            return p.returncode, f"killed by the bench after {timeout:g} wall s"
         except BaseException:  # Ctrl-C: the run is in its own session, stop it ourselves
             _stop(p)
             raise
         finally:
             with _ACTIVE_LOCK:
                 _ACTIVE.discard(p)
+
+
+def _read_report(run_dir: Path, world_arg: str, strategy: str, seed: int, code: int | None,
+                 note: str) -> dict:
+    """The run's ``report.json``, or a stub (not finished, metrics None) saying what happened;
+    the bench's ``note`` is appended to the stop reason."""
     try:
         report = json.loads((run_dir / "report.json").read_text())
     except (OSError, ValueError):
@@ -814,16 +876,7 @@ def run_one(label: str, world_arg: str, strategy: str, seed: int, out: Path,
             report[f] = None
     if note and report.get("stop_reason"):
         report["stop_reason"] += f" ({note})"
-    run = dict(report)
-    run["world_label"] = label
-    run["exit_code"] = code
-    run["run_dir"] = rel
-    tl_path = run_dir / "timeline.csv"
-    try:
-        run["timeline"] = read_timeline(tl_path) if tl_path.is_file() else []
-    except (OSError, ValueError, KeyError):
-        run["timeline"] = []
-    return derive(run)
+    return report
 
 
 def _world_area(world_arg: str) -> float:
@@ -846,13 +899,41 @@ def _result_text(r: dict) -> str:
 
 
 def run_suite(cfg: Config, argv: Sequence[str]) -> int:
+    """Every world x seed x strategy of ``cfg``, then the summary, CSV and curves.
+
+    results.json is rewritten after each run, so an interrupt (Ctrl-C or SIGTERM) keeps what
+    was done. Returns 0, or 130 when interrupted.
+    """
     from tqdm import tqdm
 
     out = cfg.out
     out.mkdir(parents=True, exist_ok=True)
     plan = [(w, seed, st) for w in cfg.worlds for seed in range(cfg.seeds)
             for st in cfg.strategies]
-    doc: dict[str, Any] = {
+    doc = new_results(cfg, argv, len(plan))
+    for note in cfg.notes:
+        print(f"topoexplore bench explore: {note}", file=sys.stderr)
+    bar = tqdm(total=len(plan), unit="run", desc="bench explore", file=sys.stderr,
+               dynamic_ncols=True, disable=not cfg.progress)
+    suite = _SuiteRuns(cfg, doc, bar, plan)
+    old_term = _sigterm_as_interrupt()
+    try:
+        _run_plan(cfg, plan, suite)
+    except KeyboardInterrupt:
+        doc["interrupted"] = True
+        _stop_active()
+    finally:
+        if old_term is not None:
+            signal.signal(signal.SIGTERM, old_term)
+        bar.close()
+    write_all(out, doc)
+    _print_totals(doc, len(plan), out)
+    return 130 if doc["interrupted"] else 0
+
+
+def new_results(cfg: Config, argv: Sequence[str], planned: int) -> dict[str, Any]:
+    """The results document before any run: how, where and on what the suite runs."""
+    return {
         "version": 1,
         "created": _dt.datetime.now().astimezone().isoformat(timespec="seconds"),
         "command": cfg.command,
@@ -863,77 +944,86 @@ def run_suite(cfg: Config, argv: Sequence[str]) -> int:
                    "seeds": cfg.seeds, "max_sim_time": cfg.max_sim_time,
                    "max_wall_time": cfg.max_wall_time, "jobs": cfg.jobs,
                    "params": cfg.params, "overrides": cfg.overrides,
-                   "planned_runs": len(plan)},
+                   "planned_runs": planned},
         "notes": list(cfg.notes),
         "interrupted": False,
         "runs": [],
     }
-    for note in cfg.notes:
-        print(f"topoexplore bench explore: {note}", file=sys.stderr)
-    bar = tqdm(total=len(plan), unit="run", desc="bench explore", file=sys.stderr,
-               dynamic_ncols=True, disable=not cfg.progress)
-    order = {(w[0], seed, st): i for i, (w, seed, st) in enumerate(plan)}
-    lock = threading.Lock()
-    last = ""
 
-    def done(run: dict) -> None:
-        nonlocal last
-        with lock:
-            doc["runs"].append(run)
-            doc["runs"].sort(key=lambda r: order.get((_label(r), r["seed"], r["strategy"]), 0))
-            _write_json(out / "results.json", doc)  # partial results survive an interrupt
-            last = _result_text(run)
-            bar.set_postfix_str(f"last {last}", refresh=False)
-            bar.update(1)
 
-    def one(item) -> dict:
+class _SuiteRuns:
+    """Runs the items of a plan and records each result (from any worker thread): the runs in
+    plan order, results.json rewritten, the progress bar showing the last result."""
+
+    def __init__(self, cfg: Config, doc: dict, bar: Any, plan: list):
+        self.cfg, self.doc, self.bar = cfg, doc, bar
+        self.order = {(w[0], seed, st): i for i, (w, seed, st) in enumerate(plan)}
+        self.lock = threading.Lock()
+        self.last = ""
+
+    def one(self, item) -> dict:
         (label, arg, _), seed, st = item
+        cfg = self.cfg
         if cfg.jobs == 1:
-            bar.set_postfix_str(f"now {label}/{st}/{seed} | last {last}")
-        return run_one(label, arg, st, seed, out, cfg.max_sim_time, cfg.max_wall_time,
+            self.bar.set_postfix_str(f"now {label}/{st}/{seed} | last {self.last}")
+        return run_one(label, arg, st, seed, cfg.out, cfg.max_sim_time, cfg.max_wall_time,
                        cfg.params, cfg.overrides)
 
-    def on_term(signum, frame):  # SIGTERM stops the suite like Ctrl-C: no run is left behind
+    def done(self, run: dict) -> None:
+        with self.lock:
+            runs = self.doc["runs"]
+            runs.append(run)
+            runs.sort(key=lambda r: self.order.get((_label(r), r["seed"], r["strategy"]), 0))
+            _write_json(self.cfg.out / "results.json", self.doc)  # survives an interrupt
+            self.last = _result_text(run)
+            self.bar.set_postfix_str(f"last {self.last}", refresh=False)
+            self.bar.update(1)
+
+
+def _sigterm_as_interrupt() -> Any:
+    """Make SIGTERM stop the suite like Ctrl-C (no run is left behind); returns the previous
+    handler, or None when not on the main thread (nothing installed)."""
+
+    def on_term(signum, frame):
         raise KeyboardInterrupt
 
-    old_term = None
-    if threading.current_thread() is threading.main_thread():
-        old_term = signal.signal(signal.SIGTERM, on_term)
-    try:
-        if cfg.jobs == 1:
-            for item in plan:
-                done(one(item))
-        else:
-            with ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
-                # biggest worlds first, so that no long run starts when the others are done
-                area = {w[0]: _world_area(w[1]) for w in cfg.worlds}
-                futs = [pool.submit(one, item) for item in
-                        sorted(plan, key=lambda it: -area[it[0][0]])]
-                try:
-                    for f in as_completed(futs):
-                        done(f.result())
-                except BaseException:
-                    for f in futs:
-                        f.cancel()
-                    _stop_active()  # before the pool's exit waits for the runs in flight
-                    raise
-    except KeyboardInterrupt:
-        doc["interrupted"] = True
-        _stop_active()
-    finally:
-        if old_term is not None:
-            signal.signal(signal.SIGTERM, old_term)
-        bar.close()
-    write_all(out, doc)
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, on_term)
+
+
+def _run_plan(cfg: Config, plan: list, suite: _SuiteRuns) -> None:
+    """One run after the other, or ``cfg.jobs`` at a time, biggest worlds first (so that no
+    long run starts when the others are done). On an interrupt the runs in flight are stopped
+    before the pool's exit would wait for them."""
+    if cfg.jobs == 1:
+        for item in plan:
+            suite.done(suite.one(item))
+        return
+    with ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
+        area = {w[0]: _world_area(w[1]) for w in cfg.worlds}
+        futs = [pool.submit(suite.one, item) for item in
+                sorted(plan, key=lambda it: -area[it[0][0]])]
+        try:
+            for f in as_completed(futs):
+                suite.done(f.result())
+        except BaseException:
+            for f in futs:
+                f.cancel()
+            _stop_active()
+            raise
+
+
+def _print_totals(doc: dict, planned: int, out: Path) -> None:
+    """The suite's last words on stderr: runs, finished, files, path-length ratios."""
     n_fin = sum(1 for r in doc["runs"] if r.get("finished"))
-    print(f"bench explore: {len(doc['runs'])}/{len(plan)} runs, {n_fin} finished -> "
+    print(f"bench explore: {len(doc['runs'])}/{planned} runs, {n_fin} finished -> "
           f"{out}/summary.md, results.json, results.csv, curves/", file=sys.stderr)
     for key, rr in doc["ratios"].items():
         if key.startswith("path_length_m"):
             print(f"  path {rr['numerator']}/{rr['denominator']}: geometric mean "
                   f"{_fmt(rr['geomean'], 3)} over {rr['n_included']} finished pair(s), "
                   f"{rr['n_excluded']} excluded", file=sys.stderr)
-    return 130 if doc["interrupted"] else 0
 
 
 def from_results(src: Path, out: Path | None) -> int:

@@ -1,12 +1,14 @@
 """The exploration pipeline in one process, for tuning: ``topoexplore bench inproc``.
 
     topoexplore bench inproc [--worlds a,b] [--strategies ...] [--seeds N] [--set k=v ...]
-                             [--jobs 2] [--max-sim-time S] [--json OUT]
+                             [--jobs 2] [--max-sim-time S] [--json OUT] [--wire]
 
 The six cores (sim, mapper, topology, reliability, planner, controller) are called in one
 loop in the order the services run them in lockstep: every scan is integrated; on the first
 scan of every ``mapper.map_every`` block the map goes through topology, reliability and
-planner; the controller answers every scan with the newest plan. No bus and no processes, so
+planner; the controller answers every scan with the newest plan. The cores pass domain objects
+(``common.domain``) to each other; with ``--wire`` every hop goes through the same message
+conversions and codec as on the bus (``common.convert``). No bus and no processes, so
 a parameter sweep over the suite costs the compute alone (about 1/3 of the wall time of
 ``bench explore``). A run gives the same path, sim time and coverage as the bus run of the
 same world, strategy, seed and parameters (``tests/test_explore_e2e.py`` checks it); the
@@ -23,14 +25,22 @@ import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 
+from topoexplore.common import convert
 from topoexplore.common import messages as m
-from topoexplore.common.params import load_params
+from topoexplore.common.params import STRATEGIES, Params, load_params
+from topoexplore.services.controller.core import ControllerCore
+from topoexplore.services.mapper.core import MapperCore
+from topoexplore.services.planner.core import PlannerCore
+from topoexplore.services.reliability.core import ReliabilityCore
+from topoexplore.services.topology.core import TopologyCore
+from topoexplore.sim.core import SimCore
+from topoexplore.sim.world import World, load_world, truth_free_reachable
 from topoexplore.tools.bench.explore import (
-    STRATEGIES,
     BenchArgError,
     check_overrides,
     default_worlds,
@@ -40,79 +50,91 @@ from topoexplore.tools.bench.explore import (
 from topoexplore.tools.metrics import coverage
 
 
-def _hdr(stamp: float, k: int) -> m.Header:
-    return m.Header(seq=k, stamp=stamp, frame="map", src_seq=k)
+class Wire:
+    """Send each domain object through the wire and back (convert, encode, decode, convert):
+    the in-process run then sees exactly what the services see over the bus."""
+
+    def __init__(self) -> None:
+        self.k = 0
+
+    def __call__(self, obj: Any, to_msg: Callable, from_msg: Callable, msg_type: type) -> Any:
+        self.k += 1
+        hdr = m.Header(seq=self.k, stamp=0.0, frame="map", src_seq=self.k)
+        return from_msg(m.decode(m.encode(to_msg(obj, hdr)), msg_type))
+
+
+def _direct(obj: Any, *_: Any) -> Any:
+    return obj
+
+
+def _pipeline(P: Params, world: World) -> SimpleNamespace:
+    """The six cores, built as the services build them."""
+    occ = P.mapper.occupancy
+    return SimpleNamespace(
+        sim=SimCore(world, P.sim, np.random.default_rng(P.sim.seed), P.robot, P.laser),
+        mapper=MapperCore(P.mapper, P.laser.offset), topology=TopologyCore(P.topology, occ),
+        reliability=ReliabilityCore(P.reliability, P.laser, occ),
+        planner=PlannerCore(P.planner, P.robot, P.reliability.p_reliable, occ),
+        controller=ControllerCore(P.controller, P.robot.radius))
 
 
 def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence[str] = (),
-        max_sim_time: float = 1800.0, on_update: Callable[..., Any] | None = None
-        ) -> dict[str, Any]:
+        max_sim_time: float = 1800.0, on_update: Callable[..., Any] | None = None,
+        wire: bool = False) -> dict[str, Any]:
     """One exploration, in process. ``sets``: ``section.key=value`` overrides (TOML values).
-    ``on_update(t, pose, topo, reliability, plan, grid, geom)`` is called after every plan;
-    it may raise to stop the run. Returns the run's figures."""
-    from topoexplore.services.controller.core import ControllerCore
-    from topoexplore.services.mapper.core import MapperCore
-    from topoexplore.services.planner.core import PlannerCore
-    from topoexplore.services.reliability.core import ReliabilityCore
-    from topoexplore.services.topology.core import TopologyCore
-    from topoexplore.sim.core import SimCore
-    from topoexplore.sim.world import load_world, truth_free_reachable
-
+    ``on_update(t, pose, graph, beliefs, plan, grid)`` is called after every plan; it may raise
+    to stop the run. ``wire``: every hop goes through the message round trip (:class:`Wire`).
+    Returns the run's figures."""
     P = load_params(None, [f"sim.world={json.dumps(world)}", f"sim.seed={int(seed)}",
-                           f"planner.strategy={json.dumps(strategy)}", "sim.lockstep=true",
+                           f"planner.strategy={json.dumps(strategy)}", "runtime.lockstep=true",
                            *sets])
     w = load_world(P.sim.world)
-    sim = SimCore(w, P.sim, np.random.default_rng(P.sim.seed))
-    mp = P.mapper
-    mapper, topo_c = MapperCore(mp), TopologyCore(P.topology)
-    rel_c, plan_c, ctl = ReliabilityCore(P.reliability), PlannerCore(P.planner), \
-        ControllerCore(P.controller)
-    steps = max(1, round(P.sim.physics_hz / P.sim.scan_hz))
-    plan = grid = geom = None
+    c = _pipeline(P, w)
+    hop = Wire() if wire else _direct
+    steps = max(1, round(P.sim.physics_hz / P.laser.scan_hz))
+    plan = grid = None
     state, k, t0 = "exploring", -1, time.monotonic()
     while True:
         k += 1
-        t, pose, ranges = sim.time, sim.odom_pose(), sim.scan()
-        mapper.integrate(pose, ranges, sim.angle_min, sim.angle_increment, P.sim.range_min,
-                         P.sim.range_max, laser_offset=P.sim.laser_offset)
-        if k % mp.map_every == 0:
-            grid, geom = mapper.occupancy(copy=True), mapper.geometry
-            res = topo_c.update(grid, geom, (pose[0], pose[1]), mp.p_free, mp.p_occ)
-            topo = m.TopoGraph(header=_hdr(t, k), nodes=res.nodes, edges=res.edges,
-                               gone=res.gone)
-            ends = [(n.id, n.x, n.y) for n in topo.nodes if n.kind == "end"]
-            edges = [(e.a, e.b, e.points) for e in topo.edges]
-            nodes = rel_c.update(ends, list(topo.gone), pose, grid, geom, mp.p_occ, edges)
-            rel = m.Reliability(header=_hdr(t, k), nodes=nodes)
-            plan = plan_c.update(t, pose, topo, rel, grid, geom, mp.p_free, mp.p_occ)
-            state = plan.state
+        t = c.sim.time
+        pose = hop(c.sim.odom(), convert.odom_to_msg, convert.odom_from_msg, m.Odometry).pose
+        scan = hop(c.sim.scan(), convert.scan_to_msg, convert.scan_from_msg, m.LaserScan)
+        c.mapper.integrate(pose, scan)
+        if k % P.mapper.map_every == 0:
+            grid = hop(c.mapper.grid(copy=True), convert.grid_to_msg, convert.grid_from_msg,
+                       m.OccupancyGrid)
+            graph = hop(c.topology.update(grid, (pose.x, pose.y)).graph, convert.graph_to_msg,
+                        convert.graph_from_msg, m.TopoGraph)
+            beliefs = hop(c.reliability.update(graph, pose, grid), convert.beliefs_to_msg,
+                          convert.beliefs_from_msg, m.Reliability)
+            plan = c.planner.update(t, pose, graph, beliefs, grid)
+            state = plan.status.state
             if on_update is not None:
-                on_update(t, pose, topo, rel, plan, grid, geom)
-            if state in ("done", "failed"):
+                on_update(t, pose, graph, beliefs, plan, grid)
+            if plan.status.finished:
                 break
-        wps = np.asarray(plan.waypoints, dtype=np.float64).reshape(-1, 2)
-        v, wv, _mode = ctl.update(t, pose, wps, plan.plan_id, False,
-                                  (ranges, sim.angle_min, sim.angle_increment),
-                                  plan.goal_heading)
-        sim.command(v, wv)
+        route = hop(plan.route, convert.route_to_msg, convert.route_from_msg, m.Path)
+        cmd = c.controller.update(t, pose, route, False, scan)
+        c.sim.command(cmd.v, cmd.w)
         for _ in range(steps):
-            sim.step()
-        if sim.time >= max_sim_time:
+            c.sim.step()
+        if c.sim.time >= max_sim_time:
             state = "timeout"
             break
-    free, fx, fy = truth_free_reachable(w, mp.resolution)
-    cov = coverage(grid, geom, free, (fx, fy), mp.resolution, mp.p_free, mp.p_occ)
-    return {"world": world, "strategy": strategy, "seed": int(seed), "state": state,
-            "finished": state == "done", "stop_reason": plan.reason if plan else "",
-            "path_length_m": round(sim.path_length, 2), "sim_time_s": round(sim.time, 1),
-            "coverage": round(float(cov), 4), "collisions": int(sim.collisions),
+    free, fx, fy = truth_free_reachable(w, P.mapper.resolution)
+    cov = coverage(grid.data, grid.geom, free, (fx, fy), P.mapper.resolution, P.mapper.p_free,
+                   P.mapper.p_occ)
+    return {"world": world, "strategy": strategy, "seed": int(seed), "state": str(state),
+            "finished": state == "done", "stop_reason": plan.status.reason if plan else "",
+            "path_length_m": round(c.sim.path_length, 2), "sim_time_s": round(c.sim.time, 1),
+            "coverage": round(float(cov), 4), "collisions": int(c.sim.collisions),
             "wall_s": round(time.monotonic() - t0, 1)}
 
 
 def _one(item: tuple) -> dict[str, Any]:
-    label, world, strategy, seed, sets, tmax = item
+    label, world, strategy, seed, sets, tmax, wire = item
     try:
-        r = run(world, strategy, seed, sets, tmax)
+        r = run(world, strategy, seed, sets, tmax, wire=wire)
     except Exception as exc:  # noqa: BLE001 - one failed run must not end the sweep
         r = {"world": world, "strategy": strategy, "seed": seed, "state": "error",
              "finished": False, "stop_reason": f"{type(exc).__name__}: {exc}",
@@ -139,6 +161,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--max-sim-time", type=float, default=1800.0, help="per run [s]")
     ap.add_argument("--json", type=Path, help="write the runs and ratios here")
+    ap.add_argument("--wire", action="store_true",
+                    help="send every hop through the message round trip (as over the bus)")
     return ap
 
 
@@ -159,7 +183,7 @@ def parse(argv: Sequence[str]) -> tuple[list[tuple], argparse.Namespace]:
     if not (math.isfinite(a.max_sim_time) and a.max_sim_time > 0):
         raise BenchArgError("--max-sim-time must be a positive number")
     check_overrides(None, a.set)
-    items = [(label, world, st, seed, tuple(a.set), a.max_sim_time)
+    items = [(label, world, st, seed, tuple(a.set), a.max_sim_time, a.wire)
              for label, world in worlds for st in strategies for seed in range(a.seeds)]
     return items, a
 

@@ -28,11 +28,15 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from types import SimpleNamespace
 
+import msgspec
 import numpy as np
 from numba import njit
 
+from topoexplore.common.domain import GridMap, Pose, Scan
 from topoexplore.common.grid import GridGeometry
+from topoexplore.common.params import MapperParams, Params, TopologyParams
 
 __all__ = ["office_truth", "office_route", "simulate_scan", "truth_to_grid", "bench_stages",
            "format_table"]
@@ -165,124 +169,109 @@ def _stats(samples: list[float]) -> dict[str, float]:
 STAGES = ("mapper", "topology", "reliability", "planner", "planner-frontier", "controller")
 
 
-def _bench_size(n: int, repeats: int, stages: tuple[str, ...], seed: int) -> dict[str, dict]:
-    import msgspec
+def _scan(occ: np.ndarray, pose, rng) -> Scan:
+    return Scan(simulate_scan(occ, pose, rng), -math.pi / 2, math.pi / 180.0, 0.02, 8.0)
 
-    from topoexplore.common import messages as msg
-    from topoexplore.common.params import (
-        ControllerParams,
-        MapperParams,
-        PlannerParams,
-        ReliabilityParams,
-        TopologyParams,
-    )
+
+def _cores(strategy: str = "reliability") -> SimpleNamespace:
+    """The stage cores with default parameters."""
     from topoexplore.services.controller.core import ControllerCore
     from topoexplore.services.planner.core import PlannerCore
     from topoexplore.services.reliability.core import ReliabilityCore
+
+    P = Params()
+    occ = P.mapper.occupancy
+    return SimpleNamespace(
+        reliability=ReliabilityCore(P.reliability, P.laser, occ),
+        planner=PlannerCore(P.planner, P.robot, P.reliability.p_reliable, occ),
+        frontier=PlannerCore(msgspec.structs.replace(P.planner, strategy="frontier"), P.robot,
+                             P.reliability.p_reliable, occ),
+        controller=ControllerCore(P.controller, P.robot.radius))
+
+
+def _topology_cold(grid: GridMap, clean: GridMap, start, repeats: int) -> dict[str, float]:
+    """A fresh core's full update on the noisy map and on the noise-free truth map."""
+    from topoexplore.services.topology.core import TopologyCore
+
+    cold, cc, r2 = [], [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        TopologyCore(TopologyParams()).update(grid, tuple(start[:2]))
+        cold.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        r2 = TopologyCore(TopologyParams()).update(clean, tuple(start[:2]))
+        cc.append(time.perf_counter() - t0)
+    return {"cold_median_ms": float(np.median(cold) * 1000),
+            "cold_p99_ms": float(np.percentile(cold, 99) * 1000),
+            "clean_cold_ms": float(np.median(cc) * 1000),
+            "clean_nodes": len(r2.graph.nodes), "clean_edges": len(r2.graph.edges)}
+
+
+def _timed(times: dict[str, list[float]], stage: str, fn, *args):
+    t0 = time.perf_counter()
+    out = fn(*args)
+    times.setdefault(stage, []).append(time.perf_counter() - t0)
+    return out
+
+
+def _drive(mapper, topo, cores, occ, seq, rng, stages, times) -> SimpleNamespace:
+    """Drive on at 0.04 m per scan; time every stage on every scan, fed as the services feed
+    them. Returns the last graph and beliefs."""
+    graph = beliefs = None
+    for k, pose in enumerate(seq):
+        t, pose = 0.2 * k, Pose(float(pose[0]), float(pose[1]), float(pose[2]))  # [s] 5 Hz
+        scan = _scan(occ, pose, rng)
+        _timed(times, "mapper", mapper.integrate, pose, scan)
+        if "topology" not in stages:
+            continue
+        grid = mapper.grid()
+        graph = _timed(times, "topology", topo.update, grid, (pose.x, pose.y)).graph
+        beliefs = _timed(times, "reliability", cores.reliability.update, graph, pose, grid)
+        plan = _timed(times, "planner", cores.planner.update, t, pose, graph, beliefs, grid)
+        if "planner-frontier" in stages:
+            _timed(times, "planner-frontier", cores.frontier.update, t, pose, graph, None, grid)
+        _timed(times, "controller", cores.controller.update, t, pose, plan.route, False, scan)
+    return SimpleNamespace(graph=graph, beliefs=beliefs)
+
+
+def _bench_size(n: int, repeats: int, stages: tuple[str, ...], seed: int) -> dict[str, dict]:
+    """Map 60 % of the route untimed except the mapper, time a cold topology update, then drive
+    on and time every stage per scan (module docstring)."""
+    from topoexplore.services.mapper.core import MapperCore
     from topoexplore.services.topology.core import TopologyCore
 
     occ, centres, verts = office_truth(n, seed)
     geom = GridGeometry(RES, 0.0, 0.0, n, n)
-    out: dict[str, dict] = {}
-    try:
-        from topoexplore.services.mapper.core import MapperCore
-    except ImportError:
-        MapperCore = None  # noqa: N806
-    if MapperCore is None:
-        out["note"] = {"mapper": "services.mapper.core not importable: mapper stage skipped"}
-        return out
     rng = np.random.default_rng(seed)
-    mp = MapperParams()
-    mapper = MapperCore.from_occupancy(np.full((n, n), -1, np.int8), geom, mp)
+    mapper = MapperCore.from_grid(GridMap(np.full((n, n), -1, np.int8), geom), MapperParams())
     coarse = office_route(n, centres, verts, 0.3)
     split = int(0.6 * len(coarse))
-    t_map: list[float] = []
-    ang_min, ang_inc = -math.pi / 2, math.pi / 180.0
+    times: dict[str, list[float]] = {}
     for pose in coarse[:split]:
-        r = simulate_scan(occ, pose, rng)
-        t0 = time.perf_counter()
-        mapper.integrate(tuple(pose), r, ang_min, ang_inc, 0.02, 8.0)
-        t_map.append(time.perf_counter() - t0)
-    grid0 = mapper.occupancy(copy=True)
-    tp = TopologyParams()
-    res_topo: dict[str, float] = {}
+        _timed(times, "mapper", mapper.integrate, Pose(*map(float, pose)), _scan(occ, pose, rng))
+    res_topo = {}
     if "topology" in stages:
-        cold = []
-        for _ in range(repeats):
-            core = TopologyCore(tp)
-            t0 = time.perf_counter()
-            core.update(grid0, geom, tuple(coarse[split - 1][:2]))
-            cold.append(time.perf_counter() - t0)
-        clean = truth_to_grid(occ)
-        cc = []
-        for _ in range(repeats):
-            c2 = TopologyCore(tp)
-            t0 = time.perf_counter()
-            r2 = c2.update(clean, geom, tuple(coarse[0][:2]))
-            cc.append(time.perf_counter() - t0)
-        res_topo.update({"cold_median_ms": float(np.median(cold) * 1000),
-                         "cold_p99_ms": float(np.percentile(cold, 99) * 1000),
-                         "clean_cold_ms": float(np.median(cc) * 1000),
-                         "clean_nodes": len(r2.nodes), "clean_edges": len(r2.edges)})
-    # continue driving at the paper's speed: 0.04 m per scan
-    start = coarse[split - 1]
+        res_topo = _topology_cold(mapper.grid(copy=True), GridMap(truth_to_grid(occ), geom),
+                                  coarse[split - 1], repeats)
     fine = office_route(n, centres, verts, 0.04)
+    start = coarse[split - 1]
     k0 = int(np.argmin(np.hypot(fine[:, 0] - start[0], fine[:, 1] - start[1])))
-    seq = fine[k0:k0 + max(40, 30 * repeats)]
-    t_topo: list[float] = []
-    times: dict[str, list[float]] = {s: [] for s in STAGES[2:]}
-    last = None
-    rcore = ReliabilityCore(ReliabilityParams())
-    pcore = PlannerCore(PlannerParams())
-    fcore = PlannerCore(msgspec.structs.replace(PlannerParams(), strategy="frontier"))
-    ccore = ControllerCore(ControllerParams())
-    hdr = msg.Header(seq=0, stamp=0.0, frame="map", src_seq=-1)
-    for k, pose in enumerate(seq):
-        t = 0.2 * k  # [s] 5 Hz
-        pose3 = (float(pose[0]), float(pose[1]), float(pose[2]))
-        r = simulate_scan(occ, pose, rng)
-        t0 = time.perf_counter()
-        mapper.integrate(tuple(pose), r, ang_min, ang_inc, 0.02, 8.0)
-        t_map.append(time.perf_counter() - t0)
-        if "topology" not in stages:
-            continue
-        g = mapper.occupancy()
-        t0 = time.perf_counter()
-        last = core.update(g, geom, (float(pose[0]), float(pose[1])))
-        t_topo.append(time.perf_counter() - t0)
-        ends = [(nd.id, nd.x, nd.y) for nd in last.nodes if nd.kind == "end"]
-        edges = [(e.a, e.b, e.points) for e in last.edges]
-        t0 = time.perf_counter()
-        rel = rcore.update(ends, last.gone, pose3, g, geom, 0.65, edges)
-        times["reliability"].append(time.perf_counter() - t0)
-        topo = msg.TopoGraph(header=hdr, nodes=last.nodes, edges=last.edges, gone=last.gone)
-        relm = msg.Reliability(header=hdr, nodes=rel)
-        t0 = time.perf_counter()
-        plan = pcore.update(t, pose3, topo, relm, g, geom)
-        times["planner"].append(time.perf_counter() - t0)
-        if "planner-frontier" in stages:
-            t0 = time.perf_counter()
-            fcore.update(t, pose3, topo, None, g, geom)
-            times["planner-frontier"].append(time.perf_counter() - t0)
-        t0 = time.perf_counter()
-        ccore.update(t, pose3, np.asarray(plan.waypoints).reshape(-1, 2), plan.plan_id, False,
-                     (r, ang_min, ang_inc))
-        times["controller"].append(time.perf_counter() - t0)
-    if "mapper" in stages:
-        out["mapper"] = _stats(t_map) | {"scans": len(t_map)}
-    if "topology" in stages:
-        out["topology"] = _stats(t_topo) | res_topo | {
-            "scans": len(t_topo),
-            "nodes": len(last.nodes) if last else 0,
-            "edges": len(last.edges) if last else 0,
-            "core": core.snapshot()}
-    for s in STAGES[2:]:
-        if s in stages and times[s]:
+    topo = TopologyCore(TopologyParams())
+    last = _drive(mapper, topo, _cores(), occ, fine[k0:k0 + max(40, 30 * repeats)], rng,
+                  stages, times)
+    out: dict[str, dict] = {}
+    for s in STAGES:
+        if s in stages and times.get(s):
             out[s] = _stats(times[s]) | {"scans": len(times[s])}
+    if "topology" in out:
+        g = last.graph
+        out["topology"] |= res_topo | {"nodes": len(g.nodes) if g else 0,
+                                       "edges": len(g.edges) if g else 0,
+                                       "core": topo.snapshot()}
     if "reliability" in out:
-        out["reliability"]["end_nodes"] = len(rel)
+        out["reliability"]["end_nodes"] = len(last.beliefs)
     if "planner" in out:
-        out["planner"]["edges"] = len(last.edges)
+        out["planner"]["edges"] = len(last.graph.edges)
     return out
 
 
