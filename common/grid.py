@@ -85,6 +85,33 @@ def check_grid(data, geom: GridGeometry) -> np.ndarray:
     return g
 
 
+_ALIGN = 64  # [bytes]
+
+
+def _aligned(shape: tuple[int, ...], dtype) -> np.ndarray:
+    """An empty C-contiguous array whose data starts on a 64-byte boundary."""
+    n = int(np.prod(shape)) * np.dtype(dtype).itemsize
+    buf = np.empty(n + _ALIGN, np.uint8)
+    off = (-buf.ctypes.data) % _ALIGN
+    return buf[off:off + n].view(dtype).reshape(shape)
+
+
+def distance_transform(src: np.ndarray) -> np.ndarray:
+    """Exact Euclidean distance [cells] from each cell to the nearest zero cell of the uint8
+    mask ``src`` (``cv2.distanceTransform``, L2, precise mask), float32.
+
+    OpenCV's result differs in the last bit with where its input and output arrays lie in
+    memory (SIMD paths), so the same map gave different clearances from run to run and a
+    lockstep run was not quite deterministic. Both arrays are placed on 64-byte boundaries here,
+    which makes the result a function of the mask alone. A mask without any zero cell gives
+    cv2's "infinitely far" (~FLT_MAX) everywhere."""
+    s = _aligned(src.shape, np.uint8)
+    s[...] = src
+    dst = _aligned(src.shape, np.float32)
+    cv2.distanceTransform(s, cv2.DIST_L2, cv2.DIST_MASK_PRECISE, dst=dst)
+    return dst
+
+
 def crop_known(grid: np.ndarray, geom: GridGeometry, margin: int = 1
                ) -> tuple[np.ndarray, GridGeometry]:
     """The part of the grid (a view) that holds every observed cell (value != -1), grown by

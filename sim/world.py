@@ -44,6 +44,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from topoexplore.common.grid import distance_transform
 from topoexplore.common.mapio import MapIOError, read_map_server
 
 __all__ = [
@@ -580,7 +581,7 @@ def pick_start_pose(world: World, resolution: float = PICK_RESOLUTION) -> tuple[
     counts = np.bincount(labels[free.astype(bool)])
     biggest = int(np.argmax(counts))
     # distance to the nearest solid cell centre, minus half a cell (conservative) [m]
-    dist = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * resolution
+    dist = distance_transform(free) * resolution
     dist[labels != biggest] = -1.0
     k = int(np.argmax(dist))
     row, col = divmod(k, free.shape[1])

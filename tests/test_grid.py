@@ -11,6 +11,7 @@ from topoexplore.common.grid import (
     GridGeometry,
     classify,
     crop_known,
+    distance_transform,
     known_window,
     open_unknown,
     unknown_mask,
@@ -78,3 +79,43 @@ def test_crop_known_keeps_a_ring_of_unknown_and_world_coordinates():
     assert crop_known(np.full((5, 5), -1, np.int8), geom)[0].shape == (5, 5)  # nothing seen
     g[0, 0] = g[-1, -1] = 0  # observed cells at both corners: the whole grid
     assert known_window(g) is None and crop_known(g, geom)[1] is geom
+
+
+def _walls_mask(seed: int = 1) -> np.ndarray:
+    """A map-like mask (walls and specks as zero cells) on which cv2's distance transform
+    depends on the output's alignment."""
+    rng = np.random.default_rng(seed)
+    h, w = (int(v) for v in rng.integers(60, 160, 2))
+    m = np.ones((h, w), np.uint8)
+    for _ in range(rng.integers(3, 12)):
+        r0, c0 = rng.integers(0, h), rng.integers(0, w)
+        if rng.random() < 0.5:
+            m[r0, c0:c0 + rng.integers(5, 60)] = 0
+        else:
+            m[r0:r0 + rng.integers(5, 60), c0] = 0
+    m[rng.integers(0, h, 20), rng.integers(0, w, 20)] = 0
+    return m
+
+
+def _at(a: np.ndarray, offset: int) -> np.ndarray:
+    """A copy of a whose data starts offset bytes after a 64-byte boundary."""
+    buf = np.empty(a.nbytes + 128, np.uint8)
+    start = (-buf.ctypes.data) % 64 + offset
+    out = buf[start:start + a.nbytes].view(a.dtype).reshape(a.shape)
+    out[...] = a
+    return out
+
+
+def test_distance_transform_is_a_function_of_the_mask_alone():
+    """cv2's last bit depends on where its output lies in memory; the one distance transform
+    of common.grid does not (lockstep runs must repeat exactly)."""
+    m = _walls_mask()
+    raw = []
+    for off in (0, 4, 8, 16, 32):
+        dst = _at(np.zeros(m.shape, np.float32), off)
+        cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE, dst=dst)
+        raw.append(dst.copy())
+    assert any(not np.array_equal(raw[0], r) for r in raw[1:])  # the problem is real here
+    ours = [distance_transform(_at(m, off)) for off in (0, 1, 3, 8, 16)]
+    assert all(np.array_equal(ours[0], o) for o in ours[1:])
+    assert np.allclose(ours[0], raw[0], rtol=1e-6, atol=1e-6) and ours[0].dtype == np.float32

@@ -34,7 +34,7 @@ import cv2
 import numba
 import numpy as np
 
-from topoexplore.common.grid import GridGeometry
+from topoexplore.common.grid import GridGeometry, distance_transform
 
 SQRT2 = math.sqrt(2.0)
 LOOK_RADIUS = 1.0  # [m] unknown cells this close to a frontier goal set the heading to face
@@ -99,7 +99,7 @@ def clearance_map(occupied: np.ndarray, resolution: float) -> np.ndarray:
     if not occupied.any():
         return np.full(occupied.shape, np.float32(1e6), dtype=np.float32)
     src = np.where(occupied, 0, 255).astype(np.uint8)
-    return cv2.distanceTransform(src, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * np.float32(resolution)
+    return distance_transform(src) * np.float32(resolution)
 
 
 @numba.njit(cache=True)

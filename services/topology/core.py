@@ -32,7 +32,14 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from topoexplore.common.domain import Graph, GridMap, Node
-from topoexplore.common.grid import GridGeometry, Occupancy, free_mask, occupied_mask, unknown_mask
+from topoexplore.common.grid import (
+    GridGeometry,
+    Occupancy,
+    distance_transform,
+    free_mask,
+    occupied_mask,
+    unknown_mask,
+)
 from topoexplore.common.params import TopologyParams
 from topoexplore.services.topology import graph as g
 from topoexplore.services.topology import skeleton as sk
@@ -266,7 +273,7 @@ class TopologyCore:
                 if float(self._dt[x0:x1, y0:y1].max()) >= half - 1:
                     continue
                 sub = self._dt_input(grid, mask, p_occ, x0, x1, y0, y1)
-                d = cv2.distanceTransform(sub, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+                d = distance_transform(sub)
                 if float(d.max()) >= half - 1:
                     continue
                 i0, i1 = max(r0 - half, 0), min(r1 + half, H)
@@ -275,8 +282,7 @@ class TopologyCore:
                 self._dt_window += 1
                 return self._dt
         self._dt_full += 1
-        self._dt = cv2.distanceTransform(self._dt_input(grid, mask, p_occ, 0, H, 0, W),
-                                         cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        self._dt = distance_transform(self._dt_input(grid, mask, p_occ, 0, H, 0, W))
         return self._dt
 
     @staticmethod
