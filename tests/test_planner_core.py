@@ -661,6 +661,34 @@ def test_completion_goes_to_the_frontier_left_once_no_end_node_is_left(strategy)
     assert out.state == "done" and "reliable" in out.status.reason
 
 
+def test_a_kept_completion_search_is_described_once_with_this_updates_counts():
+    """Reusing the completion search within frontier_period neither repeats its note in the
+    target's label nor keeps the end node counts of the update it was made in."""
+    g, geom = half_known_room()
+    core = PlannerCore(params(frontier_period=5.0))
+    done = {1: 0.95, 2: 0.95}
+    out = None
+    for k in range(4):
+        out = core.update(0.2 * k, (1.05, 3.05, 0.0), known_left_half_topo(), rel(done),
+                          grid(g, geom))
+    assert out.status.reason.count("(completion: no end node left)") == 1, out.status.reason
+    assert (out.status.end_nodes, out.status.reliable) == (2, 2)
+    out = core.update(1.0, (1.05, 3.05, 0.0), known_left_half_topo(), rel({1: 0.95, 2: 0.5}),
+                      grid(g, geom))  # node 2 open again: the topological target, not the frontier
+    assert out.status.end_nodes == 2
+
+
+def test_a_kept_frontier_search_reports_this_updates_end_node_counts():
+    g, geom = half_known_room()
+    core = frontier_core(frontier_period=5.0)
+    out = core.update(0.0, (1.05, 3.05, 0.0), known_left_half_topo(), rel({1: 0.5, 2: 0.5}),
+                      grid(g, geom))
+    assert (out.status.end_nodes, out.status.reliable) == (2, 0)
+    out = core.update(0.4, (1.05, 3.05, 0.0), known_left_half_topo(), rel({1: 0.95, 2: 0.95}),
+                      grid(g, geom))  # within the period: the search is kept, the counts not
+    assert (out.status.end_nodes, out.status.reliable) == (2, 2) and wps(out)
+
+
 def test_completion_ignores_short_groups_unless_near():
     g, geom = half_known_room()
     g[1:59, 29] = 100  # wall the right side off ...

@@ -16,6 +16,7 @@ unknown pocket smaller than ``completion_pocket_area``. Both searches run at mos
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 from topoexplore.services.planner.strategies.base import Config, Evaluation, Update
@@ -44,16 +45,14 @@ class Completion:
             fe = cached  # following a completion target: keep the last search
         else:
             fe = self._search(u)
+            for c in fe.cands:
+                c.label = f"{c.label}{COMPLETION_NOTE}"
             self._ev, self._t = fe, u.t
         if fe.failed is not None:
             return ev
-        # NOTE: a kept search is labelled (and its done text prefixed) again on every update
-        # that reuses it, so the note repeats; kept as the recorded behaviour (a known quirk)
-        for c in fe.cands:
-            c.label = f"{c.label}{COMPLETION_NOTE}"
-        fe.end_nodes, fe.reliable = ev.end_nodes, ev.reliable
-        fe.done = f"{ev.done}; {fe.done}"
-        return fe
+        # this update's end node counts and summary, whether the search is new or kept
+        return dataclasses.replace(fe, end_nodes=ev.end_nodes, reliable=ev.reliable,
+                                   done=f"{ev.done}; {fe.done}")
 
     def mapped(self, u: Update) -> bool:
         """Is no frontier left by the completion rules? First a cheap pass (a reachable group

@@ -8,6 +8,7 @@ explore_lite's ``planner_frequency``); with no target it runs on every update.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -110,24 +111,23 @@ class Frontier:
         cached = self._ev
         if (cached is not None and u.target is not None and cached.cands
                 and 0.0 <= u.t - self._t < self.cfg.params.frontier_period):
-            return cached  # following a target: keep the last search
-        if u.view is None:
-            ev = Evaluation(waiting="waiting for map")
+            ev = cached  # following a target: keep the last search
         else:
-            ev = frontier_evaluation(self.cfg, u)
-            self._count_end_nodes(u, ev)
-        self._ev, self._t = ev, u.t
-        return ev
+            ev = (Evaluation(waiting="waiting for map") if u.view is None
+                  else frontier_evaluation(self.cfg, u))
+            self._ev, self._t = ev, u.t
+        return self._with_end_nodes(u, ev)
 
-    def _count_end_nodes(self, u: Update, ev: Evaluation) -> None:
-        """The end node counts of the status (informational only)."""
-        if u.graph is None:
-            return
+    def _with_end_nodes(self, u: Update, ev: Evaluation) -> Evaluation:
+        """ev with this update's end node counts for the status (informational only)."""
+        if u.graph is None or ev.waiting is not None:
+            return ev
         ends = [n.id for n in u.graph.nodes if n.kind == "end"]
-        ev.end_nodes = len(ends)
+        reliable = 0
         if u.beliefs is not None:
             pm = {b.id: b.p for b in u.beliefs}
-            ev.reliable = sum(1 for i in ends if pm.get(i, 0.0) >= self.cfg.p_reliable)
+            reliable = sum(1 for i in ends if pm.get(i, 0.0) >= self.cfg.p_reliable)
+        return dataclasses.replace(ev, end_nodes=len(ends), reliable=reliable)
 
     def snapshot(self) -> dict[str, Any]:
         return {"frontier_search_t": self._t if math.isfinite(self._t) else None}
