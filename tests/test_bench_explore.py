@@ -239,7 +239,7 @@ def test_smoke_suite_files_and_ratio_arithmetic(tmp_path):
                         ",".join(worlds), "--seeds", "1", "--max-sim-time", "50",
                         "--max-wall-time", "12", "--jobs", "2", "--no-progress", "--out", str(out)],
                        cwd=REPO, capture_output=True, text=True, timeout=400,
-                       env=dict(os.environ, PYTHONPATH=str(REPO)))
+                       env=dict(os.environ))
     assert r.returncode == 0, r.stderr[-2000:]
     for name in ("results.json", "results.csv", "summary.md"):
         assert (out / name).stat().st_size > 0, name

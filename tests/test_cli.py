@@ -18,10 +18,11 @@ from topoexplore.common.keys import Keys
 from topoexplore.common.mapio import read_map_server
 
 
-def cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+def cli(*args: str, timeout: float = 120, env: dict | None = None
+        ) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "topoexplore.tools.cli", *args], cwd=REPO,
                           capture_output=True, text=True, timeout=timeout,
-                          env=dict(os.environ, PYTHONPATH=str(REPO)))
+                          env=env or dict(os.environ))
 
 
 def one_line_error(r: subprocess.CompletedProcess) -> None:
@@ -29,6 +30,21 @@ def one_line_error(r: subprocess.CompletedProcess) -> None:
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1, r.stderr
     assert "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("args", [
+    ["run", "--world", "corner", "--lockstep"],
+    ["up", "--profile", "sim-only"],
+])
+def test_commands_that_need_the_simulator_say_which_extra(tmp_path, args):
+    """A robot installs the core only: without the 'sim' extra, one line names it."""
+    stub = tmp_path / "pymunk"
+    stub.mkdir()
+    (stub / "__init__.py").write_text("raise ImportError('pymunk is not installed here')\n")
+    env = dict(os.environ, PYTHONPATH=str(tmp_path))
+    r = cli(*args, env=env)
+    one_line_error(r)
+    assert "pip install 'topoexplore[sim]'" in r.stderr
 
 
 def test_worlds_lists_builtins():

@@ -31,7 +31,7 @@ def explore(world: str, strategy: str = "reliability", seed: int = 0, repeat: in
            "--connect", f"tcp/127.0.0.1:{free_port()}", "--namespace", f"e2e{os.getpid()}",
            "--max-sim-time", "1500"]
     r = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600,
-                       env=dict(os.environ, PYTHONPATH=str(REPO)))
+                       env=dict(os.environ))
     report = json.loads((out / "report.json").read_text())
     report["_exit"] = r.returncode
     report["_stderr"] = r.stderr[-2000:]

@@ -42,7 +42,7 @@ from topoexplore.tools.keys import (
 )
 
 ROOT = Path(__file__).resolve().parents[1]
-ENV = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
+ENV = {**os.environ, "PYTHONUNBUFFERED": "1"}
 TOOL = "from topoexplore.tools.keys import main; raise SystemExit(main())"
 
 # --- pure helpers --------------------------------------------------------------------------

@@ -49,13 +49,16 @@ def cmd_up(args: argparse.Namespace) -> int:
     from topoexplore.common.keys import Keys
     from topoexplore.common.node import params_from_args
     from topoexplore.common.params import ParamError
+    from topoexplore.tools.extras import ExtraMissing, require
     from topoexplore.tools.launch.core import ProfileError, load_profile
     from topoexplore.tools.launch.supervisor import Supervisor, profile_path
 
     try:
         profile = load_profile(profile_path(args.profile))
         params = params_from_args(args)
-    except (ProfileError, ParamError) as exc:
+        if any(s.module.startswith("topoexplore.sim.") for s in profile.processes):
+            require("pymunk", what=f"the {profile.name!r} profile (it runs the simulator)")
+    except (ProfileError, ParamError, ExtraMissing) as exc:
         return _err(str(exc))
     overrides = list(args.set)
     if args.lockstep:

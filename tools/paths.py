@@ -6,6 +6,7 @@ directory only.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 PACKAGE_ROOT = Path(__file__).resolve().parents[1]  # topoexplore/ (or the checkout's root)
@@ -23,7 +24,7 @@ def shared_maps_dir() -> Path | None:
     if root is not None:
         bases.append(root)
     for base in bases:
-        d = (base.parent / "shared" / "maps").resolve()
+        d = Path(os.path.abspath(base.parent / "shared" / "maps"))  # symlinks kept
         if d.is_dir():
             return d
     return None

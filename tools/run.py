@@ -33,6 +33,7 @@ from topoexplore.common.bus import Bus, BusError
 from topoexplore.common.keys import DEFAULT_ENDPOINT, Keys
 from topoexplore.common.node import add_bus_args, add_param_args, params_from_args
 from topoexplore.common.params import STRATEGIES, ParamError, Params
+from topoexplore.tools.extras import ExtraMissing, require
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -336,6 +337,10 @@ def check_input(args: argparse.Namespace) -> Setup:
     """Check every argument and parameter before anything starts; InputError otherwise."""
     from topoexplore.sim.world import WorldError, load_world
 
+    try:
+        require("pymunk", "tqdm", what="topoexplore run")
+    except ExtraMissing as exc:
+        raise InputError(str(exc)) from None
     if not (args.speed > 0 and math.isfinite(args.speed)):
         raise InputError("--speed must be a positive number")
     if not (args.max_sim_time > 0):

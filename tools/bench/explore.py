@@ -54,6 +54,7 @@ from typing import Any
 import numpy as np
 
 from topoexplore.common.params import STRATEGIES
+from topoexplore.tools.extras import ExtraMissing, require
 from topoexplore.tools.paths import checkout_root, shared_maps_dir
 
 EXTRA_MAPS = ("lse_arena.yaml",)  # real map_server maps added to the default suite
@@ -651,7 +652,7 @@ def resolve_world(text: str) -> tuple[str, str, str]:
         return text, text, text
     p = Path(text)
     cands = [p] if p.is_absolute() else [Path.cwd() / p, _root() / p]
-    path = next((c.resolve() for c in cands if c.is_file()), None)
+    path = next((Path(os.path.abspath(c)) for c in cands if c.is_file()), None)  # symlinks kept
     if path is None:
         raise BenchArgError(f"world file not found: {text}")
     try:
@@ -1053,8 +1054,9 @@ def from_results(src: Path, out: Path | None) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
+        require("pymunk", "tqdm", "matplotlib", what="topoexplore bench explore")
         cfg, args = parse_config(argv)
-    except BenchArgError as exc:
+    except (BenchArgError, ExtraMissing) as exc:
         print(f"topoexplore bench explore: {exc}", file=sys.stderr)
         return 2
     except SystemExit as exc:  # --help
