@@ -1,4 +1,5 @@
-"""Grid kernels shared by the services: one Bresenham line, one 8-connected flood fill.
+"""Grid kernels shared by the services and the simulator's truth: one Bresenham line, one
+8-connected flood fill.
 
 numba, pure, no I/O. Both write into caller-owned buffers and return a count, so a caller that
 runs them thousands of times (the mapper: one line per beam) allocates once.
@@ -6,7 +7,7 @@ runs them thousands of times (the mapper: one line per beam) allocates once.
 Note on numba's cache: a cached caller embeds the code of these kernels, and numba does not
 notice when a function it calls from another file changes. After editing this module, delete
 the ``*.nbi`` / ``*.nbc`` files in the callers' ``__pycache__`` folders (services/mapper,
-services/topology, services/reliability), or they keep running the old kernel.
+services/topology, services/reliability, sim), or they keep running the old kernel.
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""Simulator worlds: the TOML world format, ROS map_server import, truth rasterization.
+"""Simulator worlds: the TOML world format, ROS map_server import, truth rasterization and the
+truth sets coverage is measured on (:func:`truth_mappable`, :func:`truth_free_reachable`).
 
 Pure except for reading world files (TOML, map YAML, map image). DESIGN.md §5 describes the
 format; a world is a set of static solid shapes in a rectangle ``origin .. origin + size``:
@@ -43,8 +44,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from numba import njit
 
 from topoexplore.common.grid import distance_transform
+from topoexplore.common.kernels import bresenham
 from topoexplore.common.mapio import MapIOError, read_map_server
 
 __all__ = [
@@ -58,6 +61,11 @@ __all__ = [
     "parse_world",
     "rasterize",
     "truth_free_reachable",
+    "truth_robot_positions",
+    "truth_mappable",
+    "disc_kernel",
+    "LASER_RANGE",
+    "START_SEARCH",
     "clearance",
     "pick_start_pose",
     "solid_to_boxes",
@@ -65,6 +73,8 @@ __all__ = [
 ]
 
 ROBOT_RADIUS = 0.2  # [m] robot size used to validate start poses (paper: Pioneer 2DX)
+LASER_RANGE = 8.0  # [m] default laser range of the mappable truth (LaserParams.range_max)
+START_SEARCH = 3  # [cells] how far from the start cell a reachable centre position is looked for
 START_CLEARANCE = 0.5  # [m] wanted distance from an automatically picked start to any solid
 DEFAULT_WALL_RADIUS = 0.05  # [m] segment radius -> walls 0.1 m thick
 PICK_RESOLUTION = 0.05  # [m] raster used to pick start poses
@@ -544,30 +554,273 @@ def _components8(free: np.ndarray) -> np.ndarray:
 def truth_free_reachable(world: World, resolution: float) -> tuple[np.ndarray, float, float]:
     """Free cells 8-connected to the robot's start cell: bool (h, w) and origin (x, y) [m].
 
-    This is the set coverage is measured on (DESIGN §6). If the start cell itself is solid
-    (robot close to a wall on a coarse grid), the nearest free cell within the robot radius
-    is used.
+    The set the old coverage figure (``coverage_free``) is measured on, and the superset of
+    :func:`truth_mappable` (the set ``coverage`` is measured on, DESIGN §6 / docs/design.md
+    "Measuring a run"). If the start cell itself is solid (robot close to a wall on a coarse
+    grid), the nearest free cell within the robot radius is used.
     """
     solid, ox, oy = rasterize(world, resolution)
+    return _free_component(world, solid, ox, oy, resolution), ox, oy
+
+
+def _free_component(world: World, solid: np.ndarray, ox: float, oy: float,
+                    res: float) -> np.ndarray:
+    """The 8-connected free component of the start cell (see :func:`truth_free_reachable`)."""
     free = ~solid
-    labels = _components8(free)
-    x, y, _ = world.robot_pose
-    row = int(math.floor((y - oy) / resolution))
-    col = int(math.floor((x - ox) / resolution))
-    h, w = solid.shape
-    start = None
-    if 0 <= row < h and 0 <= col < w and free[row, col]:
-        start = (row, col)
-    else:
-        rr, cc = np.nonzero(free)
-        if rr.size:
-            d = np.hypot(ox + (cc + 0.5) * resolution - x, oy + (rr + 0.5) * resolution - y)
-            k = int(np.argmin(d))
-            if d[k] <= ROBOT_RADIUS + resolution:
-                start = (int(rr[k]), int(cc[k]))
+    start = _nearest_cell(free, ox, oy, res, world.robot_pose, ROBOT_RADIUS + res)
     if start is None:
         raise WorldError(f"{world.source or world.name}: robot start is not in free space")
-    return labels == labels[start], ox, oy
+    return _label_of(free, start)
+
+
+def _label_of(mask: np.ndarray, cell: tuple[int, int]) -> np.ndarray:
+    """The 8-connected component of ``mask`` that holds ``cell``."""
+    labels = _components8(mask)
+    return labels == labels[cell]
+
+
+def _nearest_cell(mask: np.ndarray, ox: float, oy: float, res: float, pose,
+                  max_dist: float) -> tuple[int, int] | None:
+    """The cell of ``mask`` that holds the point (pose x, y), or else the ``mask`` cell whose
+    centre is nearest to it within ``max_dist`` [m] (ties: lowest row, then column)."""
+    x, y = pose[0], pose[1]
+    row = int(math.floor((y - oy) / res))
+    col = int(math.floor((x - ox) / res))
+    h, w = mask.shape
+    if 0 <= row < h and 0 <= col < w and mask[row, col]:
+        return row, col
+    rr, cc = np.nonzero(mask)
+    if rr.size == 0:
+        return None
+    d = np.hypot(ox + (cc + 0.5) * res - x, oy + (rr + 0.5) * res - y)
+    k = int(np.argmin(d))
+    return (int(rr[k]), int(cc[k])) if d[k] <= max_dist else None
+
+
+def disc_kernel(radius: float, resolution: float) -> np.ndarray:
+    """uint8 (2k+1, 2k+1) mask of the cell offsets whose *square* comes nearer than ``radius``
+    [m] to the centre of the middle cell: a disc of ``radius`` centred on a cell centre
+    overlaps exactly these cells with positive area."""
+    k = int(math.ceil(radius / resolution + 0.5))
+    a = np.maximum(np.abs(np.arange(-k, k + 1)) - 0.5, 0.0) * resolution
+    return (np.hypot(a[:, None], a[None, :]) < radius - 1e-9).astype(np.uint8)
+
+
+def _dilate(mask: np.ndarray, kernel: np.ndarray, outside: int) -> np.ndarray:
+    """Binary dilation of ``mask`` by ``kernel`` (centred); cells outside the raster count as
+    ``outside`` (1: set, as solid beyond the world's edge)."""
+    k = kernel.shape[0] // 2
+    src = np.pad(mask.astype(np.uint8), k, constant_values=outside)
+    return cv2.dilate(src, kernel)[k:-k, k:-k].astype(bool)
+
+
+def _positions(world: World, solid: np.ndarray, free_comp: np.ndarray, ox: float, oy: float,
+               res: float, radius: float) -> np.ndarray:
+    """Reachable robot centre cells (definition (a) of :func:`truth_mappable`)."""
+    fits = free_comp & ~_dilate(solid, disc_kernel(radius, res), outside=1)
+    start = _nearest_cell(fits, ox, oy, res, world.robot_pose, START_SEARCH * res)
+    if start is None:  # the robot cannot move on this raster: it maps from where it stands
+        only = np.zeros_like(fits)
+        only[_nearest_cell(free_comp, ox, oy, res, world.robot_pose, math.inf)] = True
+        return only
+    return _label_of(fits, start)
+
+
+def truth_robot_positions(world: World, resolution: float, radius: float = ROBOT_RADIUS
+                          ) -> tuple[np.ndarray, float, float]:
+    """Reachable robot centre positions: bool (h, w) and origin (x, y) [m]; definition (a) of
+    :func:`truth_mappable`."""
+    solid, ox, oy = rasterize(world, resolution)
+    comp = _free_component(world, solid, ox, oy, resolution)
+    return _positions(world, solid, comp, ox, oy, resolution, radius), ox, oy
+
+
+def truth_mappable(world: World, resolution: float, radius: float = ROBOT_RADIUS,
+                   laser_range: float = LASER_RANGE) -> tuple[np.ndarray, float, float]:
+    """The free cells the robot can map: bool (h, w) and origin (x, y) [m]. Coverage is
+    measured on this set (DESIGN §6, docs/design.md "Measuring a run"); it is a subset of
+    :func:`truth_free_reachable`. On the truth raster of ``resolution``:
+
+    (a) reachable centre positions (:func:`truth_robot_positions`): free cells whose distance
+        to the nearest solid cell (from the cell centre to the solid cell's square; cells
+        beyond the raster are solid) is at least ``radius`` [m], 8-connected to the start cell
+        (if the start cell is not such a cell, the nearest one within :data:`START_SEARCH`
+        cells; if there is none, the start cell alone: the robot maps from where it stands);
+    (b) the target set: every free cell the robot's disc overlaps from a reachable position,
+        plus every free cell within ``laser_range`` [m] (centre to centre) of a reachable
+        position and in its line of sight: a Bresenham ray from one of the two cells passes
+        through the other with only free cells before it. Rays go from a cell to every cell on
+        the border of the square of half side ``laser_range`` around it (8 * range / resolution
+        rays; together they pass through every cell of the square).
+
+    Every reachable position is a viewpoint (no sampling of positions); see :func:`_visible`.
+    """
+    for name, v in (("radius", radius), ("laser_range", laser_range)):
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            raise WorldError(f"truth_mappable: {name} must be a positive number (got {v!r})")
+    solid, ox, oy = rasterize(world, resolution)
+    comp = _free_component(world, solid, ox, oy, resolution)
+    pos = _positions(world, solid, comp, ox, oy, resolution, radius)
+    covered = _dilate(pos, disc_kernel(radius, resolution), outside=0) & comp
+    return covered | _visible(solid, comp, pos, covered, laser_range / resolution), ox, oy
+
+
+def _visible(solid: np.ndarray, comp: np.ndarray, pos: np.ndarray, covered: np.ndarray,
+             reach: float) -> np.ndarray:
+    """The cells of ``comp`` outside ``covered`` in line of sight of a ``pos`` cell within
+    ``reach`` [cells] (definition (b) of :func:`truth_mappable`).
+
+    Rays start at those cells and stop at the first position, so most stop at once; only for
+    the cells that no such ray settles (behind gaps, through slits) are rays then cast from
+    the positions near them, as the laser goes. Cells and positions more than ``reach``
+    8-connected steps apart through free cells are never in line of sight: no ray for them.
+    """
+    n = int(math.floor(reach + _EPS))
+    if n < 1:
+        return np.zeros_like(comp)
+    rays = _ray_table(_square_border(n))
+    r2 = reach * reach + _EPS
+    cand = _within_steps(pos, comp, n) & ~covered
+    seen = _sees_goal(solid, cand, pos, rays, r2)  # from the cells to the positions
+    hard = cand & ~seen
+    if hard.any():  # from the positions near the rest to them
+        viewpoints = pos & _within_steps(hard, comp, n)
+        start, ids = _rays_through(rays)
+        hr, hc = np.nonzero(hard)
+        seen |= _rays_to(solid, viewpoints, hr, hc, rays, start, ids, r2) & hard
+    return seen
+
+
+def _within_steps(seeds: np.ndarray, free: np.ndarray, n: int) -> np.ndarray:
+    """Cells of ``free`` at most ``n`` 8-connected steps through ``free`` from ``seeds``. Two
+    cells in line of sight within n cells are that close (the Bresenham line is such a path),
+    so no ray is needed from or to the other cells."""
+    near = (seeds & free).astype(np.uint8)
+    allowed = free.astype(np.uint8)
+    kernel = np.ones((3, 3), np.uint8)
+    count = int(near.sum())
+    for _ in range(n):
+        near = cv2.dilate(near, kernel) & allowed
+        grown = int(near.sum())
+        if grown == count:
+            break
+        count = grown
+    return near.astype(bool)
+
+
+def _square_border(n: int) -> np.ndarray:
+    """int64 (8n, 2) offsets (dr, dc) of the cells on the border of the square of half side n."""
+    t = np.arange(-n, n)
+    sides = [np.stack([np.full_like(t, -n), t], 1), np.stack([t, np.full_like(t, n)], 1),
+             np.stack([np.full_like(t, n), -t], 1), np.stack([-t, np.full_like(t, -n)], 1)]
+    return np.concatenate(sides).astype(np.int64)
+
+
+@njit(cache=True, nogil=True)
+def _ray_table(border):  # pragma: no cover - compiled
+    """int64 (k, n + 1, 2): the Bresenham line from (0, 0) to each of the k ``border`` offsets
+    (Chebyshev length n). Bresenham lines are translation invariant, so a ray from any cell is
+    this table shifted by the cell."""
+    k = border.shape[0]
+    n = abs(border[0, 0])
+    out = np.empty((k, n + 1, 2), dtype=np.int64)
+    rows = np.empty(n + 1, dtype=np.int64)
+    cols = np.empty(n + 1, dtype=np.int64)
+    for j in range(k):
+        bresenham(0, 0, border[j, 0], border[j, 1], rows, cols)
+        out[j, :, 0] = rows
+        out[j, :, 1] = cols
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _blocked(solid, r, c, dr, dc, r2):  # pragma: no cover - compiled
+    """Whether the cell (r + dr, c + dc) stops a ray from (r, c): out of range, outside the
+    raster or solid."""
+    h, w = solid.shape
+    rr = r + dr
+    cc = c + dc
+    return (dr * dr + dc * dc > r2 or rr < 0 or rr >= h or cc < 0 or cc >= w
+            or solid[rr, cc])
+
+
+@njit(cache=True, nogil=True)
+def _sees_goal(solid, src, goal, rays, r2):  # pragma: no cover - compiled
+    """bool mask of the ``src`` cells from which a ray (:func:`_ray_table`) meets a ``goal``
+    cell through free cells within squared distance ``r2`` [cells^2]."""
+    h, w = solid.shape
+    out = np.zeros((h, w), dtype=np.bool_)
+    for r in range(h):
+        for c in range(w):
+            if not src[r, c]:
+                continue
+            for k in range(rays.shape[0]):
+                for i in range(1, rays.shape[1]):
+                    dr = rays[k, i, 0]
+                    dc = rays[k, i, 1]
+                    if _blocked(solid, r, c, dr, dc, r2):
+                        break
+                    if goal[r + dr, c + dc]:
+                        out[r, c] = True
+                        break
+                if out[r, c]:
+                    break
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _rays_through(rays):  # pragma: no cover - compiled
+    """The rays (:func:`_ray_table`, half side n) through each offset (dr, dc) of the square:
+    ``ids[start[q]:start[q + 1]]`` for q = (dr + n) * (2n + 1) + dc + n. A ray reaches its
+    offset at step max(|dr|, |dc|)."""
+    k, m = rays.shape[0], rays.shape[1]
+    n = m - 1
+    side = 2 * n + 1
+    start = np.zeros(side * side + 1, dtype=np.int64)
+    for j in range(k):
+        for i in range(1, m):
+            start[(rays[j, i, 0] + n) * side + rays[j, i, 1] + n + 1] += 1
+    start = np.cumsum(start)
+    ids = np.empty(start[-1], dtype=np.int64)
+    fill = start[:-1].copy()
+    for j in range(k):
+        for i in range(1, m):
+            q = (rays[j, i, 0] + n) * side + rays[j, i, 1] + n
+            ids[fill[q]] = j
+            fill[q] += 1
+    return start, ids
+
+
+@njit(cache=True, nogil=True)
+def _rays_to(solid, viewpoints, tr, tc, rays, start, ids, r2):  # pragma: no cover - compiled
+    """Cells passed by the rays (:func:`_ray_table`) from the ``viewpoints`` cells that can
+    reach one of the target cells (tr, tc) (only those rays, only as far as the farthest
+    target on them): the same targets as casting every ray, for a fraction of the work."""
+    h, w = solid.shape
+    k, m = rays.shape[0], rays.shape[1]
+    n = m - 1
+    side = 2 * n + 1
+    need = np.zeros(k, dtype=np.int64)  # per ray: the step of its farthest target
+    out = np.zeros((h, w), dtype=np.bool_)
+    for r in range(h):
+        for c in range(w):
+            if not viewpoints[r, c]:
+                continue
+            for t in range(tr.size):
+                dr = tr[t] - r
+                dc = tc[t] - c
+                if abs(dr) > n or abs(dc) > n or dr * dr + dc * dc > r2:
+                    continue
+                q = (dr + n) * side + dc + n
+                for j in range(start[q], start[q + 1]):
+                    need[ids[j]] = max(need[ids[j]], max(abs(dr), abs(dc)))
+            for j in range(k):
+                for i in range(1, need[j] + 1):
+                    if _blocked(solid, r, c, rays[j, i, 0], rays[j, i, 1], r2):
+                        break
+                    out[r + rays[j, i, 0], c + rays[j, i, 1]] = True
+                need[j] = 0
+    return out
 
 
 def pick_start_pose(world: World, resolution: float = PICK_RESOLUTION) -> tuple[float, float, float]:

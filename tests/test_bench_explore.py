@@ -183,6 +183,31 @@ def test_from_results_writes_summary_csv_json_and_curves(tmp_path, capsys):
     assert "re-made" in capsys.readouterr().err
 
 
+def test_from_results_shows_both_coverages_and_reads_old_files(tmp_path):
+    """Runs with ``coverage_free`` get it in the per-world table beside ``coverage``; results
+    made before it existed are still read, with a note that their coverage is the older one."""
+    new_runs = [dict(r, coverage=0.97, coverage_free=0.91) for r in RUNS]
+    for name, runs in (("new", new_runs), ("old", [dict(r) for r in RUNS])):
+        src = tmp_path / name
+        src.mkdir()
+        (src / "results.json").write_text(json.dumps(_doc(runs)))
+        assert be.main(["--from-results", str(src)]) == 0
+        summary = (src / "summary.md").read_text()
+        doc = json.loads((src / "results.json").read_text())
+        assert "| coverage | coverage of all free |" in summary
+        agg = doc["aggregate"]["a"]["reliability"]
+        assert agg["coverage"]["mean"] == pytest.approx(0.97 if name == "new" else 1.0)
+        if name == "new":
+            assert agg["coverage_free"]["mean"] == pytest.approx(0.91)
+            assert "| 0.970 | 0.910 |" in summary and be.OLD_COVERAGE_NOTE not in summary
+            assert "coverage_free" in (src / "results.csv").read_text().splitlines()[0]
+        else:
+            assert agg["coverage_free"]["n"] == 0 and "| 1.000 | – |" in summary
+            assert summary.count(be.OLD_COVERAGE_NOTE) == 1
+            assert be.main(["--from-results", str(src)]) == 0  # again: the note once
+            assert (src / "summary.md").read_text().count(be.OLD_COVERAGE_NOTE) == 1
+
+
 # -- arguments -----------------------------------------------------------------------------
 
 

@@ -21,6 +21,7 @@ from topoexplore.sim.world import (
     parse_world,
     rasterize,
     truth_free_reachable,
+    truth_mappable,
 )
 
 MAPS = Path("/work/shared/maps")
@@ -60,6 +61,18 @@ def test_builtin_loads_with_free_start(name):
     reach, _, _ = truth_free_reachable(w, 0.1)
     assert reach.sum() > 100
     assert not (reach & solid).any()
+
+
+@pytest.mark.parametrize("name", sorted(EXPECTED))
+def test_builtin_mappable_is_the_free_space(name):
+    """The built-in worlds have no gap the robot cannot pass: the free space it can map is
+    (nearly) every free cell connected to the start, and never more."""
+    w = load_world(name)
+    target, ox, oy = truth_mappable(w, 0.1)
+    reach, fx, fy = truth_free_reachable(w, 0.1)
+    assert (ox, oy) == (fx, fy) and target.shape == reach.shape
+    assert not (target & ~reach).any()
+    assert target.sum() >= 0.999 * reach.sum()
 
 
 @pytest.mark.parametrize("name", sorted(EXPECTED - {"large-office"}))

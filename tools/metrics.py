@@ -1,10 +1,10 @@
 """Truth metrics of a run (DESIGN §6): coverage and map accuracy. Pure, no I/O.
 
-The truth comes from ``sim.world.rasterize`` / ``truth_free_reachable``: a bool raster with
-cell (0, 0)'s lower-left corner at ``truth_origin`` and cells of ``resolution`` metres. The map
-is a ROS-style int8 grid with its own :class:`~common.grid.GridGeometry` (origin, size and even
-resolution may differ). The map is sampled at the centres of the truth cells; truth cells
-outside the map count as unknown.
+The truth comes from ``sim.world.rasterize`` / ``truth_mappable`` / ``truth_free_reachable``: a
+bool raster with cell (0, 0)'s lower-left corner at ``truth_origin`` and cells of ``resolution``
+metres. The map is a ROS-style int8 grid with its own :class:`~common.grid.GridGeometry` (origin,
+size and even resolution may differ). The map is sampled at the centres of the truth cells;
+truth cells outside the map count as unknown.
 """
 
 from __future__ import annotations
@@ -83,8 +83,10 @@ def sample_classes(grid_int8, geom: GridGeometry, shape: tuple[int, int],
 
 def coverage(grid_int8, geom: GridGeometry, truth_free, truth_origin, resolution: float,
              p_free: float = 0.35, p_occ: float = 0.65) -> float:
-    """Share of truth free cells (the reachable set) that the map classifies as known (free or
-    occupied), DESIGN §6. In [0, 1]; 0 if the truth has no free cell."""
+    """Share of the ``truth_free`` cells that the map classifies as known (free or occupied),
+    DESIGN §6. In [0, 1]; 0 if the truth has no free cell. A run's ``coverage`` is measured on
+    ``sim.world.truth_mappable`` (the free cells the robot can map), its ``coverage_free`` on
+    ``truth_free_reachable`` (every free cell 8-connected to the start)."""
     t = _check_truth(truth_free, truth_origin, resolution, "truth_free")
     n = int(t.sum())
     if n == 0:

@@ -4,7 +4,10 @@ Starts the ``sim`` launch profile under the supervisor (router + six services), 
 run over the bus (status, sim clock, ground truth, map, topo, reliability, plan) with a
 progress bar, and at the end writes to ``--out``:
 
-- ``report.json`` — metrics of DESIGN §6 (see :func:`make_report`);
+- ``report.json`` — metrics of DESIGN §6 (see :func:`make_report`): ``coverage`` is the share
+  of the free space the robot can map that is known, ``coverage_free`` the share of every free
+  cell connected to the start (docs/design.md "Measuring a run");
+- ``timeline.csv`` — ``coverage`` over sim time and distance travelled;
 - ``final.png`` — grid, skeleton, nodes with ``id(P)``, the path coloured by target segment;
 - ``map.pgm`` + ``map.yaml`` (ROS map_server) and ``topology.json``; ``trail.csv``; ``logs.txt``.
 
@@ -176,25 +179,43 @@ class Monitor:
 
 
 class Truth:
-    """Ground-truth rasters of the world for coverage / accuracy."""
+    """Ground-truth rasters of the world for coverage / accuracy: the solid cells, the free cells
+    the robot can map (``target``, for ``coverage``) and every free cell connected to the start
+    (``free``, for ``coverage_free``), at the map resolution (docs/design.md "Measuring a run")."""
 
-    def __init__(self, world_name: str, resolution: float):
-        from topoexplore.sim.world import load_world, rasterize, truth_free_reachable
+    def __init__(self, world_name: str, p: Params):
+        from topoexplore.sim.world import (
+            load_world,
+            rasterize,
+            truth_free_reachable,
+            truth_mappable,
+        )
 
         self.world = load_world(world_name)
-        self.resolution = resolution
+        self.resolution = resolution = p.mapper.resolution
         self.occ, ox, oy = rasterize(self.world, resolution)
         self.free, fx, fy = truth_free_reachable(self.world, resolution)
+        self.target, _, _ = truth_mappable(self.world, resolution, p.robot.radius,
+                                           p.laser.range_max)
         self.origin = (ox, oy)
-        self.free_origin = (fx, fy)
+        self.free_origin = (fx, fy)  # of both free and target
 
     def coverage(self, grid: m.OccupancyGrid | None, p: Params) -> float:
+        """Share of the free cells the robot can map that the map knows (``coverage``)."""
+        return self._share(grid, p, self.target)
+
+    def coverage_free(self, grid: m.OccupancyGrid | None, p: Params) -> float:
+        """Share of every free cell connected to the start that the map knows (the older
+        figure, ``coverage_free``)."""
+        return self._share(grid, p, self.free)
+
+    def _share(self, grid: m.OccupancyGrid | None, p: Params, truth) -> float:
         from topoexplore.tools.metrics import coverage
 
         if grid is None:
             return 0.0
         g = convert.grid_from_msg(grid)
-        return float(coverage(g.data, g.geom, self.free, self.free_origin, self.resolution,
+        return float(coverage(g.data, g.geom, truth, self.free_origin, self.resolution,
                               p.mapper.p_free, p.mapper.p_occ))
 
     def accuracy(self, grid: m.OccupancyGrid | None, p: Params) -> float:
@@ -209,8 +230,10 @@ class Truth:
 
 def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_reason: str,
                 mon: Monitor, sim: m.SimStatus | None, wall: float, startup: float,
-                coverage: float, accuracy: float, restarts: int, bad_messages: int,
-                p_reliable: float, lockstep: bool) -> dict[str, Any]:
+                coverage: float, coverage_free: float, accuracy: float, restarts: int,
+                bad_messages: int, p_reliable: float, lockstep: bool) -> dict[str, Any]:
+    """The report.json document. ``coverage``: share of the free cells the robot can map that
+    the final map knows; ``coverage_free``: share of every free cell connected to the start."""
     rel = mon.rel
     final_nodes = rel.nodes if rel is not None else []
     accepted_remote = sum(1 for n in final_nodes
@@ -227,6 +250,7 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
         "startup_s": round(startup, 3),
         "path_length_m": round(sim.path_length, 3) if sim else 0.0,
         "coverage": round(coverage, 4),
+        "coverage_free": round(coverage_free, 4),
         "map_accuracy": round(accuracy, 4),
         "collisions": sim.collisions if sim else 0,
         "end_nodes_seen": len(mon.seen_end_ids),
@@ -299,7 +323,7 @@ def run(args: argparse.Namespace) -> int:
         setup = check_input(args)
     except InputError as exc:
         return _fail(str(exc), 2)
-    truth = Truth(args.world, setup.params.mapper.resolution)
+    truth = Truth(args.world, setup.params)
     console = Console.for_args(args)
     session = StackRun(args, setup, truth, console)
     outcome = session.execute()
@@ -582,15 +606,16 @@ def write_results(args: argparse.Namespace, setup: Setup, truth: Truth, mon: Mon
     params, sim = setup.params, outcome.sim
     with mon.lock:
         coverage = truth.coverage(mon.grid, params)
+        coverage_free = truth.coverage_free(mon.grid, params)
         if sim is not None:
             mon.timeline.append((sim.sim_time, sim.path_length, coverage))
         accuracy = truth.accuracy(mon.grid, params)
         report = make_report(world=args.world, strategy=args.strategy, seed=args.seed,
                              finished=outcome.finished, stop_reason=outcome.reason, mon=mon,
                              sim=sim, wall=outcome.wall, startup=outcome.startup,
-                             coverage=coverage, accuracy=accuracy, restarts=outcome.restarts,
-                             bad_messages=outcome.bad, p_reliable=params.reliability.p_reliable,
-                             lockstep=args.lockstep)
+                             coverage=coverage, coverage_free=coverage_free, accuracy=accuracy,
+                             restarts=outcome.restarts, bad_messages=outcome.bad,
+                             p_reliable=params.reliability.p_reliable, lockstep=args.lockstep)
         title = (f"{args.world} / {args.strategy} / seed {args.seed}: "
                  f"{'finished' if outcome.finished else 'not finished'}, "
                  f"{report['path_length_m']:.1f} m, {report['sim_time_s']:.0f} s, "
@@ -602,7 +627,8 @@ def write_results(args: argparse.Namespace, setup: Setup, truth: Truth, mon: Mon
 def summary_line(r: dict, out: Path) -> str:
     return (f"{'finished' if r['finished'] else 'NOT finished'} ({r['stop_reason']}): "
             f"path {r['path_length_m']:.1f} m, sim {r['sim_time_s']:.0f} s, wall "
-            f"{r['wall_time_s']:.1f} s, coverage {r['coverage']:.3f}, accuracy "
+            f"{r['wall_time_s']:.1f} s, coverage {r['coverage']:.3f} (of all free "
+            f"{r['coverage_free']:.3f}), accuracy "
             f"{r['map_accuracy']:.3f}, collisions {r['collisions']}, end nodes seen "
             f"{r['end_nodes_seen']} / visited {r['end_nodes_visited']} / accepted remotely "
             f"{r['end_nodes_accepted_remote']} -> {out}/report.json, {out}/final.png")

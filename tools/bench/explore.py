@@ -19,6 +19,11 @@ writes to ``--out``:
   (mean over seeds on a common distance grid);
 - ``runs/<world>-<strategy>-<seed>/`` — each run's own output (report, final.png, map, ...).
 
+Coverage (docs/design.md "Measuring a run"): ``coverage``, the headline, is the share of the free
+space the robot can map (reach with its footprint from the start, and see from there) that the
+map knows; ``coverage_free`` beside it is the older share of every free cell connected to the
+start. The curves, the distances to 90 / 95 % and the low-coverage notes use ``coverage``.
+
 Ratios (reliability / frontier, reliability / all-end-nodes; path length and sim time) are
 taken per run pair (same world, same seed). The headline figure is the geometric mean over
 the pairs where both runs finished; the other pairs are listed with the reason they were
@@ -76,6 +81,7 @@ AGG_FIELDS = {
     "path_length_m": ("path [m]", 1),
     "sim_time_s": ("sim time [s]", 0),
     "coverage": ("coverage", 3),
+    "coverage_free": ("coverage of all free", 3),
     "map_accuracy": ("map accuracy", 3),
     "collisions": ("collisions", 1),
     "end_nodes_visited": ("end nodes visited", 1),
@@ -347,7 +353,7 @@ def plot_curves(world: str, runs: Sequence[dict], strategies: Sequence[str], pat
         for thr in COVERAGE_THRESHOLDS:
             ax.axhline(thr, color="0.6", lw=0.8, ls=":")
         ax.set_xlabel("distance travelled [m]")
-        ax.set_ylabel("coverage (share of reachable free space mapped)")
+        ax.set_ylabel("coverage (share of the mappable free space known)")
         ax.set_ylim(0.0, 1.02)
         ax.set_xlim(left=0.0)
         ax.set_title(f"{world}: coverage over distance")
@@ -419,6 +425,9 @@ def _summary_worlds(doc: dict, worlds: list[str]) -> list[str]:
     runs = doc["runs"]
     L = ["", "## Per world and strategy", "",
          "Mean over seeds, finished or not (min–max in brackets when they differ). "
+         "`coverage` = share of the free space the robot can map (reach with its footprint, "
+         "see from there) that the map knows; `coverage of all free` = share of every free "
+         "cell connected to the start (the older figure). "
          "`accepted from a distance` = end nodes reliable at the end without a visit."]
     cols = ["strategy", "finished"] + [t for t, _ in AGG_FIELDS.values()]
     for w in worlds:
@@ -896,7 +905,8 @@ def _result_text(r: dict) -> str:
         return f"{r['strategy']}: no report"
     return (f"{_label(r)}/{r['strategy']}/{r['seed']} "
             f"{'finished' if r.get('finished') else 'NOT finished'} "
-            f"{r['path_length_m']:.1f} m cov {r.get('coverage') or 0:.2f}")
+            f"{r['path_length_m']:.1f} m cov {r.get('coverage') or 0:.2f} "
+            f"(free {r.get('coverage_free') or 0:.2f})")
 
 
 def run_suite(cfg: Config, argv: Sequence[str]) -> int:
@@ -1038,6 +1048,7 @@ def from_results(src: Path, out: Path | None) -> int:
               file=sys.stderr)
         return 2
     out = out or src
+    _note_old_coverage(doc)
     for r in runs:  # older files, or runs copied without timeline: read the run directory
         if not r.get("timeline") and r.get("run_dir") and (src / r["run_dir"] / "timeline.csv"
                                                             ).is_file():
@@ -1049,6 +1060,19 @@ def from_results(src: Path, out: Path | None) -> int:
     print(f"bench explore: re-made {out}/summary.md, results.json, results.csv, curves/ from "
           f"{src / 'results.json'} ({len(runs)} runs)", file=sys.stderr)
     return 0
+
+
+OLD_COVERAGE_NOTE = ("runs without `coverage of all free` come from before it existed: their "
+                     "`coverage` is the share of every free cell connected to the start (the "
+                     "older figure), not of the free space the robot can map")
+
+
+def _note_old_coverage(doc: dict) -> None:
+    """Results from before ``coverage_free``: say that their ``coverage`` is the older figure."""
+    old = any(r.get("coverage") is not None and "coverage_free" not in r for r in doc["runs"])
+    notes = doc.setdefault("notes", [])
+    if old and OLD_COVERAGE_NOTE not in notes:
+        notes.append(OLD_COVERAGE_NOTE)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

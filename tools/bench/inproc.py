@@ -39,7 +39,7 @@ from topoexplore.services.planner.core import PlannerCore
 from topoexplore.services.reliability.core import ReliabilityCore
 from topoexplore.services.topology.core import TopologyCore
 from topoexplore.sim.core import SimCore
-from topoexplore.sim.world import World, load_world, truth_free_reachable
+from topoexplore.sim.world import World, load_world, truth_free_reachable, truth_mappable
 from topoexplore.tools.bench.explore import (
     BenchArgError,
     check_overrides,
@@ -121,14 +121,22 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
         if c.sim.time >= max_sim_time:
             state = "timeout"
             break
-    free, fx, fy = truth_free_reachable(w, P.mapper.resolution)
-    cov = coverage(grid.data, grid.geom, free, (fx, fy), P.mapper.resolution, P.mapper.p_free,
-                   P.mapper.p_occ)
+    cov, cov_free = _coverages(P, w, grid)
     return {"world": world, "strategy": strategy, "seed": int(seed), "state": str(state),
             "finished": state == "done", "stop_reason": plan.status.reason if plan else "",
             "path_length_m": round(c.sim.path_length, 2), "sim_time_s": round(c.sim.time, 1),
-            "coverage": round(float(cov), 4), "collisions": int(c.sim.collisions),
-            "wall_s": round(time.monotonic() - t0, 1)}
+            "coverage": round(cov, 4), "coverage_free": round(cov_free, 4),
+            "collisions": int(c.sim.collisions), "wall_s": round(time.monotonic() - t0, 1)}
+
+
+def _coverages(P: Params, w: World, grid: Any) -> tuple[float, float]:
+    """``coverage`` (share of the free cells the robot can map that the map knows) and
+    ``coverage_free`` (share of every free cell connected to the start), as ``run`` reports."""
+    res = P.mapper.resolution
+    target, ox, oy = truth_mappable(w, res, P.robot.radius, P.laser.range_max)
+    free, _, _ = truth_free_reachable(w, res)
+    return tuple(float(coverage(grid.data, grid.geom, t, (ox, oy), res, P.mapper.p_free,
+                                P.mapper.p_occ)) for t in (target, free))
 
 
 def _one(item: tuple) -> dict[str, Any]:
@@ -138,8 +146,8 @@ def _one(item: tuple) -> dict[str, Any]:
     except Exception as exc:  # noqa: BLE001 - one failed run must not end the sweep
         r = {"world": world, "strategy": strategy, "seed": seed, "state": "error",
              "finished": False, "stop_reason": f"{type(exc).__name__}: {exc}",
-             "path_length_m": None, "sim_time_s": None, "coverage": None, "collisions": None,
-             "wall_s": None}
+             "path_length_m": None, "sim_time_s": None, "coverage": None,
+             "coverage_free": None, "collisions": None, "wall_s": None}
     r["world_label"] = label
     return r
 
@@ -199,9 +207,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         runs = list(pool.map(_one, items))
     for r in runs:
         cov = "-" if r["coverage"] is None else f"{r['coverage']:.3f}"
+        cov_free = "-" if r["coverage_free"] is None else f"{r['coverage_free']:.3f}"
         print(f"{r['world_label']:14s} {r['strategy']:14s} s{r['seed']} {r['state']:8s} "
-              f"path {r['path_length_m']} m  sim {r['sim_time_s']} s  coverage {cov}  "
-              f"collisions {r['collisions']}  wall {r['wall_s']} s")
+              f"path {r['path_length_m']} m  sim {r['sim_time_s']} s  coverage {cov} "
+              f"(free {cov_free})  collisions {r['collisions']}  wall {r['wall_s']} s")
     strategies = sorted({r["strategy"] for r in runs}, key=STRATEGIES.index)
     ratios = {}
     for den in ("frontier", "all-end-nodes"):
