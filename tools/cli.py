@@ -2,7 +2,7 @@
 
     topoexplore run      explore a world with the whole stack, write a report and a picture
     topoexplore up       start a launch profile under the supervisor (Ctrl-C stops everything)
-    topoexplore worlds   list the built-in worlds
+    topoexplore worlds   list the built-in worlds; worlds generate: write a generated world
     topoexplore keys     inspect live keys: list | echo KEY | hz KEY | get SERVICE
     topoexplore map      save the live map as a ROS map_server PGM + YAML pair
     topoexplore render   make a PNG from a saved run directory or a running stack
@@ -26,9 +26,66 @@ def _err(text: str, code: int = 2) -> int:
     return code
 
 
+class _WorldsArgError(Exception):
+    pass
+
+
+class _WorldsParser(argparse.ArgumentParser):
+    """`worlds generate` arguments: an error is one line (no usage block), exit 2."""
+
+    def error(self, message: str):  # type: ignore[override]
+        raise _WorldsArgError(message)
+
+
+def _generate_parser() -> argparse.ArgumentParser:
+    from topoexplore.sim.generate import DEFAULT_SIZES, MAX_NOISE, SIZE_RANGE, STYLES
+
+    sizes = ", ".join(f"{k} {w:g} x {h:g}" for k, (w, h) in DEFAULT_SIZES.items())
+    ap = _WorldsParser(prog="topoexplore worlds generate",
+                       description="Write a generated world (deterministic by seed): a TOML "
+                       "world, or with --slam-noise a ROS map_server map (PGM + YAML) degraded "
+                       "like a SLAM map plus a TOML wrapper with the start pose. "
+                       "docs/worlds.md, 'Generated worlds'.")
+    ap.add_argument("--style", required=True, choices=STYLES)
+    ap.add_argument("--seed", required=True, type=int, help="integer >= 0")
+    ap.add_argument("--size", nargs=2, type=float, metavar=("W", "H"),
+                    help=f"[m] {SIZE_RANGE[0]:g}..{SIZE_RANGE[1]:g} per side, rounded to 0.1 m "
+                    f"(default: {sizes})")
+    ap.add_argument("--slam-noise", type=int, metavar="LEVEL",
+                    help=f"write a SLAM-like map, noise 0 (clean raster) .. {MAX_NOISE}")
+    ap.add_argument("--out", required=True, metavar="DIR", help="output directory (created)")
+    return ap
+
+
+def cmd_worlds_generate(argv: list[str]) -> int:
+    from topoexplore.sim.generate import (
+        GenerateError,
+        check_arguments,
+        generate,
+        write_generated,
+    )
+
+    try:
+        args = _generate_parser().parse_args(argv)
+        check_arguments(args.style, args.seed, args.size, args.slam_noise)
+        gen = generate(args.style, args.seed, args.size)
+        path = write_generated(gen, args.out, args.slam_noise)
+    except (_WorldsArgError, GenerateError) as exc:
+        return _err(f"worlds generate: {exc}")
+    w = gen.world
+    print(f"wrote {path}: {w.description}; start {tuple(round(v, 2) for v in w.robot_pose)}")
+    return 0
+
+
 def cmd_worlds(args: argparse.Namespace) -> int:
     from topoexplore.sim.world import WorldError, builtin_worlds, load_world
 
+    if args.action is not None:
+        if args.check:
+            return _err("worlds: give either --check WORLD or an action, not both")
+        if args.action != "generate":
+            return _err(f"worlds: unknown action {args.action!r} (expected: generate)")
+        return cmd_worlds_generate(args.rest)
     if args.check:
         try:
             w = load_world(args.check)
@@ -128,8 +185,11 @@ def build_parser() -> argparse.ArgumentParser:
     add_bus_args(up)
     add_param_args(up)
 
-    w = sub.add_parser("worlds", help="list the built-in worlds")
+    w = sub.add_parser("worlds", help="list the built-in worlds, check or generate a world")
     w.add_argument("--check", metavar="WORLD", help="load a world (name or file) and summarize it")
+    w.add_argument("action", nargs="?", metavar="generate",
+                   help="generate a world: `topoexplore worlds generate --help`")
+    w.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
 
     sub.add_parser("keys", help="inspect keys: list | echo KEY | hz KEY | get SERVICE",
                    add_help=False)
