@@ -90,6 +90,9 @@ def _need(ok: bool, text: str) -> None:
 
 class RobotParams(_P):
     radius: Pos = 0.2  # [m] paper: Pioneer 2DX, a circle of 0.2 m
+    body_margin: NonNeg = 0.05  # [m] least gap kept beside the body: the controller stops
+    #   for returns within radius + this of its path, and the planner routes through a
+    #   narrow passage only where the grid clearance is at least radius + this
     v_limit: Pos = 1.0  # [m/s] base limits: the simulator (or a driver) clips commands
     w_limit: Pos = 2.0  # [rad/s]
 
@@ -235,6 +238,15 @@ class PlannerParams(_P):
     frontier_match_radius: Pos = 1.0  # [m] frontier group this close to the goal stays target
     frontier_period: NonNeg = 1.0  # [s] frontier searches at most this often while following
     done_confirm: PosInt = 2  # consecutive updates without any candidate before "done"
+    watchdog_time: Pos = 120.0  # [s] driving without new map information -> escalate
+    watchdog_area: Pos = 0.5  # [m^2] new information: the known area grew this much ...
+    #   (or an end node became reliable)
+    blocked_time: Pos = 8.0  # [s] following a path without moving or turning -> the way
+    #   ahead is blocked: a learned obstacle there
+    blocked_radius: Pos = 0.15  # [m] ... a disc this big, just ahead of the robot ...
+    blocked_memory: Pos = 300.0  # [s] ... remembered this long
+    stuck_timeout: Pos = 60.0  # [s] stuck (no way out, or the watchdog's last step) this
+    #   long -> failed
     tip_length: NonNeg = 0.3  # [m] last part of an edge into an end node that may be narrow
     frontier_completion: bool = True  # reliability / all-end-nodes: once no end node is left,
     # go to the frontier groups that remain (docs/design.md, "Completion phase")
@@ -266,7 +278,6 @@ class ControllerParams(_P):
     # only turn in place)
     heading_gain: Pos = 1.5  # [1/s] w = gain * heading error when turning in place
     search_window: Pos = 1.5  # [m] path progress is searched this far ahead of the last
-    lateral_margin: NonNeg = 0.05  # [m] front sector: |lateral offset| <= radius + this
     slow_min_scale: Fraction = 0.25  # speed factor at safety_distance (1 at slow_distance)
     stuck_distance: Pos = 0.05  # [m] moving less than this ...
     stuck_angle: Pos = 0.2  # [rad] ... and turning less than this for stuck_time = stuck
@@ -290,6 +301,8 @@ class Params(_P):
     def __post_init__(self) -> None:
         _need(self.laser.scan_hz <= self.sim.physics_hz,
               "laser.scan_hz must not exceed sim.physics_hz")
+        _need(self.planner.clearance_margin >= self.robot.body_margin,
+              "planner.clearance_margin must be at least robot.body_margin")
 
 
 # Parameters that moved to a shared section (round 2): an old name gets a one-line hint.
@@ -304,7 +317,7 @@ MOVED = {
     "sim.lockstep": "runtime.lockstep", "sim.lockstep_timeout": "runtime.lockstep_timeout",
     "sim.lockstep_wait_for": "runtime.lockstep_wait_for",
     "sim.lockstep_wait": "runtime.lockstep_wait", "reliability.p_free": "mapper.p_free",
-    "planner.p_reliable": "reliability.p_reliable",
+    "planner.p_reliable": "reliability.p_reliable", "controller.lateral_margin": "robot.body_margin",
 }
 
 

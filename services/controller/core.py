@@ -157,29 +157,30 @@ def _scan_xy(scan: Scan) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray
     return r, a, r * np.cos(a), r * np.sin(a)
 
 
-def front_distance(scan: Scan | None, params: ControllerParams, radius: float) -> float:
+def front_distance(scan: Scan | None, params: ControllerParams, half_width: float) -> float:
     """Range [m] of the nearest return in the front sector, inf if none.
 
-    Front sector: |angle| <= front_half_angle and lateral offset |y| <= radius +
-    lateral_margin (a return beside the robot's swept corridor is not in the way).
+    Front sector: |angle| <= front_half_angle and lateral offset |y| <= half_width [m]
+    (robot.radius + robot.body_margin: a return beside the robot's swept corridor is not in
+    the way).
     """
     if scan is None:
         return math.inf
     r, a, _, y = _scan_xy(scan)
     a = np.arctan2(np.sin(a), np.cos(a))
-    m = (np.abs(a) <= params.front_half_angle) & (np.abs(y) <= radius + params.lateral_margin)
+    m = (np.abs(a) <= params.front_half_angle) & (np.abs(y) <= half_width)
     return float(np.min(r[m])) if np.any(m) else math.inf
 
 
-def rear_blocked(scan: Scan | None, params: ControllerParams, radius: float) -> bool:
-    """True if a return lies behind the robot centre in its swept corridor within the backing
-    distance (recovery_speed * recovery_time + radius + lateral_margin). A forward-only
+def rear_blocked(scan: Scan | None, params: ControllerParams, half_width: float) -> bool:
+    """True if a return lies behind the robot centre in its swept corridor (|y| <= half_width
+    [m]) within the backing distance (recovery_speed * recovery_time + half_width). A forward-only
     180 deg laser never sees behind, so the rear then counts as not known to be blocked."""
     if scan is None:
         return False
     _, _, x, y = _scan_xy(scan)
-    reach = radius + params.lateral_margin + params.recovery_speed * params.recovery_time  # [m]
-    m = (x < -1e-9) & (-x <= reach) & (np.abs(y) <= radius + params.lateral_margin)
+    reach = half_width + params.recovery_speed * params.recovery_time  # [m]
+    m = (x < -1e-9) & (-x <= reach) & (np.abs(y) <= half_width)
     return bool(np.any(m))
 
 
@@ -201,9 +202,11 @@ def obstacle_scale(d_front: float, params: ControllerParams) -> float:
 class ControllerCore:
     """Path follower state: current path and progress, rotate/recovery phases, stuck timer."""
 
-    def __init__(self, params: ControllerParams, radius: float | None = None):
+    def __init__(self, params: ControllerParams, robot: RobotParams | None = None):
         self.params = params
-        self.radius = RobotParams().radius if radius is None else float(radius)  # [m]
+        robot = RobotParams() if robot is None else robot
+        self.radius = robot.radius  # [m]
+        self.half_width = robot.radius + robot.body_margin  # [m] the swept corridor
         self.plan_id: int | None = None
         self.path = np.zeros((0, 2))
         self._raw = np.zeros((0, 2))
@@ -307,7 +310,7 @@ class ControllerCore:
             elif t - t0 >= p.stuck_time:
                 self.recoveries += 1
                 self._recovery = ("backup" if p.recovery_backup
-                                  and not rear_blocked(scan, p, self.radius) else "turn")
+                                  and not rear_blocked(scan, p, self.half_width) else "turn")
                 self._rec_start = t
         if self._recovery == "backup":
             if t - self._rec_start < p.recovery_time:
@@ -361,7 +364,7 @@ class ControllerCore:
             self._recovery = None
             self._look_left, self._look_th = self.params.start_turn, None
         self._t_last = t
-        self.front = front_distance(scan, self.params, self.radius)
+        self.front = front_distance(scan, self.params, self.half_width)
         self._take_route(route)
         if bool(done):
             return self._out(0.0, 0.0, "done", False, t, pose)

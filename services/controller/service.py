@@ -22,7 +22,7 @@ log = logging.getLogger("topoexplore.controller")
 class ControllerService:
     def __init__(self, node: Node):
         self.node = node
-        self.core = ControllerCore(node.params.controller, node.params.robot.radius)
+        self.core = ControllerCore(node.params.controller, node.params.robot)
         self.odom = OdomBuffer()
         self.pub = node.publisher("cmd_vel")
         node.subscribe_odom(self.odom)

@@ -186,7 +186,7 @@ def _cores(strategy: str = "reliability") -> SimpleNamespace:
         planner=PlannerCore(P.planner, P.robot, P.reliability.p_reliable, occ),
         frontier=PlannerCore(msgspec.structs.replace(P.planner, strategy="frontier"), P.robot,
                              P.reliability.p_reliable, occ),
-        controller=ControllerCore(P.controller, P.robot.radius))
+        controller=ControllerCore(P.controller, P.robot))
 
 
 def _topology_cold(grid: GridMap, clean: GridMap, start, repeats: int) -> dict[str, float]:
