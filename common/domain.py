@@ -192,6 +192,7 @@ class ExploreState(enum.StrEnum):
     EXPLORING = "exploring"
     DONE = "done"
     FAILED = "failed"
+    STUCK = "stuck"  # the robot cannot get anywhere from here: recovering (not finished)
 
 
 @dataclass(frozen=True, eq=False)

@@ -54,7 +54,7 @@ MAX_STR = 256
 MAX_COORD = 1.0e6  # [m]
 
 NODE_KINDS = ("end", "branch", "corner")
-EXPLORE_STATES = ("idle", "exploring", "done", "failed")
+EXPLORE_STATES = ("idle", "exploring", "done", "failed", "stuck")
 
 
 class MessageError(ValueError):
@@ -170,7 +170,7 @@ class Path(msgspec.Struct, kw_only=True):
 
 class ExploreStatus(msgspec.Struct, kw_only=True):
     header: Header
-    state: str  # "idle" | "exploring" | "done" | "failed"
+    state: str  # "idle" | "exploring" | "done" | "failed" | "stuck" (recovering, not finished)
     reason: str = ""
     strategy: str = ""
     target_id: int = -1

@@ -144,14 +144,21 @@ def test_empty_topo_waits_and_done_needs_confirmation():
     assert out.state == "done" and out.status.finished
 
 
-def test_failed_only_when_the_robot_cannot_join_the_skeleton_for_a_while():
-    core = PlannerCore(params(progress_timeout=10.0))
+def test_stuck_then_failed_when_the_robot_cannot_join_the_skeleton():
+    core = PlannerCore(params(stuck_timeout=10.0))
     nodes, edges = u_parts()
     narrow = topo(nodes, [(a, b, p, ln, 0.1) for a, b, p, ln, _ in edges])
     out = core.update(0.0, POSE, narrow, rel(OPEN), None)
-    assert out.state == "exploring" and wps(out) == [] and "cannot join" in out.status.reason
+    # stuck, never done: the route turns the robot on the spot to look the other way
+    assert out.state == "stuck" and not out.status.finished and "cannot join" in out.status.reason
+    assert wps(out) == [(POSE[0], POSE[1])]
+    assert out.route.goal_heading == pytest.approx(POSE[2] + math.pi)
+    first = out.route.plan_id
+    out = core.update(5.0, POSE, narrow, rel(OPEN), None)
+    assert out.state == "stuck" and out.route.plan_id == first  # the same recovery
     out = core.update(10.0, POSE, narrow, rel(OPEN), None)
-    assert out.state == "failed" and "clearance" in out.status.reason
+    assert out.state == "failed" and "clearance" in out.status.reason and wps(out) == []
+    assert "stuck for 10 s" in out.status.reason
 
 
 def test_picks_nearest_by_path_cost_not_straight_line():
@@ -483,7 +490,8 @@ def test_grid_clearance_lets_the_robot_into_a_dead_end_but_not_through_a_gap():
     assert 0.0 < np.hypot(*(end - (5.85, 0.85))) <= 0.3 + 1e-6
     # without a grid the graph's clearance (0.2 m < 0.25 m) rules: no way onto the skeleton
     out = PlannerCore(params()).update(0.0, (0.5, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), None)
-    assert out.route.target_id == -1 and wps(out) == [] and "cannot join" in out.status.reason
+    assert out.route.target_id == -1 and out.state == "stuck"
+    assert "cannot join" in out.status.reason
     # a 0.3 m wide door in the middle of the corridor: not passable whatever the graph says
     g[10:17, 30] = 100  # wall at x in [2.0, 2.1] except y in [0.7, 1.0]
     core = PlannerCore(params(approach_narrow=False))

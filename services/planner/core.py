@@ -17,12 +17,17 @@ the same for every strategy:
   max_attempts failures, or when the robot stands at the target for arrival_timeout s and it is
   still unresolved, the target is blacklisted by id and by position (blacklist_radius) and
   reported in ``blacklisted`` and ``reason``;
-- "done" needs done_confirm updates in a row without a candidate, "failed" (the robot cannot
-  plan at all) must last progress_timeout s.
+- "done" needs done_confirm updates in a row without a candidate;
+- stuck: the robot cannot get to any traversable cell (or the watchdog's last step): the
+  state is "stuck" (never "done"), the route asks the controller to turn on the spot to look
+  around, and only stuck_timeout s later the state becomes "failed";
+- the global progress watchdog (:mod:`.watchdog`): no new map information for watchdog_time
+  s of driving escalates, blacklist the target's region -> nearest frontier -> stuck.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from typing import Any
@@ -43,6 +48,7 @@ from topoexplore.common.grid import Occupancy
 from topoexplore.common.params import PlannerParams, ReliabilityParams, RobotParams
 from topoexplore.services.planner import graph as gr
 from topoexplore.services.planner import strategies
+from topoexplore.services.planner.blockage import Blockages
 from topoexplore.services.planner.decision import Action, Blacklist, Decision, Target
 from topoexplore.services.planner.mapview import MapView
 from topoexplore.services.planner.strategies.base import (
@@ -52,6 +58,8 @@ from topoexplore.services.planner.strategies.base import (
     Update,
     id_list,
 )
+from topoexplore.services.planner.strategies.frontier import nearest_frontier_evaluation
+from topoexplore.services.planner.watchdog import Watchdog
 
 ENTRY_SKIP = 0.05  # [m] an entry point this close to the robot is not a separate waypoint
 MAX_CROSSING_REPLANS = 2  # new paths per target when its path crosses a wall seen later
@@ -69,16 +77,26 @@ class PlannerCore:
                  p_reliable: float | None = None, occ: Occupancy | None = None):
         self.p = params
         self.occ = occ or Occupancy()
+        robot = robot or RobotParams()
         self.strategy = strategies.make(Config(
-            params, (robot or RobotParams()).radius,
-            ReliabilityParams().p_reliable if p_reliable is None else p_reliable))
+            params, robot.radius,
+            ReliabilityParams().p_reliable if p_reliable is None else p_reliable,
+            robot.body_margin))
         self._target: Target | None = None
         self._blacklist = Blacklist(params.blacklist_radius)
         self._plan_id = 0
         self._replans = 0
         self._no_cand = 0  # consecutive updates without a candidate
-        self._fail_since: float | None = None  # [s] since when the robot cannot plan at all
+        self._stuck_n = 0  # consecutive updates in which the robot cannot get anywhere
+        self._fail_since: float | None = None  # [s] since when the robot is stuck
+        self._look: tuple[float, float, float] | None = None  # stuck: turn on the spot
+        #   (x [m], y [m]) to the heading [rad]
+        self._watchdog = Watchdog(params.watchdog_time, params.watchdog_area)
+        self._blockages = Blockages(params.blocked_time, params.blocked_radius,
+                                    robot.radius + params.blocked_radius, params.blocked_memory)
+        self._cfg = Config(params, robot.radius, 0.0, robot.body_margin)
         self._last_t: float | None = None
+        self._x = self._y = 0.0  # [m] the robot's position at the last update
         self._last_eval_t = -math.inf
         self._had_path = False
         self._last: Plan | None = None
@@ -91,6 +109,7 @@ class PlannerCore:
         """One planning step at time t [s] for the robot at pose (x [m], y [m], theta [rad]);
         beliefs None: no reliability message yet."""
         x, y, th = (float(v) for v in pose)
+        self._x, self._y = x, y
         self._updates += 1
         if self._last_t is not None and t < self._last_t:  # clock reset: restart the timers
             self._last_eval_t = -math.inf
@@ -98,14 +117,51 @@ class PlannerCore:
                 self._target.progress_t = t
                 self._target.arrived_t = None
         self._last_t = t
-        ev = self.strategy.evaluate(Update(
-            t, x, y, th, graph, beliefs, None if grid is None else MapView(grid, self.occ),
-            None if self._target is None else self._target.cand, self._blacklist.covers))
+        tg = self._target
+        self._blockages.observe(t, x, y, th, tg is not None and tg.arrived_t is None)
+        u = Update(t, x, y, th, graph, beliefs,
+                   None if grid is None else MapView(grid, self.occ, self._blockages.active(t)),
+                   None if self._target is None else self._target.cand, self._blacklist.covers)
+        ev = self.strategy.evaluate(u)
         if ev.waiting is not None:
             self._target = None
             self._no_cand = 0
             return self._emit(ExploreState.EXPLORING, ev.waiting, ev, 0)
-        return self._decide(t, x, y, th, ev)
+        notes: list[str] = []
+        ev = self._watch(u, ev, grid, notes)
+        return self._decide(t, x, y, th, ev, notes)
+
+    def _watch(self, u: Update, ev: Evaluation, grid: GridMap | None, notes: list[str]
+               ) -> Evaluation:
+        """The global progress watchdog: act on an escalation step; in the nearest-frontier
+        step the candidates are the nearest frontier groups (until new information)."""
+        area = 0.0
+        if grid is not None:
+            area = float(np.count_nonzero(grid.data != -1)) * grid.geom.resolution ** 2
+        step = self._watchdog.observe(u.t, area, ev.reliable, self._target is not None)
+        if step is not None:
+            what = self._watchdog.log[-1].why
+            self._replans += 1
+            if step == "blacklist" and self._target is not None:
+                notes.append(f"watchdog: {what}: " + self._blacklist.add(
+                    self._target.cand, u.t, f"watchdog: {what}"))
+                self._target = None
+                ev.cands = [c for c in ev.cands if not self._blacklist.covers(c)]
+            elif step == "nearest_frontier":
+                notes.append(f"watchdog: {what}: to the nearest frontier")
+                self._target = None
+            elif step == "stuck":
+                self._target = None
+        mode = self._watchdog.mode
+        if mode == "nearest_frontier" and u.view is not None:
+            near = nearest_frontier_evaluation(self._cfg, u)
+            if near.cands:
+                return dataclasses.replace(near, end_nodes=ev.end_nodes, reliable=ev.reliable)
+        if mode == "stuck":
+            why = (f"watchdog: nothing helped ({self._watchdog.log[-1].why})"
+                   if self._watchdog.log else "watchdog: nothing helped")
+            return dataclasses.replace(ev, cands=[], failed=why)
+        return ev
 
     def snapshot(self) -> dict[str, Any]:
         """JSON-friendly state for the service's state queryable."""
@@ -129,6 +185,8 @@ class PlannerCore:
             "failures": [{"id": a.id, "x": a.x, "y": a.y, "count": a.count}
                          for a in self._blacklist.failures],
             **self.strategy.snapshot(),
+            "watchdog": self._watchdog.snapshot(),
+            "blocked": self._blockages.snapshot(),
             "candidates": st.candidates if st else 0,
             "end_nodes": st.end_nodes if st else 0,
             "reliable": st.reliable if st else 0,
@@ -197,8 +255,8 @@ class PlannerCore:
 
     # --- decision machine --------------------------------------------------------------------
 
-    def _decide(self, t: float, x: float, y: float, th: float, ev: Evaluation) -> Plan:
-        notes: list[str] = []
+    def _decide(self, t: float, x: float, y: float, th: float, ev: Evaluation,
+                notes: list[str]) -> Plan:
         cands = ev.cands
         replanned = False
         if self._target is not None:
@@ -211,9 +269,11 @@ class PlannerCore:
             self._last_eval_t = t
         tg = self._target
         if tg is None:
-            return self._no_target(t, ev, notes)
+            return self._no_target(t, th, ev, notes)
         self._no_cand = 0
+        self._stuck_n = 0
         self._fail_since = None
+        self._look = None
         c = tg.cand
         head = f"target {c.label}: {tg.why}; path {c.dist:.1f} m; {len(cands)} candidate(s)"
         if self._blacklist:
@@ -227,10 +287,17 @@ class PlannerCore:
         tg = self._target
         cands = ev.cands
         c = self._match(tg.cand, cands)
-        if c is None:
+        grace = c is None and self._grace(t, tg, ev)
+        if grace:
+            c = tg.cand
+            notes.append(f"kept {c.label}: not reachable on this update's map but still open "
+                         f"and its path still clear (for {t - tg.unreachable_since:.1f} s)")
+        elif c is None:
             notes.append(f"previous target {tg.cand.label} {ev.status_of(tg.cand)}")
             self._target = None
             return cands, False
+        else:
+            tg.unreachable_since = None
         tg.cand = c
         d = self._step_target(t, x, y, th, tg, c, cands, ev)
         if d.note:
@@ -238,6 +305,9 @@ class PlannerCore:
         if d.action is Action.KEEP:
             return cands, False
         self._replans += 1
+        if d.action is Action.RETRY and grace:  # no new path to it now: choose again
+            self._target = None
+            return cands, True
         if d.action is Action.DROP:
             self._target = None
             return [k for k in cands if not self._blacklist.covers(k)], True
@@ -252,6 +322,19 @@ class PlannerCore:
             self._set_target(c, t, x, y, tg.why, progress_t=d.progress_t)
             self._target.crossings = tg.crossings + (d.action is Action.CROSS)
         return cands, False
+
+    def _grace(self, t: float, tg: Target, ev: Evaluation) -> bool:
+        """Commitment against flickering reachability: a target that is still open but not
+        reachable on this update (a skeleton edge dipping under the clearance limit for a
+        moment) is kept, on its old path, while that path still fits the map and crosses no
+        wall, for at most progress_timeout s in a row."""
+        if not ev.flickered(tg.cand):
+            return False
+        if tg.unreachable_since is None:
+            tg.unreachable_since = t
+        rest = tg.wps[tg.idx:]
+        return (t - tg.unreachable_since < self.p.progress_timeout
+                and ev.path_ok(rest[1:]) and ev.path_clear(rest))
 
     def _step_target(self, t: float, x: float, y: float, th: float, tg: Target, c: Candidate,
                      cands: list[Candidate], ev: Evaluation) -> Decision:
@@ -320,21 +403,32 @@ class PlannerCore:
                                    f"< {p.switch_ratio:g} x {rem:.1f} m)")
         return Decision.keep()
 
-    def _no_target(self, t: float, ev: Evaluation, notes: list[str]) -> Plan:
-        """Stop; report done / failed only once the situation is confirmed (one odd
-        topology update must not end the run)."""
+    def _no_target(self, t: float, th: float, ev: Evaluation, notes: list[str]) -> Plan:
+        """Stop; report done only once the situation is confirmed (one odd topology update
+        must not end the run); stuck (turning on the spot to look around) when the robot
+        cannot get anywhere, failed only after stuck_timeout."""
         p = self.p
         if ev.failed is not None:
             self._no_cand = 0
+            self._stuck_n += 1
+            if self._stuck_n < p.done_confirm and self._fail_since is None:
+                return self._emit(ExploreState.EXPLORING, "; ".join(notes + [
+                    f"confirming ({self._stuck_n}/{p.done_confirm}): {ev.failed}"]), ev, 0)
             if self._fail_since is None:
                 self._fail_since = t
+                self._look = (self._x, self._y, th + math.pi)  # recovery: look the other way
+                self._plan_id += 1
             waited = t - self._fail_since
-            if waited >= p.progress_timeout:
-                return self._emit(ExploreState.FAILED, "; ".join(notes + [ev.failed]), ev, 0)
-            return self._emit(ExploreState.EXPLORING, "; ".join(notes + [
-                f"{ev.failed} (for {waited:.1f} s; failed after {p.progress_timeout:g} s)"]),
-                ev, 0)
+            if waited >= p.stuck_timeout:
+                self._look = None
+                return self._emit(ExploreState.FAILED, "; ".join(notes + [
+                    f"{ev.failed} (stuck for {waited:.0f} s)"]), ev, 0)
+            return self._emit(ExploreState.STUCK, "; ".join(notes + [
+                f"{ev.failed} (stuck for {waited:.1f} s: turning to look around; failed "
+                f"after {p.stuck_timeout:g} s)"]), ev, 0)
         self._fail_since = None
+        self._look = None
+        self._stuck_n = 0
         self._no_cand += 1
         if self._no_cand >= p.done_confirm:
             return self._emit(ExploreState.DONE, "; ".join(notes + [ev.done]), ev, 0)
@@ -345,7 +439,13 @@ class PlannerCore:
     def _emit(self, state: ExploreState, reason: str, ev: Evaluation, ncand: int) -> Plan:
         """The plan of this update: the path to the target, or a stop (a new plan id)."""
         tg = self._target
-        if tg is None:
+        if tg is None and self._look is not None:  # stuck: turn on the spot
+            self._had_path = True
+            lx, ly, heading = self._look
+            route = Route(np.array([[lx, ly]]), self._plan_id, -1, (lx, ly), self.p.strategy,
+                          heading)
+            target_p = 0.0
+        elif tg is None:
             if self._had_path:
                 self._plan_id += 1  # the stop is a new plan
             self._had_path = False

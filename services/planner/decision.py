@@ -59,6 +59,7 @@ class Target:
     why: str
     partial: bool = False  # the path was cut at a narrow passage (Candidate.partial when made)
     crossings: int = 0  # new paths made because the path crossed an obstacle seen since
+    unreachable_since: float | None = None  # [s] kept while its reachability flickers
 
     def moved(self) -> float:
         """[m] how far the target is from where it was when the path was made."""

@@ -27,6 +27,7 @@ with the distance measured as a grid path length instead of a straight line:
 from __future__ import annotations
 
 import functools
+import heapq
 import math
 from dataclasses import dataclass
 
@@ -38,6 +39,7 @@ from topoexplore.common.grid import GridGeometry, distance_transform
 
 SQRT2 = math.sqrt(2.0)
 LOOK_RADIUS = 1.0  # [m] unknown cells this close to a frontier goal set the heading to face
+ESCAPE_RADIUS = 1.0  # [m] how far the search looks for traversable cells the robot can get to
 
 
 class GridSearchError(ValueError):
@@ -59,18 +61,36 @@ class FrontierGroup:
 
 
 @dataclass
+class Escape:
+    """How the robot gets from where it stands to the traversable cells (the search's seeds):
+    through cells where its body fits, at most ESCAPE_RADIUS away."""
+
+    seeds: np.ndarray  # int64 flat indices of the passable cells reached
+    cost: np.ndarray  # float64 [m] path length robot cell -> each seed
+    parent: dict[int, int]  # flat index -> the previous cell on the way (-1: the robot's cell)
+    robot: int  # flat index of the robot's cell (-1: outside the grid)
+
+    @property
+    def stuck(self) -> bool:
+        """No traversable cell within reach: the robot cannot get anywhere from here."""
+        return self.seeds.size == 0
+
+
+@dataclass
 class GridSearch:
-    """Result of one Dijkstra over the traversable cells."""
+    """Result of one Dijkstra over the traversable cells, seeded by the robot's escape."""
 
     geom: GridGeometry
     passable: np.ndarray  # bool (H, W)
     clearance: np.ndarray  # float32 (H, W) distance to the nearest occupied cell [m]
-    start: tuple[int, int] | None  # (row, col) the search started from
-    dist: np.ndarray  # float64 (H, W) path length [m], inf where unreachable
-    parent: np.ndarray  # int64 (H*W,) flat index of the predecessor, -1 at start/unreached
+    start: tuple[int, int] | None  # (row, col) the nearest seed (None: the robot is stuck)
+    dist: np.ndarray  # float64 (H, W) path length [m] from the robot, inf where unreachable
+    parent: np.ndarray  # int64 (H*W,) flat index of the predecessor, -1 at seeds/unreached
+    escape: Escape | None = None
 
     def path_to(self, row: int, col: int) -> np.ndarray:
-        """Cell-centre polyline [m] start -> (row, col) along the parents; (0, 2) if unreached."""
+        """Cell-centre polyline [m] from the robot (its escape cells, then the seed) to
+        (row, col) along the parents; (0, 2) if unreached."""
         w = self.geom.width
         k = row * w + col
         if not math.isfinite(self.dist[row, col]):
@@ -81,6 +101,11 @@ class GridSearch:
             k = int(self.parent[k])
             if len(idx) > self.parent.size:  # defensive against a corrupt parent map
                 raise GridSearchError("grid parent map has a cycle")
+        if self.escape is not None:  # back from the seed to the robot's cell (not included)
+            k = self.escape.parent.get(idx[-1], -1)
+            while k >= 0 and k != self.escape.robot:
+                idx.append(k)
+                k = self.escape.parent.get(k, -1)
         idx.reverse()
         idx_a = np.asarray(idx)
         x, y = self.geom.cell_to_world(idx_a // w, idx_a % w)
@@ -102,30 +127,52 @@ def clearance_map(occupied: np.ndarray, resolution: float) -> np.ndarray:
     return distance_transform(src) * np.float32(resolution)
 
 
+def best_clearance_map(occupied: np.ndarray, resolution: float) -> np.ndarray:
+    """Per cell, the largest clearance [m] of a point in it: the distance transform at half
+    the resolution (each cell as 2 x 2 sub-cells; occupied sub-cells are those of occupied
+    cells), the greatest of a cell's four. A gap of k free cells between occupied ones gets
+    (k / 2 - 0.25) * resolution: it tells a gap of 4 free cells (0.225 m at 0.1 m) from one
+    of 3 (0.175 m), which the centre-to-centre :func:`clearance_map` cannot (0.2 m both)."""
+    h, w = occupied.shape
+    if not occupied.any():
+        return np.full(occupied.shape, np.float32(1e6), dtype=np.float32)
+    fine = np.repeat(np.repeat(occupied, 2, axis=0), 2, axis=1)
+    d = distance_transform(np.where(fine, 0, 255).astype(np.uint8)) * np.float32(
+        0.5 * resolution)
+    return d.reshape(h, 2, w, 2).max(axis=(1, 3))
+
+
 @numba.njit(cache=True)
-def _dijkstra8(passable, mult, start, res):  # pragma: no cover - jitted
-    """Exact 8-neighbour Dijkstra as Dial's bucket queue (bucket width = res).
+def _dijkstra8(passable, mult, seeds, seed_cost, res):  # pragma: no cover - jitted
+    """Exact 8-neighbour Dijkstra as Dial's bucket queue (bucket width = res), from several
+    seed cells with their starting costs.
 
     A step between cells u and v costs its length (res or res*sqrt(2)) times
     (mult[u] + mult[v]) / 2 with mult >= 1, so every step costs >= the bucket width: cells in
     the same bucket cannot improve each other and each bucket is settled in FIFO order; a ring
-    of ceil(max step / res) + 2 buckets suffices. O(cells), no heap.
+    of ceil(max step / res) + 2 buckets (more when the seeds' costs spread wider) suffices.
+    O(cells), no heap.
     """
     h, w = passable.shape
     n = h * w
     dist = np.full(n, np.inf)
     parent = np.full(n, -1, dtype=np.int64)
     settled = np.zeros(n, dtype=np.bool_)
-    nslot = int(math.ceil(1.4142135623730951 * mult.max())) + 2
-    cap = 1024
+    inv = 1.0 / res
+    spread = int(seed_cost.max() * inv) + 1 if seed_cost.size else 0
+    nslot = max(int(math.ceil(1.4142135623730951 * mult.max())), spread) + 2
+    cap = max(1024, seeds.shape[0])
     slots = np.empty((nslot, cap), dtype=np.int64)
     count = np.zeros(nslot, dtype=np.int64)
-    dist[start] = 0.0
-    slots[0, 0] = start
-    count[0] = 1
-    inv = 1.0 / res
+    for j in range(seeds.shape[0]):
+        v = seeds[j]
+        if seed_cost[j] < dist[v]:
+            dist[v] = seed_cost[j]
+            t = int(seed_cost[j] * inv + 1e-9) % nslot
+            slots[t, count[t]] = v
+            count[t] += 1
     k = 0
-    pending = 1
+    pending = seeds.shape[0]
     while pending > 0:
         s = k % nslot
         i = 0
@@ -191,18 +238,27 @@ def nearest_cell(mask: np.ndarray, row: int, col: int, radius_cells: int) -> tup
 
 def grid_search(free: np.ndarray, passable: np.ndarray, clearance: np.ndarray,
                 geom: GridGeometry, x: float, y: float, robot_radius: float,
-                start_radius: float = 1.0, soft_radius: float = 0.0, soft_penalty: float = 0.0,
-                reach_only: bool = False) -> GridSearch:
+                fit: float | None = None, soft_radius: float = 0.0, soft_penalty: float = 0.0,
+                narrow_penalty: float = 0.0, reach_only: bool = False) -> GridSearch:
     """Dijkstra path costs [m] from the robot at (x, y) [m] over the `passable` cells.
 
     passable: known free cells with clearance >= robot_radius [m] (``MapView.passable``);
     clearance: distance [m] to the nearest occupied cell; free: known free cells. A cell with
     clearance below soft_radius [m] costs up to (1 + soft_penalty) times its length (linearly
     more the closer it is to the robot_radius limit), so paths keep away from walls where
-    there is room; with soft_penalty = 0 the cost is the plain path length. The search starts
-    from the robot's cell if passable, else from the nearest passable cell within
-    `start_radius` [m], else from the nearest known free cell (the robot may start on a cell
-    still marked unknown or occupied). start is None if none exists.
+    there is room; with soft_penalty = 0 the cost is the plain path length. `passable` may
+    hold cells with less clearance than robot_radius (down to the robot's body, `fit`: a
+    narrow passage it can still drive through, as a costmap's lethal limit is the inscribed
+    radius); those cost (1 + soft_penalty + narrow_penalty) times their length, so the search
+    takes them only where there is no wide way worth the detour.
+
+    The search starts from where the robot really is (:func:`escape`): its own cell if that
+    is passable, else every passable cell it can get to within ESCAPE_RADIUS through free
+    cells with at least `fit` [m] of clearance (where its body fits; default robot_radius),
+    each with the length of that way as its starting cost. A robot in a corner or a doorway
+    (inside the clearance margin) thus searches from the traversable space it can really
+    drive to, never from a nearest cell behind a wall; with none in reach it is stuck
+    (``escape.stuck``, start None).
 
     reach_only: no path costs, only which cells the search reaches (dist 0 there, inf
     elsewhere), from connected components: the same set as the Dijkstra's, since a diagonal
@@ -211,47 +267,122 @@ def grid_search(free: np.ndarray, passable: np.ndarray, clearance: np.ndarray,
     """
     h, w = passable.shape
     row, col = (int(v) for v in geom.world_to_cell(x, y))
-    start = _start_cell(free, passable, row, col,
-                        max(1, int(math.ceil(start_radius / geom.resolution))))
+    esc = escape(free, passable, clearance, row, col, robot_radius if fit is None else fit,
+                 geom.resolution)
     dist = np.full((h, w), np.inf)
     parent = np.full(h * w, -1, dtype=np.int64)
+    start = None
+    if not esc.stuck:
+        s = int(esc.seeds[int(np.argmin(esc.cost))])
+        start = (s // w, s % w)
     if start is not None and reach_only:
-        dist = np.where(_reached(passable, start), 0.0, np.inf)
+        dist = np.where(_reached(passable, esc.seeds), 0.0, np.inf)
     elif start is not None:
         mult = np.ones((h, w), dtype=np.float64)
         if soft_penalty > 0 and soft_radius > robot_radius:
             frac = (soft_radius - clearance) / (soft_radius - robot_radius)
             mult += soft_penalty * np.clip(frac, 0.0, 1.0)
-        d, parent = _dijkstra8(passable, mult, start[0] * w + start[1], float(geom.resolution))
+        if narrow_penalty > 0:
+            mult += np.where(clearance + 1e-6 < robot_radius, narrow_penalty, 0.0)
+        d, parent = _dijkstra8(passable, mult, esc.seeds, esc.cost, float(geom.resolution))
         dist = d.reshape(h, w)
-    return GridSearch(geom, passable, clearance, start, dist, parent)
+    return GridSearch(geom, passable, clearance, start, dist, parent, esc)
 
 
-def _start_cell(free: np.ndarray, passable: np.ndarray, row: int, col: int, rad: int
-                ) -> tuple[int, int] | None:
-    """The robot's cell if passable, else the nearest passable cell, else the nearest free
-    cell within rad cells; None if there is none."""
+_STEPS = ((-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (-1, 1), (1, -1), (1, 1))
+
+
+def escape(free: np.ndarray, passable: np.ndarray, clearance: np.ndarray, row: int, col: int,
+           fit: float, res: float, radius: float | None = None) -> Escape:
+    """The passable cells the robot at cell (row, col) can get to within `radius` [m]
+    (ESCAPE_RADIUS), with the length of the way (8-neighbour steps, no corner cutting).
+
+    Its own cell counts whatever it is (it stands there); a passable own cell is the only
+    seed, at cost 0. Otherwise the way goes through free cells with clearance >= fit [m]
+    (where its body fits); if there is none, through any free cell (the map may be tighter
+    than the world: the robot got there); if there is none either (the robot stands on
+    cells still unknown), the nearest passable cell in the radius with no occupied cell on
+    the straight line to it. Stuck (no seed) only when none of the three finds one."""
     h, w = passable.shape
-    if 0 <= row < h and 0 <= col < w and passable[row, col]:
-        return row, col
-    start = nearest_cell(passable, row, col, rad)
-    return start if start is not None else nearest_cell(free, row, col, rad)
+    inside = 0 <= row < h and 0 <= col < w
+    robot = row * w + col if inside else -1
+    if inside and passable[row, col]:
+        return Escape(np.array([robot], np.int64), np.zeros(1), {}, robot)
+    n = max(1, int(math.ceil((ESCAPE_RADIUS if radius is None else radius) / res)))
+    for ok in (free & (clearance + 1e-6 >= fit), free):
+        seeds, cost, parent = _escape_search(ok, passable, row, col, n * res, res)
+        if seeds:
+            return Escape(np.array(seeds, np.int64), np.array(cost), parent, robot)
+    near = _nearest_in_sight(passable, clearance > 0, row, col, n)
+    if near is None:
+        return Escape(np.zeros(0, np.int64), np.zeros(0), {}, robot)
+    d = math.hypot(near[0] - row, near[1] - col) * res
+    return Escape(np.array([near[0] * w + near[1]], np.int64), np.array([d]), {}, robot)
 
 
-def _reached(passable: np.ndarray, start: tuple[int, int]) -> np.ndarray:
-    """The cells a search from start reaches (4-connected components of passable)."""
+def _nearest_in_sight(mask: np.ndarray, clear: np.ndarray, row: int, col: int, rad: int
+                      ) -> tuple[int, int] | None:
+    """The True cell of `mask` nearest to (row, col) within rad cells whose straight line
+    from (row, col) stays on `clear` cells (no wall in between); None if there is none."""
+    h, w = mask.shape
+    r0, r1 = max(0, row - rad), min(h, row + rad + 1)
+    c0, c1 = max(0, col - rad), min(w, col + rad + 1)
+    if r0 >= r1 or c0 >= c1:
+        return None
+    rr, cc = np.nonzero(mask[r0:r1, c0:c1])
+    rr, cc = rr + r0, cc + c0
+    for k in np.argsort((rr - row) ** 2 + (cc - col) ** 2, kind="stable"):
+        n = int(max(abs(rr[k] - row), abs(cc[k] - col))) * 2 + 1
+        lr = np.rint(np.linspace(row, rr[k], n)).astype(int)
+        lc = np.rint(np.linspace(col, cc[k], n)).astype(int)
+        inside = (lr >= 0) & (lr < h) & (lc >= 0) & (lc < w)
+        if np.all(clear[lr[inside], lc[inside]]):
+            return int(rr[k]), int(cc[k])
+    return None
+
+
+def _escape_search(ok: np.ndarray, passable: np.ndarray, row: int, col: int, limit: float,
+                   res: float) -> tuple[list[int], list[float], dict[int, int]]:
+    """Dijkstra from (row, col) through `ok` cells up to `limit` [m]; stops at passable cells
+    (the seeds, with their costs); parent maps each visited flat index to the previous one
+    (-1: the start)."""
     h, w = passable.shape
+    cost: dict[tuple[int, int], float] = {(row, col): 0.0}
+    parent: dict[int, int] = {}
+    heap = [(0.0, row, col)]
+    seeds: list[int] = []
+    costs: list[float] = []
+    while heap:
+        d, r, c = heapq.heappop(heap)
+        if d > cost.get((r, c), math.inf) or d > limit + 1e-9:
+            continue
+        if (r, c) != (row, col) and passable[r, c]:
+            seeds.append(r * w + c)
+            costs.append(d)
+            continue  # the Dijkstra over the passable cells goes on from here
+        for dr, dc in _STEPS:
+            rr, cc = r + dr, c + dc
+            if not (0 <= rr < h and 0 <= cc < w and ok[rr, cc]):
+                continue
+            if dr and dc and not (_fits(ok, r, cc) and _fits(ok, rr, c)):
+                continue
+            nd = d + (res * SQRT2 if dr and dc else res)
+            if nd < cost.get((rr, cc), math.inf):
+                cost[(rr, cc)] = nd
+                parent[rr * w + cc] = r * w + c if (r, c) != (row, col) else -1
+                heapq.heappush(heap, (nd, rr, cc))
+    return seeds, costs, parent
+
+
+def _fits(ok: np.ndarray, r: int, c: int) -> bool:
+    return 0 <= r < ok.shape[0] and 0 <= c < ok.shape[1] and bool(ok[r, c])
+
+
+def _reached(passable: np.ndarray, seeds: np.ndarray) -> np.ndarray:
+    """The cells a search from the seeds reaches (4-connected components of passable)."""
     _, labels = cv2.connectedComponents(passable.view(np.uint8), connectivity=4)
-    r0, c0 = start
-    if passable[r0, c0]:
-        comps = {int(labels[r0, c0])}
-    else:  # a start off the passable cells steps to its 4-neighbours
-        comps = {int(labels[r, c]) for r, c in ((r0 - 1, c0), (r0 + 1, c0), (r0, c0 - 1),
-                                                 (r0, c0 + 1))
-                 if 0 <= r < h and 0 <= c < w and passable[r, c]}
-    reach = np.isin(labels, list(comps)) if comps else np.zeros(passable.shape, dtype=bool)
-    reach[r0, c0] = True
-    return reach
+    comps = np.unique(labels.ravel()[seeds])
+    return np.isin(labels, comps[comps > 0])
 
 
 def look_point(unknown: np.ndarray, geom: GridGeometry, rc: tuple[int, int],

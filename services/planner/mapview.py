@@ -9,7 +9,7 @@ one update all read the same arrays.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -50,9 +50,11 @@ class _once:
 class MapView:
     """Lazily derived grids of one map (on its observed part) for one planning update."""
 
-    def __init__(self, grid: GridMap, occ: Occupancy):
+    def __init__(self, grid: GridMap, occ: Occupancy,
+                 blocked: Sequence[tuple[float, float, float]] = ()):
         self._grid = grid
         self.occ = occ
+        self.blocked = tuple(blocked)  # (x, y, r) [m]: discs learned to be impassable
         self._open: dict[int, np.ndarray] = {}
         self._passable: dict[float, np.ndarray] = {}
 
@@ -71,8 +73,16 @@ class MapView:
 
     @_once
     def classes(self) -> np.ndarray:
-        """UNKNOWN / FREE / OCCUPIED per cell (:func:`common.grid.classify`)."""
-        return classify(self.data, self.occ.p_free, self.occ.p_occ)
+        """UNKNOWN / FREE / OCCUPIED per cell (:func:`common.grid.classify`); the learned
+        obstacles (``blocked`` discs, :mod:`.blockage`) are OCCUPIED."""
+        cls = classify(self.data, self.occ.p_free, self.occ.p_occ)
+        if self.blocked:
+            geom = self.geom
+            rows, cols = np.mgrid[0:geom.height, 0:geom.width]
+            xs, ys = geom.cell_to_world(rows, cols)
+            for bx, by, br in self.blocked:
+                cls[(xs - bx) ** 2 + (ys - by) ** 2 <= br * br] = OCCUPIED
+        return cls
 
     @_once
     def free(self) -> np.ndarray:
@@ -86,6 +96,12 @@ class MapView:
     def clearance(self) -> np.ndarray:
         """float32 distance [m] to the nearest occupied cell (unknown is no obstacle)."""
         return gs.clearance_map(self.occupied, self.geom.resolution)
+
+    @_once
+    def best_clearance(self) -> np.ndarray:
+        """float32 largest clearance [m] of a point in each cell (:func:`gridsearch
+        .best_clearance_map`): what narrow passages are judged by."""
+        return gs.best_clearance_map(self.occupied, self.geom.resolution)
 
     @_once
     def unknown(self) -> np.ndarray:
@@ -117,10 +133,21 @@ class MapView:
     def _clearance_lookup(self):
         return gr.grid_clearance(self.clearance, self.geom)
 
-    def search(self, x: float, y: float, radius: float, soft_radius: float = 0.0,
-               soft_penalty: float = 0.0, reach_only: bool = False) -> gs.GridSearch:
-        """Grid path search from (x, y) [m] over the cells passable for radius [m]
-        (:func:`gridsearch.grid_search`)."""
-        return gs.grid_search(self.free, self.passable(radius), self.clearance, self.geom, x, y,
-                              radius, soft_radius=soft_radius, soft_penalty=soft_penalty,
-                              reach_only=reach_only)
+    def search(self, x: float, y: float, radius: float, fit: float | None = None,
+               soft_radius: float = 0.0, soft_penalty: float = 0.0,
+               narrow_penalty: float | None = None, reach_only: bool = False
+               ) -> gs.GridSearch:
+        """Grid path search from (x, y) [m] over the cells passable for radius [m], the robot
+        getting to them through cells with clearance >= fit [m] (its body). With
+        narrow_penalty, the cells whose best point (:attr:`best_clearance`) has fit count
+        too, at that extra cost (:func:`gridsearch.grid_search`)."""
+        narrow = narrow_penalty is not None and fit is not None and fit < radius
+        if narrow:  # narrow passages are judged by the best point of each cell
+            clear = self.best_clearance
+            return gs.grid_search(self.free, self.free & (clear + 1e-6 >= fit), clear,
+                                  self.geom, x, y, radius, fit=fit, soft_radius=soft_radius,
+                                  soft_penalty=soft_penalty, narrow_penalty=narrow_penalty,
+                                  reach_only=reach_only)
+        return gs.grid_search(self.free, self.passable(radius), self.clearance, self.geom,
+                              x, y, radius, fit=fit, soft_radius=soft_radius,
+                              soft_penalty=soft_penalty, reach_only=reach_only)

@@ -26,11 +26,26 @@ class Config:
     params: PlannerParams
     radius: float  # [m] robot radius
     p_reliable: float  # an end node with P at or above this is reliable
+    body_margin: float = 0.05  # [m] robot.body_margin (the controller's corridor)
 
     @property
     def need(self) -> float:
         """[m] least clearance of a place the robot may use (robot radius + margin)."""
         return self.radius + self.params.clearance_margin
+
+    def fit(self, resolution: float) -> float:
+        """[m] least clearance (of the best point in a cell, :func:`gridsearch
+        .best_clearance_map`) of a narrow passage the robot may still drive through, on a
+        grid of this resolution [m]: the controller's corridor (robot.radius +
+        robot.body_margin) less half a cell. A gap of k free cells has k / 2 cells of best
+        clearance, the least its real half width can be (the walls' surfaces lie somewhere in
+        the occupied cells beside it), and up to a cell more: at 0.1 m the limit is 0.2 m, so
+        a gap of 4 free cells passes (a 0.6 m door with a cell of blur on each side, as a SLAM
+        map often draws it: the body fits for sure, the controller's corridor very likely)
+        and one of 3 does not. Optimistic by design: where the controller still refuses, the
+        planner's bounded effort and watchdog give up on it."""
+        return max(self.radius, self.radius + min(self.body_margin, self.params.clearance_margin)
+                   - 0.5 * resolution)
 
 
 @dataclass(eq=False)
@@ -49,6 +64,7 @@ class Candidate:
     label: str = ""
     partial: bool = False  # the path stops at a narrow passage before the target
     face: tuple[float, float] | None = None  # [m] point to face at the end of the path
+    narrow: bool = False  # the path goes through a narrow passage (the frontier fallback)
 
 
 def _no_longer(c: Candidate) -> str:
@@ -57,6 +73,10 @@ def _no_longer(c: Candidate) -> str:
 
 def _always(wps: np.ndarray) -> bool:
     return True
+
+
+def _never(c: Candidate) -> bool:
+    return False
 
 
 @dataclass
@@ -69,9 +89,11 @@ class Evaluation:
     end_nodes: int = 0
     reliable: int = 0
     done: str = ""  # summary when no candidate is left
+    unreachable: int = 0  # places (frontier groups) that would count but cannot be reached
     status_of: Callable[[Candidate], str] = _no_longer  # why a target is no candidate now
     path_ok: Callable[[np.ndarray], bool] = _always  # the rest of a path still fits the map
     path_clear: Callable[[np.ndarray], bool] = _always  # no segment crosses a wall
+    flickered: Callable[[Candidate], bool] = _never  # still open, only not reachable now
 
 
 @dataclass(frozen=True, eq=False)

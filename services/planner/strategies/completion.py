@@ -38,7 +38,8 @@ class Completion:
 
     def phase(self, u: Update, ev: Evaluation) -> Evaluation:
         """The topological evaluation ev found no candidate: the frontier groups as
-        candidates (ev unchanged if the robot is off the known free space)."""
+        candidates; if the robot cannot get to any traversable cell, that failure (stuck,
+        never "done")."""
         cached = self._ev
         if (cached is not None and u.target is not None and u.target.id < 0 and cached.cands
                 and 0.0 <= u.t - self._t < self.cfg.params.frontier_period):
@@ -49,7 +50,7 @@ class Completion:
                 c.label = f"{c.label}{COMPLETION_NOTE}"
             self._ev, self._t = fe, u.t
         if fe.failed is not None:
-            return ev
+            return dataclasses.replace(ev, failed=fe.failed)
         # this update's end node counts and summary, whether the search is new or kept
         return dataclasses.replace(fe, end_nodes=ev.end_nodes, reliable=ev.reliable,
                                    done=f"{ev.done}; {fe.done}")

@@ -20,6 +20,7 @@ from topoexplore.services.planner.strategies.base import Candidate, Config, Eval
 
 SOFT_RADIUS_FACTOR = 2.0  # cells with clearance < this x (radius + margin) cost more ...
 SOFT_PENALTY = 2.0  # ... up to (1 + this) x their length at the hard limit
+NARROW_PENALTY = 4.0  # cells the robot's body fits but under the margin: this much more again
 
 
 def frontier_evaluation(cfg: Config, u: Update, min_size: float | None = None,
@@ -28,15 +29,65 @@ def frontier_evaluation(cfg: Config, u: Update, min_size: float | None = None,
     """Frontier groups on u.view as candidates: those at least min_size [m] long (default
     min_frontier_size), and the shorter ones (down to min_frontier_size) whose path is at
     most near [m]; with pocket_area > 0 [m^2], not those bordering a smaller enclosed unknown
-    pocket. reach_only: no path costs (see :func:`gridsearch.grid_search`)."""
+    pocket. reach_only: no path costs, only which groups are reachable at all (see
+    :func:`gridsearch.grid_search`).
+
+    Paths keep the clearance margin (cells with clearance >= robot radius + margin); only
+    when no group is reachable that way, the search goes again through narrow passages too
+    (clearance down to the controller's corridor, robot.radius + robot.body_margin, at
+    NARROW_PENALTY extra cost): a room behind a door as narrow as the robot's diameter plus
+    twice the margin, or the gap the robot came in through, is reachable, never a reason to
+    stop; only groups of completion_min_size or longer count there. reach_only asks that
+    second question directly."""
+    if reach_only:
+        return _evaluate(cfg, u, min_size, pocket_area, near, True, True)
+    if u.target is not None and u.target.narrow:  # following a narrow-passage target: the
+        return _narrow(cfg, u, min_size, pocket_area, near)  # search that found it
+    ev = _evaluate(cfg, u, min_size, pocket_area, near, False, False)
+    if ev.failed is None and not ev.cands and ev.unreachable:
+        narrow = _narrow(cfg, u, min_size, pocket_area, near)
+        if narrow.cands:
+            return narrow
+    return ev
+
+
+def _narrow(cfg: Config, u: Update, min_size: float | None, pocket_area: float, near: float
+            ) -> Evaluation:
+    """The search through narrow passages too: only for groups of completion_min_size or
+    longer (a real opening, worth the way through a tight spot; a sliver of unknown behind
+    furniture is not)."""
+    p = cfg.params
+    size = max(p.min_frontier_size if min_size is None else min_size, p.completion_min_size)
+    ev = _evaluate(cfg, u, size, pocket_area, 0.0, False, True)
+    for c in ev.cands:
+        c.label += " through a narrow passage"
+        c.narrow = True
+    return ev
+
+
+def nearest_frontier_evaluation(cfg: Config, u: Update) -> Evaluation:
+    """The reachable frontier groups (min_frontier_size or longer, through narrow passages
+    too) with cost = path length: the nearest first (the watchdog's fallback)."""
+    ev = _evaluate(cfg, u, None, 0.0, 0.0, False, True)
+    for c in ev.cands:
+        c.cost, c.scale = c.dist, 1.0
+        c.label += " (watchdog: nearest frontier)"
+    return ev
+
+
+def _evaluate(cfg: Config, u: Update, min_size: float | None, pocket_area: float, near: float,
+              reach_only: bool, narrow: bool) -> Evaluation:
+    """frontier_evaluation with or without narrow passages."""
     p = cfg.params
     view = u.view
     min_size = p.min_frontier_size if min_size is None else min_size
     floor = min(min_size, p.min_frontier_size) if near > 0 else min_size
     ev = Evaluation()
     hard = cfg.need
-    search = view.search(u.x, u.y, hard, soft_radius=SOFT_RADIUS_FACTOR * hard,
-                         soft_penalty=SOFT_PENALTY, reach_only=reach_only)
+    search = view.search(u.x, u.y, hard, fit=cfg.fit(view.geom.resolution), soft_radius=SOFT_RADIUS_FACTOR * hard,
+                         soft_penalty=SOFT_PENALTY,
+                         narrow_penalty=NARROW_PENALTY if narrow else None,
+                         reach_only=reach_only)
     if search.start is None:
         ev.failed = "the robot is not near known free space (no start cell for the search)"
         ev.done = ev.failed
@@ -67,6 +118,7 @@ def frontier_evaluation(cfg: Config, u: Update, min_size: float | None = None,
     if unreachable:
         done += f"; {unreachable} frontier group(s) unreachable for the robot"
     ev.done = done
+    ev.unreachable = unreachable
     ev.status_of = lambda c: "was cleared (no frontier group there any more)"
     ev.path_ok = _path_fits(view, search, cfg.radius)
     return ev

@@ -170,6 +170,8 @@ class Topological:
                          f"{len(s.open_ids)} end node(s) still open (ids {id_list(s.open_ids)})")
         ev.done = self._done(s, unreachable, black)
         ev.status_of = lambda c: self._status_of(s, c)
+        ev.flickered = lambda c: (not c.partial and c.id in s.index.nodes
+                                  and c.id in s.open_ids and c.id not in s.dist)
         ev.path_ok = _near_skeleton(s.index, self.cfg.params.path_tolerance)
         if s.u.view is not None:
             view = s.u.view

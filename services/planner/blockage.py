@@ -1,0 +1,71 @@
+"""Learned obstacles: where the robot could not drive although the map let the planner route
+it (pure: time comes in as an argument).
+
+The map is a belief; a table leg seen from a few angles may stay below the occupied
+threshold, a door may be mapped a cell wider than it is. The controller then stops ("blocked":
+something in its corridor) on a path the planner finds fine, and every new target sends it the
+same way. So the planner watches the robot: following a path (not yet arrived) yet neither
+moving ``STILL_DISTANCE`` nor turning ``STILL_ANGLE`` for ``blocked_time`` s means the way ahead
+is blocked. It then marks a disc of ``blocked_radius`` just ahead of the robot (at its radius
+plus that, where the controller's front sector saw the obstacle) as occupied in every grid the
+planner derives for ``blocked_memory`` s: searches and clearances route around it, paths
+through it are re-planned, and the robot, facing it, turns to a way out.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+STILL_DISTANCE = 0.05  # [m] moving less than this ...
+STILL_ANGLE = 0.3  # [rad] ... and turning less than this counts as standing still
+MARK_LIMIT = 200  # marks kept (the oldest go first)
+
+
+@dataclass
+class Mark:
+    x: float  # [m]
+    y: float  # [m]
+    r: float  # [m]
+    t: float  # [s] when it was made
+
+
+@dataclass
+class Blockages:
+    """The marks and the motion watch. wait [s] = blocked_time, radius [m] = blocked_radius,
+    ahead [m] = robot radius + blocked_radius, memory [s] = blocked_memory."""
+
+    wait: float
+    radius: float
+    ahead: float
+    memory: float
+    marks: list[Mark] = field(default_factory=list)
+    made: int = 0  # marks made so far
+    _anchor: tuple[float, float, float, float] | None = None  # (t, x, y, theta)
+
+    def observe(self, t: float, x: float, y: float, th: float, following: bool
+                ) -> Mark | None:
+        """One update of the robot at (x, y, th) at t [s]; following: it has a path to a
+        target it has not reached. Returns the new mark, if one is made now."""
+        a = self._anchor
+        if (not following or a is None or t < a[0]
+                or math.hypot(x - a[1], y - a[2]) >= STILL_DISTANCE
+                or abs((th - a[3] + math.pi) % (2 * math.pi) - math.pi) >= STILL_ANGLE):
+            self._anchor = (t, x, y, th) if following else None
+            return None
+        if t - a[0] < self.wait:
+            return None
+        m = Mark(x + self.ahead * math.cos(th), y + self.ahead * math.sin(th), self.radius, t)
+        self.marks.append(m)
+        del self.marks[:-MARK_LIMIT]
+        self.made += 1
+        self._anchor = (t, x, y, th)  # another mark only after another wait
+        return m
+
+    def active(self, t: float) -> list[tuple[float, float, float]]:
+        """(x, y, r) [m] of the marks still remembered at t [s]."""
+        return [(m.x, m.y, m.r) for m in self.marks if 0.0 <= t - m.t < self.memory]
+
+    def snapshot(self) -> dict:
+        return {"made": self.made,
+                "marks": [{"x": m.x, "y": m.y, "r": m.r, "t": m.t} for m in self.marks[-20:]]}

@@ -1,0 +1,87 @@
+"""The global progress watchdog of the planner (pure: time comes in as an argument).
+
+Per-target bounded effort (``progress_timeout``, ``max_attempts``) cannot see a livelock in
+which every single target makes some progress yet the exploration as a whole learns nothing:
+two targets taking turns as their reachability flickers, a frontier goal that keeps moving
+along a wall the robot cannot pass, a narrow passage the controller refuses again and again.
+The watchdog measures what exploration is for, new information: the known area of the map
+grows by ``watchdog_area`` or an end node turns reliable. With neither for ``watchdog_time``
+of driving (a target followed), it escalates, one step per further ``watchdog_time``:
+
+1. ``blacklist``: the current target's region is blacklisted (by position, as a target
+   given up after ``max_attempts``) and the strategy chooses again;
+2. ``nearest_frontier``: the next target is the nearest reachable frontier group (the
+   explore_lite rule, path lengths over the grid through narrow passages too), whatever the
+   strategy: the least risky way to new information;
+3. ``stuck``: nothing helped; the planner reports the robot as stuck (never "done") and asks
+   the controller to turn on the spot to look around; ``stuck_timeout`` later it fails.
+
+New information resets the level. Every step is counted and logged (:attr:`counts`,
+:attr:`log`); the planner's state and ``report.json`` carry them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+LEVELS = ("blacklist", "nearest_frontier", "stuck")
+LOG_LIMIT = 50  # escalation events kept in the log (the counts keep the totals)
+
+
+@dataclass
+class Event:
+    t: float  # [s]
+    level: str  # one of LEVELS
+    why: str
+
+
+@dataclass
+class Watchdog:
+    """Escalation state. ``period`` [s] = watchdog_time, ``min_area`` [m^2] = watchdog_area."""
+
+    period: float
+    min_area: float
+    level: int = 0  # 0: fine, k: LEVELS[k - 1] is in force
+    info_t: float | None = None  # [s] time of the last new information
+    area: float = 0.0  # [m^2] known area at that time
+    reliable: int = 0  # reliable end nodes at that time
+    counts: dict[str, int] = field(default_factory=lambda: {k: 0 for k in LEVELS})
+    log: list[Event] = field(default_factory=list)
+
+    def observe(self, t: float, area: float, reliable: int, driving: bool) -> str | None:
+        """One planning update at t [s] with the map's known area [m^2] and the number of
+        reliable end nodes; driving: a target is being followed. Returns the level name to
+        act on now, or None."""
+        if self.info_t is None or t < self.info_t:  # first update, or the clock was reset
+            self._reset(t, area, reliable)
+            return None
+        if area >= self.area + self.min_area or reliable > self.reliable:
+            self._reset(t, area, reliable)
+            return None
+        if not driving:  # standing still to confirm "done" or waiting: not a livelock
+            self.info_t = t if self.level == 0 else self.info_t
+            return None
+        if t - self.info_t < self.period or self.level >= len(LEVELS):
+            return None
+        self.level += 1
+        name = LEVELS[self.level - 1]
+        self.counts[name] += 1
+        self.log.append(Event(t, name, f"no new map information for {t - self.info_t:.0f} s "
+                                        f"of driving (known area {area:.1f} m^2)"))
+        del self.log[:-LOG_LIMIT]
+        self.info_t = t  # the next step only after another period without information
+        return name
+
+    @property
+    def mode(self) -> str | None:
+        """The escalation in force (None: none)."""
+        return LEVELS[self.level - 1] if self.level else None
+
+    def _reset(self, t: float, area: float, reliable: int) -> None:
+        self.level = 0
+        self.info_t, self.area, self.reliable = t, area, reliable
+
+    def snapshot(self) -> dict:
+        return {"level": self.mode, "last_information_t": self.info_t,
+                "counts": dict(self.counts),
+                "log": [{"t": e.t, "level": e.level, "why": e.why} for e in self.log]}
