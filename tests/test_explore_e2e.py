@@ -46,6 +46,10 @@ def test_explores_world_to_the_end(world):
     assert r["coverage"] >= 0.95, r
     assert r["collisions"] == 0, r
     assert r["restarts"] == 0 and r["bad_messages"] == 0
+    # the planner's robustness counters come from its state queryable (none needed here)
+    esc = r["planner"]["watchdog_escalations"]
+    assert set(esc) == {"blacklist", "nearest_frontier", "stuck"}, r["planner"]
+    assert r["planner"]["watchdog_log"] == [] and r["planner"]["blocked_marks"] >= 0
     out = Path(r["_out"])
     for name in ("report.json", "final.png", "map.pgm", "map.yaml", "topology.json"):
         assert (out / name).stat().st_size > 0, name

@@ -231,7 +231,8 @@ class Truth:
 def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_reason: str,
                 mon: Monitor, sim: m.SimStatus | None, wall: float, startup: float,
                 coverage: float, coverage_free: float, accuracy: float, restarts: int,
-                bad_messages: int, p_reliable: float, lockstep: bool) -> dict[str, Any]:
+                bad_messages: int, p_reliable: float, lockstep: bool,
+                planner: dict | None = None) -> dict[str, Any]:
     """The report.json document. ``coverage``: share of the free cells the robot can map that
     the final map knows; ``coverage_free``: share of every free cell connected to the start."""
     rel = mon.rel
@@ -263,7 +264,28 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
         "lockstep_timeouts": sim.lockstep_timeouts if sim else 0,
         "watchdog_stops": sim.watchdog_stops if sim else 0,
         "scans": sim.header.src_seq + 1 if sim else 0,
+        "planner": planner,  # watchdog escalations and their log, learned obstacles
     }
+
+
+def _planner_robustness(bus: Bus, keys: Keys) -> dict | None:
+    """The planner's watchdog escalations (counts and log) and learned obstacles, from its
+    state queryable; None if it does not answer."""
+    from topoexplore.tools.livestate import StateError, fetch_state
+
+    try:
+        st = fetch_state(bus, keys, "planner", timeout=1.0)
+    except StateError:
+        return None
+    return planner_robustness(st)
+
+
+def planner_robustness(state: dict) -> dict:
+    """The report's ``planner`` entry from the planner's state (its core's snapshot)."""
+    core = state.get("core") or {}
+    wd, bl = core.get("watchdog") or {}, core.get("blocked") or {}
+    return {"watchdog_escalations": wd.get("counts", {}), "watchdog_log": wd.get("log", []),
+            "blocked_marks": bl.get("made", 0), "replans": core.get("replans", 0)}
 
 
 def _bad_message_total(bus: Bus, keys: Keys) -> int:
@@ -468,6 +490,7 @@ class Outcome:
     sim: m.SimStatus | None = None  # the last sim status (the one of the final scan if done)
     restarts: int = 0
     bad: int = 0  # bad messages counted by the services
+    planner: dict | None = None  # the planner's robustness counters (planner_robustness)
 
 
 class StackRun:
@@ -595,6 +618,7 @@ class StackRun:
                 out.sim = mon.sim_by_seq[st.header.src_seq]
         out.restarts = self.sup.restarts
         out.bad = _bad_message_total(self.bus, self.setup.keys) if out.startup else 0
+        out.planner = _planner_robustness(self.bus, self.setup.keys) if out.startup else None
 
 
 # --- step 5: the report and the files ------------------------------------------------------
@@ -615,7 +639,8 @@ def write_results(args: argparse.Namespace, setup: Setup, truth: Truth, mon: Mon
                              sim=sim, wall=outcome.wall, startup=outcome.startup,
                              coverage=coverage, coverage_free=coverage_free, accuracy=accuracy,
                              restarts=outcome.restarts, bad_messages=outcome.bad,
-                             p_reliable=params.reliability.p_reliable, lockstep=args.lockstep)
+                             p_reliable=params.reliability.p_reliable, lockstep=args.lockstep,
+                             planner=outcome.planner)
         title = (f"{args.world} / {args.strategy} / seed {args.seed}: "
                  f"{'finished' if outcome.finished else 'not finished'}, "
                  f"{report['path_length_m']:.1f} m, {report['sim_time_s']:.0f} s, "

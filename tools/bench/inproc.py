@@ -75,7 +75,7 @@ def _pipeline(P: Params, world: World) -> SimpleNamespace:
         mapper=MapperCore(P.mapper, P.laser.offset), topology=TopologyCore(P.topology, occ),
         reliability=ReliabilityCore(P.reliability, P.laser, occ),
         planner=PlannerCore(P.planner, P.robot, P.reliability.p_reliable, occ),
-        controller=ControllerCore(P.controller, P.robot.radius))
+        controller=ControllerCore(P.controller, P.robot))
 
 
 def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence[str] = (),
@@ -126,7 +126,9 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
             "finished": state == "done", "stop_reason": plan.status.reason if plan else "",
             "path_length_m": round(c.sim.path_length, 2), "sim_time_s": round(c.sim.time, 1),
             "coverage": round(cov, 4), "coverage_free": round(cov_free, 4),
-            "collisions": int(c.sim.collisions), "wall_s": round(time.monotonic() - t0, 1)}
+            "collisions": int(c.sim.collisions), "wall_s": round(time.monotonic() - t0, 1),
+            "escalations": c.planner.snapshot()["watchdog"]["counts"],
+            "blocked_marks": c.planner.snapshot()["blocked"]["made"]}
 
 
 def _coverages(P: Params, w: World, grid: Any) -> tuple[float, float]:
