@@ -3,6 +3,7 @@
     topoexplore bench stages [--sizes 100,300,1000] [--json] [--bus] [--worlds paper-room,office]
     topoexplore bench explore [--worlds ...] [--strategies ...] [--seeds N] [--out DIR]
     topoexplore bench inproc [--worlds ...] [--strategies ...] [--seeds N] [--set k=v ...]
+    topoexplore bench robust [--half tune|held|real|all] [--strategies ...] [--quick]
 
 ``stages`` (:mod:`.stages`, :mod:`.bus`) times every core and the bus; ``explore``
 (:mod:`.explore`) runs the strategy comparison suite with the real processes; ``inproc``
@@ -13,12 +14,12 @@ from __future__ import annotations
 
 import sys
 
-_USAGE = "usage: topoexplore bench {stages,explore,inproc} [options]  (-h for help)"
+_USAGE = "usage: topoexplore bench {stages,explore,inproc,robust} [options]  (-h for help)"
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or argv[0] not in ("stages", "explore", "inproc"):
+    if not argv or argv[0] not in ("stages", "explore", "inproc", "robust"):
         print(_USAGE, file=sys.stderr)
         return 2
     if argv[0] == "stages":
@@ -29,6 +30,10 @@ def main(argv: list[str] | None = None) -> int:
         from topoexplore.tools.bench import inproc
 
         return inproc.main(argv[1:])
+    if argv[0] == "robust":
+        from topoexplore.tools.bench import robust
+
+        return robust.main(argv[1:])
     from topoexplore.tools.bench import explore
 
     return explore.main(argv[1:])

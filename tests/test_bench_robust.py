@@ -1,0 +1,163 @@
+"""``topoexplore bench robust``: outcome classes, tables and ratios per half, arguments, and one
+small real run (one generated house, one strategy, in process)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from topoexplore.tools.bench import robust as rb
+
+
+def run(world, strategy, outcome_state="done", coverage=1.0, path=10.0, half="tune",
+        style="office", stagnant=0.0, esc=None, marks=0):
+    r = {"world": world, "strategy": strategy, "state": outcome_state, "coverage": coverage,
+         "path_length_m": path, "half": half, "style": style, "stagnant_s": stagnant,
+         "collisions": 0, "escalations": esc if esc is not None else {"blacklist": 0},
+         "blocked_marks": marks, "stop_reason": "x", "picture": None}
+    r["outcome"] = rb.classify(r)
+    return r
+
+
+def test_classify_every_outcome():
+    assert rb.classify({"state": "done", "coverage": 0.96}) == "finished"
+    assert rb.classify({"state": "done", "coverage": 0.5}) == "early-done"
+    assert rb.classify({"state": "done", "coverage": None}) == "early-done"
+    assert rb.classify({"state": "timeout", "stagnant_s": rb.STAGNANT_S}) == "livelock"
+    assert rb.classify({"state": "timeout", "stagnant_s": 10.0}) == "timeout"
+    assert rb.classify({"state": "failed"}) == "failed"
+    assert rb.classify({"state": "error"}) == "error"
+
+
+def test_time_limit_scales_with_area_within_bounds():
+    assert rb.time_limit(10.0) == 2400.0
+    assert rb.time_limit(1000.0) == 6000.0
+    assert rb.time_limit(1e6) == 12000.0
+
+
+RUNS = [
+    run("a", "reliability", path=8.0), run("a", "frontier", path=10.0),
+    run("a", "all-end-nodes", path=20.0),
+    run("b", "reliability", path=30.0, style="house"), run("b", "frontier", path=10.0,
+                                                           style="house"),
+    run("b", "all-end-nodes", "timeout", 0.9, 50.0, style="house", stagnant=700.0,
+        esc={"blacklist": 2, "stuck": 1}, marks=3),
+    run("c", "reliability", "done", 0.3, 2.0, half="held"),
+    run("c", "frontier", "failed", 0.2, 1.0, half="held"),
+]
+
+
+def test_tables_ratios_and_worst_per_half():
+    a = rb.analyse(RUNS, ["reliability", "all-end-nodes", "frontier"])
+    assert set(a) == {"tune", "held"}
+    t = a["tune"]["strategies"]
+    assert t["reliability"]["finished"] == 2 and t["reliability"]["finished_rate"] == 1.0
+    assert t["all-end-nodes"]["livelock"] == 1 and t["all-end-nodes"]["escalations"] == 3
+    assert t["all-end-nodes"]["blocked_marks"] == 3
+    assert t["all-end-nodes"]["coverage_min"] == 0.9
+    rf = a["tune"]["ratios"]["reliability/frontier"]
+    assert rf["n"] == 2 and rf["geomean"] == pytest.approx((0.8 * 3.0) ** 0.5)
+    assert a["tune"]["ratios"]["reliability/all-end-nodes"]["n"] == 1  # b's did not finish
+    assert a["tune"]["ratios_by_style"]["house"]["worlds"] == {"b": 3.0}
+    assert a["tune"]["over_2x_shortest"] == [
+        {"world": "a", "strategy": "all-end-nodes", "ratio": 2.5},
+        {"world": "b", "strategy": "reliability", "ratio": 3.0}]
+    assert a["tune"]["worst"][0]["outcome"] == "livelock"
+    held = a["held"]
+    assert [w["outcome"] for w in held["worst"]] == ["failed", "early-done"]
+    assert held["ratios"]["reliability/frontier"]["n"] == 0
+    assert held["ratios"]["reliability/frontier"]["geomean"] is None
+
+
+def test_summary_names_every_half_and_the_command():
+    doc = {"created": "now", "command": "topoexplore bench robust", "jobs": 2, "runs": RUNS,
+           "wall_s": 1.0, "analysis": rb.analyse(RUNS, ["reliability", "frontier",
+                                                        "all-end-nodes"])}
+    md = rb.summary(doc)
+    assert "Tuning half" in md and "Held-back half" in md and "    topoexplore bench robust\n" in md
+    assert "| all-end-nodes | 2 | 1 | 0 | 0 | 1 | 0 | 0 | 3 | 3 |" in md
+
+
+@pytest.mark.parametrize("argv", [
+    ["--strategies", "greedy"], ["--jobs", "0"], ["--bus", "-1"], ["--half", "odd"],
+    ["--set", "planner.no_such=1"], ["--quick", "--worlds", "no-such-world"], ["--bogus"],
+    ["--seeds", "8"], ["--seeds", "x"], ["--max-area", "0"], ["--max-area", "nan"],
+])
+def test_bad_arguments_one_line_exit_2(argv, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert rb.main([*argv, "--out", str(out), "--corpus", str(tmp_path / "c")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("topoexplore bench robust: ") and "\n" not in err
+    assert not out.exists()
+
+
+def test_corpus_halves_sizes_and_filters(tmp_path):
+    assert {s for s in rb.SEEDS if rb.half_of(s) == "tune"} == {0, 2, 4, 6}
+    assert {s for s in rb.SEEDS if rb.half_of(s) == "held"} == {1, 3, 5, 7}
+    sizes = {(st, sd, lv): rb.size_of(st, sd, lv) for st in rb.STYLES for sd in rb.SEEDS
+             for lv in (None, rb.NOISE)}
+    assert len(sizes) >= 60  # the issue's corpus size
+    assert sizes[("office", 7, None)] == (60.0, 60.0) and sizes[("house", 3, None)] is None
+    assert sizes[("cluttered", 6, rb.NOISE)] == (36.0, 33.0)
+    items = rb.build_corpus(tmp_path, "held", seeds=[1], max_area=300.0)
+    assert [(i.name, i.half, i.noise) for i in items] == [("house-s1-18x14", "held", None),
+                                                          ("house-s1-18x14-n2", "held", 2)]
+    assert all((tmp_path / (i.name + ".toml")).is_file() or (tmp_path / (i.name + ".yaml"))
+               .is_file() for i in items)
+
+
+@pytest.mark.timeout(300)
+def test_one_real_run_writes_results_summary_and_picture(tmp_path):
+    """One generated 18 x 14 m house, frontier, in process (~15 s): it finishes, and the files
+    hold what the tables say."""
+    out = tmp_path / "out"
+    rc = rb.main(["--quick", "--worlds", "house-s0-18x14", "--strategies", "frontier",
+                  "--jobs", "1", "--no-progress", "--corpus", str(tmp_path / "c"),
+                  "--out", str(out)])
+    assert rc == 0
+    doc = json.loads((out / "results.json").read_text())
+    (r,) = doc["runs"]
+    assert r["world"] == "house-s0-18x14" and r["half"] == "tune" and r["style"] == "house"
+    assert r["outcome"] == "finished" and r["coverage"] >= rb.GOOD_COVERAGE
+    assert (out / r["picture"]).is_file()
+    assert doc["analysis"]["tune"]["strategies"]["frontier"]["finished"] == 1
+    assert "house-s0-18x14" in (out / "summary.md").read_text()
+    assert len((out / "runs.jsonl").read_text().splitlines()) == 1
+
+
+def _results_dir(path, runs, command):
+    import cv2
+    import numpy as np
+
+    (path / "pics").mkdir(parents=True)
+    for r in runs:
+        r["picture"] = f"pics/{r['world']}-{r['strategy']}.png"
+        cv2.imwrite(str(path / r["picture"]), np.full((40, 1000, 3), 200, np.uint8))
+    (path / "results.json").write_text(json.dumps(
+        {"created": "2026-01-01 00:00", "command": command, "jobs": 2, "runs": runs,
+         "wall_s": 10.0, "analysis": {}}))
+    return path
+
+
+def test_from_results_merges_halves_into_one_doc_with_small_pictures(tmp_path, capsys):
+    a = _results_dir(tmp_path / "a", [dict(r) for r in RUNS[:6]], "topoexplore bench robust --half tune")
+    b = _results_dir(tmp_path / "b", [dict(r) for r in RUNS[6:]]
+                     + [run("a", "frontier", path=9.0)], "topoexplore bench robust --half held")
+    out, doc = tmp_path / "out", tmp_path / "docs" / "robustness.md"
+    assert rb.main(["--from-results", str(a), str(b), "--out", str(out), "--doc", str(doc)]) == 0
+    merged = json.loads((out / "results.json").read_text())
+    assert len(merged["runs"]) == 8  # a/frontier of b replaced a's
+    assert [r["path_length_m"] for r in merged["runs"] if r["world"] == "a"
+            and r["strategy"] == "frontier"] == [9.0]
+    md = doc.read_text()
+    assert "--half tune" in md and "--half held" in md and "Held-back half" in md
+    pics = sorted((doc.parent / "img" / "robust").iterdir())
+    assert len(pics) == rb.DOC_PICTURES - 2 and all(p.suffix == ".jpg" for p in pics)  # 8 runs
+    import cv2
+    assert cv2.imread(str(pics[0])).shape[1] == rb.DOC_WIDTH
+    assert "](img/robust/c-frontier.jpg)" in md
+    assert (out / "pics" / "c-frontier.png").is_file()
+    capsys.readouterr()
+    assert rb.main(["--from-results", str(tmp_path / "none")]) == 2
+    assert "cannot read" in capsys.readouterr().err

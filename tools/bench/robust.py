@@ -1,0 +1,627 @@
+"""``topoexplore bench robust``: every strategy on a corpus of buildings it was never tuned on.
+
+    topoexplore bench robust [--half tune|held|all] [--strategies ...] [--jobs 2]
+                             [--corpus DIR] [--out DIR] [--set k=v ...] [--quick] [--bus N]
+                             [--no-progress]
+
+The corpus is generated (``sim/generate.py``, deterministic) into ``--corpus``: the four styles
+(office, house, warehouse, cluttered) x seeds 0..7, each as a clean world and as a SLAM-like map
+(noise level 2): 64 worlds. Seeds 0..5 have the style's default size (18 x 14 m to 34 x 26 m),
+seeds 6 and 7 are 1.5 x that, except the clean office and warehouse of seeds 6 and 7, which are
+60 m x 60 m. Tuning uses the even seeds only (``--half tune``); the odd seeds are held back
+(``--half held``) and reported apart, as are the real map_server maps in ``../shared/maps``
+(``--half real``). ``--seeds`` and ``--max-area`` run a part of a half (a 60 x 60 m world
+takes about 15 min of one core per run). Each run is the in-process pipeline (``bench
+inproc``: the cores the services run, in the same order), for speed; ``--bus N`` also runs the
+first N runs of the plan through the real processes and checks they give the same path.
+
+Every run is classified: ``finished`` (done, coverage >= 0.95), ``early-done`` (done below
+that), ``failed`` (the planner gave up: the robot could not plan at all), ``livelock`` (the
+time limit came while the map had stopped growing for the last ``STAGNANT_S`` of sim time),
+``timeout`` (the time limit came while it still grew). The time limit scales with the world's
+area (:func:`time_limit`).
+
+Writes to ``--out``: ``results.json`` (every run, the analysis, the corpus and the command),
+``summary.md`` (tables per strategy and half, path ratios per world, the worst ten runs with
+their pictures), and ``pics/<world>-<strategy>.png`` (the final map, graph and trail of every
+run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from topoexplore.common.params import STRATEGIES
+from topoexplore.tools.bench.explore import BenchArgError, check_overrides, geometric_mean
+from topoexplore.tools.paths import shared_maps_dir
+
+STYLES = ("office", "house", "warehouse", "cluttered")
+SEEDS = tuple(range(8))
+LARGE = 60.0  # [m] side of the largest worlds
+NOISE = 2  # SLAM-noise level of the noisy half of the corpus
+GOOD_COVERAGE = 0.95
+STAGNANT_S = 600.0  # [s] sim time without map growth before the limit: a livelock
+QUICK = (("house", 0, None), ("house", 1, NOISE), ("cluttered", 1, None))
+
+
+@dataclass(frozen=True)
+class Item:
+    """One world of the corpus."""
+
+    name: str
+    path: str
+    style: str  # a generator style, or "real" for a shared map
+    seed: int  # -1 for a real map
+    noise: int | None
+    half: str  # "tune" | "held" | "real"
+    area: float  # [m^2] of the world's rectangle
+
+
+def half_of(seed: int) -> str:
+    return "tune" if seed % 2 == 0 else "held"
+
+
+def size_of(style: str, seed: int, noise: int | None) -> tuple[float, float] | None:
+    """The corpus's size [m] for a world (None: the style's default)."""
+    from topoexplore.sim.generate import DEFAULT_SIZES
+
+    if seed < 6:
+        return None
+    if noise is None and style in ("office", "warehouse"):
+        return (LARGE, LARGE)
+    w, h = DEFAULT_SIZES[style]
+    return (min(LARGE, round(1.5 * w)), min(LARGE, round(1.5 * h)))
+
+
+def build_corpus(corpus_dir: Path, half: str, quick: bool = False,
+                 seeds: Sequence[int] | None = None, max_area: float | None = None
+                 ) -> list[Item]:
+    """Generate (or reuse: the files are deterministic) the corpus's worlds of one half, only
+    those of `seeds` and of at most `max_area` [m^2] if given."""
+    from topoexplore.sim.generate import DEFAULT_SIZES, generate, write_generated
+    from topoexplore.sim.world import load_world
+
+    specs = QUICK if quick else [(st, seed, lvl) for st in STYLES for seed in SEEDS
+                                 for lvl in (None, NOISE)]
+    out: list[Item] = []
+    for style, seed, level in specs:
+        if half != "all" and half != "real" and half_of(seed) != half:
+            continue
+        if half == "real" or (seeds is not None and seed not in seeds):
+            continue
+        size = size_of(style, seed, level)
+        w, h = size or DEFAULT_SIZES[style]
+        if max_area is not None and w * h > max_area:
+            continue
+        gen = generate(style, seed, size)
+        path = write_generated(gen, corpus_dir, level)
+        w = load_world(str(path))
+        out.append(Item(path.stem, str(path), style, seed, level, half_of(seed),
+                        float(w.size[0] * w.size[1])))
+    if half in ("all", "real") and not quick:
+        out += _real_maps()
+    return out
+
+
+def _real_maps() -> list[Item]:
+    from topoexplore.sim.world import load_world
+
+    maps = shared_maps_dir()
+    items = []
+    for p in sorted(maps.glob("*.yaml")) if maps else []:
+        w = load_world(str(p))
+        items.append(Item(p.stem, str(p), "real", -1, None, "real",
+                          float(w.size[0] * w.size[1])))
+    return items
+
+
+def time_limit(area: float) -> float:
+    """[s] sim time allowed on a world of this area [m^2]: 6 s per m^2, at least 2400 s, at
+    most 12000 s. Generous on purpose (a cluttered 24 x 22 m floor needs about 1700 s at the
+    robot's slow speeds near obstacles): a run that stops making progress is told apart by
+    its stagnant map (livelock), not by the limit."""
+    return float(min(12000.0, max(2400.0, 6.0 * area)))
+
+
+# --------------------------------------------------------------------------------------------
+# one run
+
+
+def run_one(item: Item, strategy: str, sets: Sequence[str], pics: Path | None) -> dict:
+    """One in-process exploration with the figures the analysis needs."""
+    from topoexplore.tools.bench import inproc
+
+    track = _Track()
+    t0 = time.monotonic()
+    try:
+        r = inproc.run(item.path, strategy, 0, tuple(sets), time_limit(item.area), track)
+    except Exception as exc:  # noqa: BLE001 - one broken run must not end the benchmark
+        r = {"state": "error", "finished": False, "stop_reason": f"{type(exc).__name__}: {exc}",
+             "path_length_m": None, "sim_time_s": None, "coverage": None,
+             "coverage_free": None, "collisions": None}
+    r.update(world=item.name, style=item.style, seed=item.seed, noise=item.noise,
+             half=item.half, strategy=strategy, area_m2=round(item.area, 1),
+             limit_s=time_limit(item.area), wall_s=round(time.monotonic() - t0, 1),
+             targets=track.targets, stagnant_s=track.stagnant_s())
+    r["outcome"] = classify(r)
+    if pics is not None and track.last is not None:
+        r["picture"] = _picture(item, strategy, r, track, pics)
+    return r
+
+
+class _Track:
+    """What the benchmark follows during a run: targets chosen, map growth, the trail and the
+    last state (for the picture)."""
+
+    def __init__(self) -> None:
+        self.targets = 0
+        self._plan_target: tuple[int, float, float] | None = None
+        self.known: list[tuple[float, int]] = []  # (t [s], known cells)
+        self.trail: list[tuple[float, float, int]] = []
+        self.last: tuple | None = None
+
+    def __call__(self, t, pose, graph, beliefs, plan, grid) -> None:
+        r = plan.route
+        cur = (r.target_id, round(r.target_xy[0], 1), round(r.target_xy[1], 1))
+        if len(r.waypoints) and cur != self._plan_target:
+            self.targets += 1
+            self._plan_target = cur
+        n = int(np.count_nonzero(grid.data != -1))
+        if not self.known or n > self.known[-1][1]:
+            self.known.append((t, n))
+        if not self.trail or math.hypot(pose.x - self.trail[-1][0],
+                                        pose.y - self.trail[-1][1]) > 0.05:
+            self.trail.append((pose.x, pose.y, self.targets))
+        self.last = (t, pose, graph, beliefs, plan, grid)
+
+    def stagnant_s(self) -> float:
+        """[s] since the map last grew by more than 0.5 % (at the end of the run)."""
+        if self.last is None or not self.known:
+            return 0.0
+        t_end, final = self.last[0], self.known[-1][1]
+        for t, n in reversed(self.known):
+            if n < 0.995 * final:
+                return round(t_end - t, 1)
+        return round(t_end - self.known[0][0], 1)
+
+
+def classify(r: dict) -> str:
+    state = r.get("state")
+    if state == "done":
+        return "finished" if (r.get("coverage") or 0.0) >= GOOD_COVERAGE else "early-done"
+    if state == "timeout":
+        return "livelock" if r.get("stagnant_s", 0.0) >= STAGNANT_S else "timeout"
+    return "failed" if state == "failed" else "error"
+
+
+def _picture(item: Item, strategy: str, r: dict, track: _Track, pics: Path) -> str:
+    from topoexplore.common.mapio import write_png
+    from topoexplore.tools.draw import Overlays, Style, render
+
+    _t, pose, graph, beliefs, _plan, grid = track.last
+    title = (f"{item.name} / {strategy}: {r['outcome']}, {r['path_length_m']} m, coverage "
+             f"{r['coverage']}")
+    img = render(grid.data, grid.geom,
+                 Overlays(topo=graph, rel=beliefs, robot_pose=tuple(pose),
+                          trail=track.trail or None),
+                 Style(crop=True, title=title))
+    name = f"{item.name}-{strategy}.png"
+    write_png(pics / name, img)
+    return f"pics/{name}"
+
+
+# --------------------------------------------------------------------------------------------
+# analysis (pure: the runs in, the figures out)
+
+OUTCOMES = ("finished", "early-done", "failed", "livelock", "timeout", "error")
+
+
+def _pct(values: list[float], q: float) -> float | None:
+    return float(np.percentile(values, q)) if values else None
+
+
+def _escalations(r: dict) -> int:
+    """Watchdog steps of a run (inproc gives them per step: {"blacklist": n, ...})."""
+    e = r.get("escalations") or 0
+    return int(sum(e.values())) if isinstance(e, dict) else int(e)
+
+
+def strategy_table(runs: Sequence[dict], strategy: str) -> dict[str, Any]:
+    """Outcome counts, coverage distribution and collisions of one strategy's runs."""
+    rs = [r for r in runs if r["strategy"] == strategy]
+    cov = [r["coverage"] for r in rs if r.get("coverage") is not None]
+    out: dict[str, Any] = {"runs": len(rs)}
+    for o in OUTCOMES:
+        out[o] = sum(1 for r in rs if r["outcome"] == o)
+    out["finished_rate"] = out["finished"] / len(rs) if rs else None
+    out["coverage_min"] = min(cov) if cov else None
+    out["coverage_p5"] = _pct(cov, 5)
+    out["coverage_median"] = _pct(cov, 50)
+    out["collisions"] = sum(r.get("collisions") or 0 for r in rs)
+    out["escalations"] = sum(_escalations(r) for r in rs)  # watchdog steps
+    out["blocked_marks"] = sum(r.get("blocked_marks") or 0 for r in rs)  # learned blockages
+    return out
+
+
+def world_paths(runs: Sequence[dict]) -> dict[str, dict[str, float]]:
+    """{world: {strategy: path [m]}} of the runs that finished (outcome "finished")."""
+    out: dict[str, dict[str, float]] = {}
+    for r in runs:
+        if r["outcome"] == "finished" and r.get("path_length_m") is not None:
+            out.setdefault(r["world"], {})[r["strategy"]] = float(r["path_length_m"])
+    return out
+
+
+def path_ratio(runs: Sequence[dict], num: str, den: str, style: str | None = None
+               ) -> dict[str, Any]:
+    """Geometric mean of path(num) / path(den) over the worlds where both finished (with a
+    positive path); style limits it to one style."""
+    styles = {r["world"]: r["style"] for r in runs}
+    ratios = {w: p[num] / p[den] for w, p in world_paths(runs).items()
+              if num in p and den in p and p[den] > 0 and p[num] > 0
+              and (style is None or styles[w] == style)}
+    return {"geomean": geometric_mean(ratios.values()), "n": len(ratios),
+            "worlds": {w: round(v, 3) for w, v in sorted(ratios.items())}}
+
+
+def over_shortest(runs: Sequence[dict], factor: float = 2.0) -> list[dict]:
+    """Finished runs whose path exceeds factor x the shortest finished path on their world."""
+    paths = world_paths(runs)
+    out = []
+    for w, p in paths.items():
+        if len(p) < 2:
+            continue
+        best = min(v for v in p.values() if v > 0) if any(v > 0 for v in p.values()) else 0.0
+        for st, v in p.items():
+            if best > 0 and v > factor * best:
+                out.append({"world": w, "strategy": st, "ratio": round(v / best, 2)})
+    return out
+
+
+_SEVERITY = {"error": 0, "failed": 1, "early-done": 2, "livelock": 3, "timeout": 4,
+             "finished": 5}
+
+
+def worst(runs: Sequence[dict], n: int = 10) -> list[dict]:
+    """The n worst runs: by outcome, then coverage."""
+    return sorted(runs, key=lambda r: (_SEVERITY[r["outcome"]], r.get("coverage") or 0.0))[:n]
+
+
+def analyse(runs: Sequence[dict], strategies: Sequence[str]) -> dict[str, Any]:
+    """Per half (tune / held / real): a table per strategy, path ratios, the runs over 2 x the
+    shortest path, the worst runs."""
+    out: dict[str, Any] = {}
+    for half in ("tune", "held", "real"):
+        rs = [r for r in runs if r["half"] == half]
+        if not rs:
+            continue
+        h: dict[str, Any] = {"strategies": {s: strategy_table(rs, s) for s in strategies}}
+        h["ratios"] = {f"{a}/{b}": path_ratio(rs, a, b)
+                       for a, b in (("reliability", "frontier"), ("reliability", "all-end-nodes"))
+                       if a in strategies and b in strategies}
+        if "reliability" in strategies and "frontier" in strategies:
+            h["ratios_by_style"] = {st: path_ratio(rs, "reliability", "frontier", st)
+                                    for st in sorted({r["style"] for r in rs})}
+        h["over_2x_shortest"] = over_shortest(rs)
+        h["worst"] = [{k: r.get(k) for k in ("world", "strategy", "outcome", "coverage",
+                                              "path_length_m", "stop_reason", "picture")}
+                      for r in worst(rs)]
+        out[half] = h
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# output
+
+
+def _f(v: Any, dec: int = 3) -> str:
+    return "–" if v is None else (f"{v:.{dec}f}" if isinstance(v, float) else str(v))
+
+
+def _half_md(name: str, h: dict, link) -> list[str]:
+    L = [f"### {name}", "", "| strategy | runs | finished | early done | failed | livelock | "
+         "timeout | collisions | watchdog | blockages | coverage min | p5 | median |",
+         "|" + "---|" * 13]
+    for st, t in h["strategies"].items():
+        L.append(f"| {st} | {t['runs']} | {t['finished']} | {t['early-done']} | {t['failed']} "
+                 f"| {t['livelock']} | {t['timeout']} | {t['collisions']} | {t['escalations']} | "
+                 f"{t['blocked_marks']} | "
+                 f"{_f(t['coverage_min'])} | {_f(t['coverage_p5'])} | "
+                 f"{_f(t['coverage_median'])} |")
+    L.append("")
+    for key, rr in h["ratios"].items():
+        L.append(f"- path {key}: geometric mean **{_f(rr['geomean'])}** over {rr['n']} "
+                 "world(s) where both finished")
+    for st, rr in h.get("ratios_by_style", {}).items():
+        L.append(f"  - {st}: {_f(rr['geomean'])} ({rr['n']} worlds)")
+    over = h["over_2x_shortest"]
+    L.append(f"- runs over 2 x the shortest path of the three on their world: {len(over)}"
+             + (": " + ", ".join(f"{o['world']}/{o['strategy']} ({o['ratio']})" for o in over)
+                if over else ""))
+    L += ["", "Worst runs:", "", "| world | strategy | outcome | coverage | path [m] | why |",
+          "|---|---|---|---|---|---|"]
+    for r in h["worst"]:
+        where = link(r)
+        pic = f" ([picture]({where}))" if where else ""
+        why = (r.get("stop_reason") or "").replace("|", "/")[:160]
+        L.append(f"| {r['world']}{pic} | {r['strategy']} | {r['outcome']} | "
+                 f"{_f(r['coverage'])} | {_f(r['path_length_m'], 1)} | {why} |")
+    return L + [""]
+
+
+def summary(doc: dict, link=None) -> str:
+    """The markdown report; link(run) gives a worst run's picture link (default: as stored)."""
+    link = link or (lambda r: r.get("picture"))
+    commands = doc.get("commands") or [doc["command"]]
+    L = ["# Robustness: every strategy on buildings it was not tuned on", "",
+         f"Made {doc['created']} ({len(doc['runs'])} runs, {doc['wall_s']:.0f} s wall, "
+         f"{doc['jobs']} at a time) with:", ""] + [f"    {c}" for c in commands] + [""]
+    L += ["Outcomes: finished (done, coverage >= 0.95), early done (done below that), failed "
+          "(the planner gave up), livelock (time limit, the map had not grown by 0.5 % for "
+          f"{STAGNANT_S:.0f} s), timeout (time limit, still growing). Coverage is against the "
+          "free space the robot can reach and see (`sim.world.truth_mappable`). Watchdog: "
+          "escalation steps; blockages: learned obstacles (docs/design.md). Path ratios: "
+          "geometric mean over the worlds where both strategies finished.", ""]
+    names = {"tune": "Tuning half (even seeds)", "held": "Held-back half (odd seeds)",
+             "real": "Real maps (../shared/maps)"}
+    for half, h in doc["analysis"].items():
+        L += _half_md(names[half], h, link)
+    if doc.get("bus"):
+        L += ["### On the bus", ""] + [f"- {b['world']} / {b['strategy']}: {b['note']}"
+                                       for b in doc["bus"]] + [""]
+    return "\n".join(L) + "\n"
+
+
+def merge(docs: Sequence[tuple[Path, dict]]) -> dict:
+    """One report from several results.json (e.g. one per half): a later run of the same world
+    and strategy replaces an earlier one; pictures keep their absolute paths (``_picture``)."""
+    by: dict[tuple[str, str], dict] = {}
+    for src, d in docs:
+        for r in d["runs"]:
+            r = dict(r)
+            if r.get("picture"):
+                r["_picture"] = str((src / r["picture"]).resolve())
+            by[(r["world"], r["strategy"])] = r
+    runs = sorted(by.values(), key=lambda r: ({"tune": 0, "held": 1, "real": 2}[r["half"]],
+                                              r["world"], r["strategy"]))
+    strategies = [s for s in STRATEGIES if any(r["strategy"] == s for r in runs)]
+    commands: list[str] = []
+    for _, d in docs:
+        commands += d.get("commands") or [d["command"]]
+    return {"created": max(d["created"] for _, d in docs), "commands": commands,
+            "command": commands[0], "jobs": max(d["jobs"] for _, d in docs), "runs": runs,
+            "wall_s": sum(d["wall_s"] for _, d in docs), "analysis": analyse(runs, strategies),
+            "bus": [b for _, d in docs for b in d.get("bus") or []]}
+
+
+DOC_PICTURES = 10  # pictures in the docs: the worst ten runs of the whole report
+DOC_WIDTH = 720  # [px] ... scaled down to this width, as JPEG
+
+
+def write_report(doc: dict, md_path: Path, pic_dir: Path, for_docs: bool = False) -> None:
+    """summary(doc) to md_path, with the worst runs' pictures copied to pic_dir (linked
+    relative to md_path): the worst of each half, or with for_docs the worst DOC_PICTURES of
+    the whole report, scaled down (the repository keeps them)."""
+    import os
+    import shutil
+
+    import cv2
+
+    if for_docs:
+        wanted = {(r["world"], r["strategy"]) for r in worst(doc["runs"], DOC_PICTURES)}
+    else:
+        wanted = {(w["world"], w["strategy"]) for h in doc["analysis"].values()
+                  for w in h["worst"]}
+    src = {(r["world"], r["strategy"]): r.get("_picture") for r in doc["runs"]}
+    links: dict[tuple[str, str], str] = {}
+    for key in sorted(wanted):
+        if not (src.get(key) and Path(src[key]).is_file()):
+            continue
+        pic_dir.mkdir(parents=True, exist_ok=True)
+        if for_docs:
+            img = cv2.imread(src[key], cv2.IMREAD_COLOR)
+            if img is None:
+                continue
+            scale = min(1.0, DOC_WIDTH / img.shape[1])
+            img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+            dst = pic_dir / (Path(src[key]).stem + ".jpg")
+            cv2.imwrite(str(dst), img, [cv2.IMWRITE_JPEG_QUALITY, 85])
+        else:
+            dst = pic_dir / Path(src[key]).name
+            if Path(src[key]).resolve() != dst.resolve():
+                shutil.copyfile(src[key], dst)
+        links[key] = os.path.relpath(dst, md_path.parent)
+    for h in doc["analysis"].values():
+        for w in h["worst"]:
+            w["picture"] = links.get((w["world"], w["strategy"]))
+    md_path.parent.mkdir(parents=True, exist_ok=True)
+    md_path.write_text(summary(doc, lambda r: r.get("picture")))
+
+
+# --------------------------------------------------------------------------------------------
+# command line
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:
+        raise BenchArgError(message)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = _Parser(prog="topoexplore bench robust", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--half", choices=("tune", "held", "real", "all"), default="all")
+    ap.add_argument("--strategies", default=",".join(STRATEGIES))
+    ap.add_argument("--worlds", default=None, help="only these corpus worlds (comma separated)")
+    ap.add_argument("--corpus", type=Path, default=Path("runs/robust-corpus"))
+    ap.add_argument("--out", type=Path, default=Path("runs/bench-robust"))
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="parameter override for every run (repeatable)")
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--seeds", default=None, help="only these seeds of the half (comma separated)")
+    ap.add_argument("--max-area", type=float, default=None, metavar="M2",
+                    help="only worlds of at most this area [m^2]")
+    ap.add_argument("--quick", action="store_true", help="three small worlds (a smoke run)")
+    ap.add_argument("--bus", type=int, default=0, metavar="N",
+                    help="also run the first N runs on the real processes and compare")
+    ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--from-results", nargs="+", type=Path, default=None, metavar="DIR",
+                    help="run nothing: one report from these results (e.g. one per half)")
+    ap.add_argument("--doc", type=Path, default=None, metavar="FILE.md",
+                    help="also write the report here, the worst runs' pictures in img/robust/ "
+                         "beside it (e.g. docs/robustness.md)")
+    return ap
+
+
+def _load_results(dirs: Sequence[Path]) -> list[tuple[Path, dict]]:
+    out = []
+    for d in dirs:
+        f = d / "results.json"
+        try:
+            doc = json.loads(f.read_text())
+            doc["runs"], doc["created"], doc["wall_s"], doc["jobs"]  # noqa: B018 - the keys used
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise BenchArgError(f"--from-results: cannot read {f}: "
+                                f"{type(exc).__name__}: {exc}") from None
+        out.append((d, doc))
+    return out
+
+
+def _plan(a: argparse.Namespace) -> tuple[list[tuple[Item, str]], list[str]]:
+    strategies = [s.strip() for s in a.strategies.split(",") if s.strip()]
+    bad = [s for s in strategies if s not in STRATEGIES]
+    if bad or not strategies:
+        raise BenchArgError(f"--strategies: unknown {', '.join(bad) or '(none)'}; choose from "
+                            f"{', '.join(STRATEGIES)}")
+    if a.jobs < 1 or a.bus < 0:
+        raise BenchArgError("--jobs must be >= 1 and --bus >= 0")
+    check_overrides(None, a.set)
+    seeds = None
+    if a.seeds is not None:
+        try:
+            seeds = sorted({int(v) for v in a.seeds.split(",") if v.strip()})
+        except ValueError:
+            raise BenchArgError(f"--seeds: integers please (got {a.seeds!r})") from None
+        bad_seeds = [v for v in seeds if v not in SEEDS]
+        if bad_seeds or not seeds:
+            raise BenchArgError(f"--seeds: the corpus has seeds {SEEDS[0]}..{SEEDS[-1]} "
+                                f"(got {a.seeds!r})")
+    if a.max_area is not None and not (math.isfinite(a.max_area) and a.max_area > 0):
+        raise BenchArgError("--max-area must be a positive number of m^2")
+    items = build_corpus(a.corpus, a.half, a.quick, seeds, a.max_area)
+    if a.worlds:
+        want = {w.strip() for w in a.worlds.split(",") if w.strip()}
+        missing = want - {i.name for i in items}
+        if missing:
+            raise BenchArgError(f"--worlds: not in this corpus half: {', '.join(sorted(missing))}")
+        items = [i for i in items if i.name in want]
+    items.sort(key=lambda i: -i.area)  # the longest first, so no long run starts last
+    return [(i, s) for i in items for s in strategies], strategies
+
+
+def _execute(plan: list[tuple[Item, str]], a: argparse.Namespace) -> list[dict]:
+    from tqdm import tqdm
+
+    pics = a.out / "pics"
+    runs: list[dict] = []
+    partial = (a.out / "runs.jsonl").open("w")  # every run as it ends (a long run can be read
+    #                                              before the benchmark finishes)
+    bar = tqdm(total=len(plan), unit="run", desc="bench robust", file=sys.stderr,
+               dynamic_ncols=True, disable=a.no_progress)
+    with ProcessPoolExecutor(min(a.jobs, max(1, len(plan)))) as pool:
+        futs = [pool.submit(run_one, item, st, tuple(a.set), pics) for item, st in plan]
+        for f in as_completed(futs):
+            r = f.result()
+            runs.append(r)
+            partial.write(json.dumps(r) + "\n")
+            partial.flush()
+            bar.set_postfix_str(f"{r['world']}/{r['strategy']}: {r['outcome']} "
+                                f"{_f(r.get('coverage'))}", refresh=False)
+            bar.update(1)
+    bar.close()
+    partial.close()
+    order = {(i.name, s): k for k, (i, s) in enumerate(plan)}
+    return sorted(runs, key=lambda r: order[(r["world"], r["strategy"])])
+
+
+def _bus_check(plan: list[tuple[Item, str]], runs: list[dict], n: int, out: Path) -> list[dict]:
+    """The first n runs again through `topoexplore run` (the real processes): same path?"""
+    from topoexplore.tools.bench.explore import run_one as bus_run
+
+    by = {(r["world"], r["strategy"]): r for r in runs}
+    notes = []
+    for item, st in plan[:n]:
+        rep = bus_run(item.name, item.path, st, 0, out / "bus", time_limit(item.area), 0.0)
+        local = by[(item.name, st)]
+        same = rep.get("path_length_m") is not None and local.get("path_length_m") is not None \
+            and abs(rep["path_length_m"] - local["path_length_m"]) < 0.01
+        notes.append({"world": item.name, "strategy": st, "same": bool(same),
+                      "note": (f"bus {rep.get('path_length_m')} m, coverage "
+                               f"{rep.get('coverage')}; in process {local['path_length_m']} m, "
+                               f"coverage {local['coverage']}: "
+                               + ("the same path" if same else "DIFFERENT"))})
+    return notes
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        from topoexplore.tools.extras import ExtraMissing, require
+
+        try:
+            require("pymunk", "tqdm", what="topoexplore bench robust")
+        except ExtraMissing as exc:
+            raise BenchArgError(str(exc)) from None
+        a = build_parser().parse_args(argv)
+        if a.from_results:
+            return _report_only(a)
+        plan, strategies = _plan(a)
+    except BenchArgError as exc:
+        print(f"topoexplore bench robust: {exc}", file=sys.stderr)
+        return 2
+    except SystemExit as exc:  # --help
+        return int(exc.code or 0)
+    a.out.mkdir(parents=True, exist_ok=True)
+    t0 = time.monotonic()
+    runs = _execute(plan, a)
+    doc = {"created": time.strftime("%Y-%m-%d %H:%M"), "command": " ".join(
+        ["topoexplore", "bench", "robust", *argv]), "jobs": a.jobs, "runs": runs,
+        "wall_s": time.monotonic() - t0, "analysis": analyse(runs, strategies)}
+    if a.bus:
+        doc["bus"] = _bus_check(plan, runs, a.bus, a.out)
+    (a.out / "results.json").write_text(json.dumps(doc, indent=1) + "\n")
+    (a.out / "summary.md").write_text(summary(doc))
+    if a.doc:
+        write_report(merge([(a.out, doc)]), a.doc, a.doc.parent / "img" / "robust", True)
+    print(f"bench robust: {len(runs)} runs -> {a.out}/summary.md, results.json, pics/"
+          + (f"; {a.doc}" if a.doc else ""), file=sys.stderr)
+    return 0
+
+
+def _report_only(a: argparse.Namespace) -> int:
+    """--from-results: merge, analyse and write; nothing runs."""
+    doc = merge(_load_results(a.from_results))
+    a.out.mkdir(parents=True, exist_ok=True)
+    clean = {k: v for k, v in doc.items() if k != "runs"}
+    clean["runs"] = [{k: v for k, v in r.items() if k != "_picture"} for r in doc["runs"]]
+    write_report(doc, a.out / "summary.md", a.out / "pics")
+    (a.out / "results.json").write_text(json.dumps(clean, indent=1) + "\n")
+    if a.doc:
+        write_report(doc, a.doc, a.doc.parent / "img" / "robust", True)
+    print(f"bench robust: {len(doc['runs'])} runs from {len(a.from_results)} result(s) -> "
+          f"{a.out}/summary.md" + (f", {a.doc}" if a.doc else ""), file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
