@@ -241,6 +241,8 @@ class PlannerParams(_P):
     watchdog_time: Pos = 120.0  # [s] driving without new map information -> escalate
     watchdog_area: Pos = 0.5  # [m^2] new information: the known area grew this much ...
     #   (or an end node became reliable)
+    watchdog_travel: Pos = 1.0  # [m] driven in a period without information: the robot can
+    #   move, so the watchdog gives up what it tried (again) instead of calling it stuck
     blocked_time: Pos = 8.0  # [s] following a path without moving or turning -> the way
     #   ahead is blocked: a learned obstacle there
     blocked_radius: Pos = 0.15  # [m] ... a disc this big, just ahead of the robot ...

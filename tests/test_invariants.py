@@ -266,3 +266,46 @@ def test_watchdog_in_the_core_blacklists_then_goes_to_the_nearest_frontier_then_
     assert "stuck" in states
     assert snap["counts"]["blacklist"] >= 1 and snap["counts"]["stuck"] == 1
     assert any("watchdog" in r for r in reasons)
+
+
+def test_watchdog_while_driving_gives_up_what_it_tried_again_instead_of_stuck():
+    """A robot that drives (>= min_travel per period) but learns nothing is not stuck: after the
+    nearest-frontier step comes another blacklist step, with every target tried meanwhile."""
+    from types import SimpleNamespace as C
+
+    w = Watchdog(period=10.0, min_area=0.5, min_travel=1.0)
+    a, a2, b = C(id=-1, x=1.0, y=1.0), C(id=-1, x=1.1, y=1.05), C(id=-1, x=4.0, y=1.0)
+    steps = []
+    for k in range(0, 41):
+        t = float(k)
+        steps.append(w.observe(t, 5.0, 0, True, (0.2 * k, 0.0), (a, a2, b)[k % 3]))
+    assert [s for s in steps if s] == ["blacklist", "nearest_frontier", "blacklist", "blacklist"]
+    assert w.counts == {"blacklist": 3, "nearest_frontier": 1, "stuck": 0}
+    assert "m driven" in w.log[-1].why
+    assert [(c.x, c.y) for c in w.window] == [(1.1, 1.05), (4.0, 1.0)]  # a is a2, moved a bit
+    w.observe(41.0, 6.0, 0, True, (8.2, 0.0), a)  # new information: a fresh start
+    assert w.mode is None and w.window == [] and w.travel == 0.0
+
+
+def test_watchdog_in_the_core_ends_done_when_every_frontier_is_unproductive():
+    """The map never grows although the robot drives about (frontiers at the holes of a ragged
+    shelf yield nothing): the watchdog blacklists what it tried until nothing is left and the
+    run ends "done" with the blacklist in its reason, never "stuck" or "failed"."""
+    g, geom = two_rooms(6)
+    g[1:-1, 1:3] = -1  # a second frontier, along the left wall
+    g[:, 0] = -1
+    core = PlannerCore(params(strategy="frontier", watchdog_time=30.0, stuck_timeout=20.0,
+                              progress_timeout=1000.0))
+    states, reasons = [], []
+    for k in range(0, 1200):
+        t = 0.5 * k
+        pose = (1.5 + 1.0 * math.sin(0.05 * k), 2.0, 0.0)  # driving about, never arriving
+        out = core.update(t, pose, no_graph(), rel({}), GridMap(g, geom))
+        states.append(str(out.state))
+        reasons.append(out.status.reason)
+        if out.status.finished:
+            break
+    snap = core.snapshot()["watchdog"]
+    assert states[-1] == "done" and "stuck" not in states and "failed" not in states
+    assert snap["counts"]["blacklist"] >= 2 and snap["counts"]["stuck"] == 0
+    assert "blacklisted" in reasons[-1]

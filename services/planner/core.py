@@ -91,7 +91,8 @@ class PlannerCore:
         self._fail_since: float | None = None  # [s] since when the robot is stuck
         self._look: tuple[float, float, float] | None = None  # stuck: turn on the spot
         #   (x [m], y [m]) to the heading [rad]
-        self._watchdog = Watchdog(params.watchdog_time, params.watchdog_area)
+        self._watchdog = Watchdog(params.watchdog_time, params.watchdog_area,
+                                  params.watchdog_travel)
         self._blockages = Blockages(params.blocked_time, params.blocked_radius,
                                     robot.radius + params.blocked_radius, params.blocked_memory)
         self._cfg = Config(params, robot.radius, 0.0, robot.body_margin)
@@ -138,13 +139,24 @@ class PlannerCore:
         area = 0.0
         if grid is not None:
             area = float(np.count_nonzero(grid.data != -1)) * grid.geom.resolution ** 2
-        step = self._watchdog.observe(u.t, area, ev.reliable, self._target is not None)
+        cur = None if self._target is None else self._target.cand
+        step = self._watchdog.observe(u.t, area, ev.reliable, cur is not None, (u.x, u.y), cur)
         if step is not None:
             what = self._watchdog.log[-1].why
             self._replans += 1
-            if step == "blacklist" and self._target is not None:
-                notes.append(f"watchdog: {what}: " + self._blacklist.add(
-                    self._target.cand, u.t, f"watchdog: {what}"))
+            if step == "blacklist":
+                # every target tried since the last new information, the current one first
+                tried = ([cur] if cur is not None else []) + self._watchdog.window
+                given = []
+                for c in tried:
+                    if not self._blacklist.covers(c):
+                        self._blacklist.add(c, u.t, f"watchdog: {what}")
+                        given.append(c.label)
+                self._watchdog.window.clear()
+                if given:
+                    notes.append(f"watchdog: {what}: blacklisted {len(given)} target(s) tried "
+                                 f"meanwhile ({'; '.join(given[:3])}"
+                                 + (", ..." if len(given) > 3 else "") + ")")
                 self._target = None
                 ev.cands = [c for c in ev.cands if not self._blacklist.covers(c)]
             elif step == "nearest_frontier":

@@ -13,8 +13,17 @@ of driving (a target followed), it escalates, one step per further ``watchdog_ti
 2. ``nearest_frontier``: the next target is the nearest reachable frontier group (the
    explore_lite rule, path lengths over the grid through narrow passages too), whatever the
    strategy: the least risky way to new information;
-3. ``stuck``: nothing helped; the planner reports the robot as stuck (never "done") and asks
-   the controller to turn on the spot to look around; ``stuck_timeout`` later it fails.
+3. ``stuck``: nothing helped and the robot hardly moved (less than ``min_travel`` in the
+   last period): it cannot get anywhere. The planner reports the robot as stuck (never "done")
+   and asks the controller to turn on the spot to look around; ``stuck_timeout`` later it fails.
+
+A blacklist step gives up every target followed since the last new information, not only the
+current one: targets taken in turn while nothing was learnt are all unproductive (a row of
+frontier specks at the holes of a shelf a SLAM map left ragged; two targets whose
+reachability flickers). If the robot keeps driving yet learns nothing, the step after the
+nearest-frontier one is another blacklist step (and so on), not "stuck": the targets run out
+and the strategy's own rules end the run ("done", with the blacklist in the reason), or new
+information resets the level.
 
 New information resets the level. Every step is counted and logged (:attr:`counts`,
 :attr:`log`); the planner's state and ``report.json`` carry them.
@@ -22,10 +31,19 @@ New information resets the level. Every step is counted and logged (:attr:`count
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+from typing import Any
 
 LEVELS = ("blacklist", "nearest_frontier", "stuck")
 LOG_LIMIT = 50  # escalation events kept in the log (the counts keep the totals)
+WINDOW_LIMIT = 200  # targets remembered since the last new information
+SAME_RADIUS = 0.25  # [m] a target this close to a remembered one is that one
+
+
+def _same(a: Any, b: Any) -> bool:
+    """The same target (a candidate: id, x [m], y [m]) seen in two updates."""
+    return (a.id >= 0 and a.id == b.id) or math.hypot(a.x - b.x, a.y - b.y) <= SAME_RADIUS
 
 
 @dataclass
@@ -37,21 +55,35 @@ class Event:
 
 @dataclass
 class Watchdog:
-    """Escalation state. ``period`` [s] = watchdog_time, ``min_area`` [m^2] = watchdog_area."""
+    """Escalation state. ``period`` [s] = watchdog_time, ``min_area`` [m^2] = watchdog_area,
+    ``min_travel`` [m] = watchdog_travel."""
 
     period: float
     min_area: float
+    min_travel: float = 1.0
     level: int = 0  # 0: fine, k: LEVELS[k - 1] is in force
     info_t: float | None = None  # [s] time of the last new information
     area: float = 0.0  # [m^2] known area at that time
     reliable: int = 0  # reliable end nodes at that time
     counts: dict[str, int] = field(default_factory=lambda: {k: 0 for k in LEVELS})
     log: list[Event] = field(default_factory=list)
+    travel: float = 0.0  # [m] driven since the last step or new information
+    window: list[Any] = field(default_factory=list)  # targets followed since then
+    _xy: tuple[float, float] | None = None
 
-    def observe(self, t: float, area: float, reliable: int, driving: bool) -> str | None:
+    def observe(self, t: float, area: float, reliable: int, driving: bool,
+                xy: tuple[float, float] | None = None, target: Any = None) -> str | None:
         """One planning update at t [s] with the map's known area [m^2] and the number of
-        reliable end nodes; driving: a target is being followed. Returns the level name to
-        act on now, or None."""
+        reliable end nodes; driving: a target is being followed; xy [m]: the robot's position;
+        target: the one followed (remembered in :attr:`window` until new information).
+        Returns the step to act on now, or None."""
+        if xy is not None:
+            if self._xy is not None:
+                self.travel += math.hypot(xy[0] - self._xy[0], xy[1] - self._xy[1])
+            self._xy = (float(xy[0]), float(xy[1]))
+        if target is not None and not any(_same(target, w) for w in self.window):
+            self.window.append(target)
+            del self.window[:-WINDOW_LIMIT]
         if self.info_t is None or t < self.info_t:  # first update, or the clock was reset
             self._reset(t, area, reliable)
             return None
@@ -63,13 +95,18 @@ class Watchdog:
             return None
         if t - self.info_t < self.period or self.level >= len(LEVELS):
             return None
-        self.level += 1
-        name = LEVELS[self.level - 1]
+        why = (f"no new map information for {t - self.info_t:.0f} s of driving (known area "
+               f"{area:.1f} m^2, {self.travel:.1f} m driven)")
+        if LEVELS[self.level] == "stuck" and self.travel >= self.min_travel:
+            name = "blacklist"  # it drives but learns nothing: give up what it tried, again
+        else:
+            self.level += 1
+            name = LEVELS[self.level - 1]
         self.counts[name] += 1
-        self.log.append(Event(t, name, f"no new map information for {t - self.info_t:.0f} s "
-                                        f"of driving (known area {area:.1f} m^2)"))
+        self.log.append(Event(t, name, why))
         del self.log[:-LOG_LIMIT]
         self.info_t = t  # the next step only after another period without information
+        self.travel = 0.0
         return name
 
     @property
@@ -80,6 +117,8 @@ class Watchdog:
     def _reset(self, t: float, area: float, reliable: int) -> None:
         self.level = 0
         self.info_t, self.area, self.reliable = t, area, reliable
+        self.travel = 0.0
+        self.window.clear()
 
     def snapshot(self) -> dict:
         return {"level": self.mode, "last_information_t": self.info_t,
