@@ -6,10 +6,14 @@
 - reachability uses the controller's footprint model: a door of the robot's diameter plus
   twice the clearance margin is passable even where the map shows it a cell narrower; a gap
   narrower than the robot never is;
+- the way the planner sends the robot fits its body everywhere: along skeleton edges (whose
+  clearance is measured along their whole length) and from the robot onto the skeleton (a
+  straight line only where the body fits, else a grid path round the obstacle);
 - a robot that cannot get anywhere is "stuck", never "done";
 - commitment: a target whose reachability flickers is kept, not swapped every update;
 - the global progress watchdog escalates (blacklist -> nearest frontier -> stuck -> failed),
-  each step counted.
+  each step counted; a robot that drives but learns nothing gives up what it tried instead
+  of being called stuck.
 """
 
 from __future__ import annotations
@@ -309,3 +313,37 @@ def test_watchdog_in_the_core_ends_done_when_every_frontier_is_unproductive():
     assert states[-1] == "done" and "stuck" not in states and "failed" not in states
     assert snap["counts"]["blacklist"] >= 2 and snap["counts"]["stuck"] == 0
     assert "blacklisted" in reasons[-1]
+
+
+def test_a_skeleton_edge_given_by_its_two_ends_still_sees_an_obstacle_in_its_middle():
+    """A topology message may simplify a straight stretch to its two ends; the planner's
+    clearance is measured along the whole edge (resampled every graph.DENSE_STEP), so a
+    post in the middle of a 4 m corridor edge makes that stretch narrow."""
+    g, geom = room(60, 20)
+    g[9:11, 30] = 100  # a post 0.2 m wide at x = 3 m, right on the edge
+    view = MapView(GridMap(g, geom), Occupancy(0.25, 0.65))
+    tp = Graph.from_edges([Node(1, "end", 1.0, 1.0), Node(2, "end", 5.0, 1.0)],
+                          [(1, 2, [[1.0, 1.0], [5.0, 1.0]], 4.0, 0.5)])
+    index = gr.build_index(tp, 0.3, view.clearance_at)
+    assert not index.edges or all(e.pts[:, 0].max() < 3.0 or e.pts[:, 0].min() > 3.0
+                                  for e in index.edges)  # no traversable edge passes the post
+    assert index.narrow
+
+
+def test_the_way_onto_the_skeleton_fits_the_body_or_goes_round_on_the_grid():
+    """The robot stands just off a skeleton edge with a post between it and the edge: the
+    straight line to the nearest edge point would brush the post, so the path joins the
+    skeleton elsewhere, every waypoint clear of the post by the body's fit."""
+    g, geom = room(60, 30)
+    g[14:16, 28:30] = 100  # a 0.2 m post at (2.9, 1.5)
+    tp = Graph.from_edges([Node(1, "end", 0.5, 1.0), Node(2, "end", 5.5, 1.0)],
+                          [(1, 2, [[0.5, 1.0], [5.5, 1.0]], 5.0, 0.5)])
+    pose = (2.9, 1.95, -math.pi / 2)  # 0.35 m north of the post, the edge 0.95 m south
+    core = PlannerCore(params(strategy="all-end-nodes"))
+    out = core.update(0.0, pose, tp, rel({1: 0.5, 2: 0.5}), GridMap(g, geom))
+    w = np.asarray(out.route.waypoints)
+    assert len(w) >= 2
+    dense = np.concatenate([np.linspace(a, b, 20) for a, b in zip(w[:-1], w[1:], strict=True)])
+    post = np.array([2.9, 1.5])
+    gap = np.hypot(*(dense - post).T).min() - 0.1  # [m] from the post's surface (about)
+    assert gap >= Config(params(), ROBOT.radius, 0.5, ROBOT.body_margin).fit(RES) - RES

@@ -25,6 +25,8 @@ from topoexplore.common.domain import Graph
 from topoexplore.common.grid import GridGeometry
 
 ENTRY = -1  # pseudo node id of the entry point in predecessor chains
+DENSE_STEP = 0.05  # [m] edge polylines are resampled at least this densely, so that the
+#   clearance measured at their points sees an obstacle beside a long straight stretch
 
 
 class GraphInputError(ValueError):
@@ -86,6 +88,8 @@ class Entry:
     arc: float  # [m] arc length from node a to the entry point along the edge
     dist: float  # [m] straight-line robot -> entry
     line_of_sight: bool  # False: fallback to the nearest point (no free straight line found)
+    lead: np.ndarray | None = None  # (n, 2) [m] grid path robot -> entry point, where no
+    #   straight line fits the robot's body (then dist is its length)
 
 
 def polyline_lengths(pts: np.ndarray) -> np.ndarray:
@@ -114,7 +118,20 @@ def _edge_polyline(pts: list[list[float]], pa: tuple[float, float], pb: tuple[fl
         pts.insert(0, [ax, ay])
     if math.hypot(pts[-1][0] - bx, pts[-1][1] - by) > 1e-6 or len(pts) < 2:
         pts.append([bx, by])
-    return pts
+    return _densify(pts, DENSE_STEP)
+
+
+def _densify(pts: list[list[float]], step: float) -> list[list[float]]:
+    """The polyline with points inserted so that no two in a row are more than step [m] apart
+    (a topology message may simplify straight stretches to their two ends)."""
+    out = [pts[0]]
+    for (x0, y0), (x1, y1) in zip(pts[:-1], pts[1:], strict=True):
+        n = int(math.ceil(math.hypot(x1 - x0, y1 - y0) / step))
+        for j in range(1, n):
+            f = j / n
+            out.append([x0 + f * (x1 - x0), y0 + f * (y1 - y0)])
+        out.append([x1, y1])
+    return out
 
 
 def build_index(graph: Graph, min_clearance: float,
@@ -362,6 +379,17 @@ def find_entry(index: TopoIndex, x: float, y: float,
 # --- search ----------------------------------------------------------------------------------
 
 
+def entry_at(index: TopoIndex, edge_pos: int, k: int, lead: np.ndarray) -> Entry:
+    """The entry at point k of edge index.edges[edge_pos], reached over the polyline `lead`
+    [m] (robot -> that point) instead of a straight line."""
+    e = index.edges[edge_pos]
+    k = int(min(max(k, 0), len(e.pts) - 1))
+    seg = min(k, len(e.pts) - 2)
+    x, y = float(e.pts[k, 0]), float(e.pts[k, 1])
+    length = float(polyline_lengths(lead)[-1]) if len(lead) > 1 else 0.0
+    return Entry(e, seg, x, y, float(e.cum[k]), length, False, lead)
+
+
 def search_from_entry(index: TopoIndex, entry: Entry, through_narrow: bool = False
                       ) -> tuple[dict[int, float], dict[int, tuple[int, int, bool]]]:
     """Least path cost [m] from the robot (via the entry point) to every reachable node.
@@ -448,6 +476,8 @@ def path_points(index: TopoIndex, entry: Entry, pred: dict[int, tuple[int, int, 
     e = entry.edge
     first_ei, first_fwd = chain[0]
     start = np.array([[entry.x, entry.y]])
+    if entry.lead is not None and len(entry.lead):
+        start = np.vstack([entry.lead, start])
     if first_fwd:  # entry -> b
         parts = [start, e.pts[entry.seg + 1:]]
     else:  # entry -> a

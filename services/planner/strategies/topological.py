@@ -143,14 +143,49 @@ class Topological:
         s.open_ids = [i for i in s.ends if self.is_open(i, s)]
         u, visible = s.u, None
         if u.view is not None:
-            free, geom, radius = u.view.free, u.view.geom, self.cfg.radius
+            geom, radius = u.view.geom, self.cfg.radius
+            fits = u.view.free & (u.view.best_clearance + 1e-6 >= self.cfg.fit(geom.resolution))
 
             def visible(x0: float, y0: float, x1: float, y1: float) -> bool:
-                return gr.line_of_sight(free, geom, x0, y0, x1, y1, radius)
+                # the straight way to the skeleton must fit the body, as the controller's
+                # corridor needs (the robot's own cells, within its radius, may be tight)
+                return gr.line_of_sight(fits, geom, x0, y0, x1, y1, radius)
 
         s.entry = gr.find_entry(s.index, u.x, u.y, visible)
+        if s.entry is not None and not s.entry.line_of_sight and u.view is not None:
+            s.entry = self._grid_entry(s) or s.entry
         if s.entry is not None:
             s.dist, s.pred = gr.search_from_entry(s.index, s.entry)
+
+    def _grid_entry(self, s: Scene) -> gr.Entry | None:
+        """No straight line from the robot to the skeleton fits its body (an obstacle beside
+        it, a learned blockage ahead): join the skeleton over a grid path instead, the
+        frontier strategy's search (escape from a tight spot, narrow cells at a penalty), at
+        the skeleton point it reaches first. None if it reaches none."""
+        from topoexplore.services.planner.strategies.frontier import NARROW_PENALTY
+
+        u, cfg = s.u, self.cfg
+        geom = u.view.geom
+        gsr = u.view.search(u.x, u.y, cfg.need, fit=cfg.fit(geom.resolution),
+                            narrow_penalty=NARROW_PENALTY)
+        if gsr.start is None:
+            return None
+        best: tuple[float, int, int, int, int] | None = None
+        for pos, e in enumerate(s.index.edges):
+            rows, cols = geom.world_to_cell(e.pts[:, 0], e.pts[:, 1])
+            ok = geom.inside(rows, cols)
+            if not np.any(ok):
+                continue
+            d = np.full(len(e.pts), np.inf)
+            d[ok] = gsr.dist[rows[ok], cols[ok]]
+            k = int(np.argmin(d))
+            if math.isfinite(d[k]) and (best is None or d[k] < best[0]):
+                best = (float(d[k]), pos, k, int(rows[k]), int(cols[k]))
+        if best is None:
+            return None
+        lead = gsr.path_to(best[3], best[4])
+        lead = np.vstack([[u.x, u.y], lead]) if len(lead) else np.array([[u.x, u.y]])
+        return gr.entry_at(s.index, best[1], best[2], lead)
 
     def _evaluation(self, s: Scene) -> Evaluation:
         ev = Evaluation(end_nodes=len(s.ends),
@@ -172,7 +207,8 @@ class Topological:
         ev.status_of = lambda c: self._status_of(s, c)
         ev.flickered = lambda c: (not c.partial and c.id in s.index.nodes
                                   and c.id in s.open_ids and c.id not in s.dist)
-        ev.path_ok = _near_skeleton(s.index, self.cfg.params.path_tolerance)
+        ev.path_ok = _near_skeleton(s.index, self.cfg.params.path_tolerance,
+                                    None if s.entry is None else s.entry.lead)
         if s.u.view is not None:
             view = s.u.view
             ev.path_clear = lambda wps: not gr.crosses(view.occupied, view.geom, wps)
@@ -206,8 +242,10 @@ class Topological:
         if i not in dist:
             return None
         full = gr.path_points(s.index, s.entry, pred, i)
-        pts = gr.cut_at_narrow(full, s.clearance_at, self.cfg.need)
-        if len(pts) < 2 or len(pts) == len(full):
+        nlead = 0 if s.entry.lead is None else len(s.entry.lead)  # the lead-in is not cut
+        pts = np.vstack([full[:nlead], gr.cut_at_narrow(full[nlead:], s.clearance_at,
+                                                         self.cfg.need)])
+        if len(pts) - nlead < 2 or len(pts) == len(full):
             return None
         reach = float(gr.polyline_lengths(pts)[-1])
         px, py = float(pts[-1, 0]), float(pts[-1, 1])
@@ -253,9 +291,10 @@ class Topological:
         return {"looked": [{"id": b.id, "x": b.x, "y": b.y, "t": b.t} for b in self._looked]}
 
 
-def _near_skeleton(index: gr.TopoIndex, tolerance: float) -> Callable[[np.ndarray], bool]:
-    """path_ok of a topological path: every waypoint within tolerance [m] of the skeleton
-    (the KD-tree is built on the first call)."""
+def _near_skeleton(index: gr.TopoIndex, tolerance: float, lead: np.ndarray | None = None
+                   ) -> Callable[[np.ndarray], bool]:
+    """path_ok of a topological path: every waypoint within tolerance [m] of the skeleton or of
+    this update's grid lead-in to it (the KD-tree is built on the first call)."""
     tree: list = []
 
     def path_ok(wps: np.ndarray) -> bool:
@@ -263,6 +302,8 @@ def _near_skeleton(index: gr.TopoIndex, tolerance: float) -> Callable[[np.ndarra
             return True
         if not tree:
             pts = index.all_points()
+            if lead is not None and len(lead):
+                pts = np.vstack([pts.reshape(-1, 2), lead]) if len(pts) else lead
             tree.append(cKDTree(pts) if len(pts) else None)
         if tree[0] is None:
             return False
