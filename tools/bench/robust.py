@@ -1,8 +1,10 @@
 """``topoexplore bench robust``: every strategy on a corpus of buildings it was never tuned on.
 
-    topoexplore bench robust [--half tune|held|all] [--strategies ...] [--jobs 2]
-                             [--corpus DIR] [--out DIR] [--set k=v ...] [--quick] [--bus N]
-                             [--no-progress]
+    topoexplore bench robust [--half tune|held|real|all] [--seeds 1,3] [--max-area M2]
+                             [--strategies ...] [--worlds ...] [--jobs 2] [--corpus DIR]
+                             [--out DIR] [--set k=v ...] [--quick] [--bus N] [--no-progress]
+                             [--doc docs/robustness.md]
+    topoexplore bench robust --from-results DIR [DIR ...] [--out DIR] [--doc FILE.md]
 
 The corpus is generated (``sim/generate.py``, deterministic) into ``--corpus``: the four styles
 (office, house, warehouse, cluttered) x seeds 0..7, each as a clean world and as a SLAM-like map
@@ -24,8 +26,10 @@ area (:func:`time_limit`).
 
 Writes to ``--out``: ``results.json`` (every run, the analysis, the corpus and the command),
 ``summary.md`` (tables per strategy and half, path ratios per world, the worst ten runs with
-their pictures), and ``pics/<world>-<strategy>.png`` (the final map, graph and trail of every
-run).
+their pictures), ``runs.jsonl`` (each run as it ends) and ``pics/<world>-<strategy>.png`` (the
+final map, graph and trail of every run). ``--doc`` writes the same report where the docs keep
+it, with the ten worst runs' pictures scaled down beside it; ``--from-results`` merges the
+results of several invocations (one per half, say) into one report without running anything.
 """
 
 from __future__ import annotations
