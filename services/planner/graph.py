@@ -118,20 +118,30 @@ def _edge_polyline(pts: list[list[float]], pa: tuple[float, float], pb: tuple[fl
         pts.insert(0, [ax, ay])
     if math.hypot(pts[-1][0] - bx, pts[-1][1] - by) > 1e-6 or len(pts) < 2:
         pts.append([bx, by])
-    return _densify(pts, DENSE_STEP)
+    return pts
 
 
-def _densify(pts: list[list[float]], step: float) -> list[list[float]]:
-    """The polyline with points inserted so that no two in a row are more than step [m] apart
-    (a topology message may simplify straight stretches to their two ends)."""
-    out = [pts[0]]
-    for (x0, y0), (x1, y1) in zip(pts[:-1], pts[1:], strict=True):
-        n = int(math.ceil(math.hypot(x1 - x0, y1 - y0) / step))
-        for j in range(1, n):
-            f = j / n
-            out.append([x0 + f * (x1 - x0), y0 + f * (y1 - y0)])
-        out.append([x1, y1])
-    return out
+def densify(P: np.ndarray, o: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Flat polylines (P, with each one's start offset in o and the end) with points inserted
+    so that no two in a row are more than step [m] apart (a topology message may simplify a
+    straight stretch to its two ends); returns the new (P, o)."""
+    n_pts = len(P)
+    if n_pts < 2:
+        return P, o
+    d = P[1:] - P[:-1]
+    last = np.zeros(n_pts, bool)
+    last[o[1:] - 1] = True  # the last point of each polyline starts no segment
+    reps = np.ones(n_pts, np.int64)
+    inner = ~last[:-1]
+    reps[:-1][inner] = np.maximum(1, np.ceil(np.hypot(d[inner, 0], d[inner, 1]) / step)
+                                  ).astype(np.int64)
+    src = np.repeat(np.arange(n_pts), reps)
+    first = np.repeat(np.cumsum(reps) - reps, reps)
+    frac = (np.arange(len(src)) - first) / np.repeat(reps, reps)
+    seg = np.vstack([d, np.zeros((1, 2))])[src]
+    out = P[src] + frac[:, None] * np.where(last[src][:, None], 0.0, seg)
+    o2 = np.concatenate([[0], np.cumsum(reps)])[o]
+    return out, o2
 
 
 def build_index(graph: Graph, min_clearance: float,
@@ -190,7 +200,10 @@ def _polylines(graph: Graph, nodes: dict[int, tuple[str, float, float]]
         flat.extend(_edge_polyline(pts[off[k]:off[k + 1]], nodes[e.a][1:], nodes[e.b][1:]))
         starts.append(len(flat))
         kept.append(e)
-    return kept, np.asarray(flat, dtype=np.float64), np.asarray(starts)
+    if not kept:
+        return kept, np.asarray(flat, dtype=np.float64), np.asarray(starts)
+    P, o = densify(np.asarray(flat, dtype=np.float64), np.asarray(starts), DENSE_STEP)
+    return kept, P, o
 
 
 def _arc_lengths(P: np.ndarray, o: np.ndarray) -> np.ndarray:

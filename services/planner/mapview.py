@@ -9,6 +9,7 @@ one update all read the same arrays.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -27,6 +28,8 @@ from topoexplore.common.grid import (
 )
 from topoexplore.services.planner import graph as gr
 from topoexplore.services.planner import gridsearch as gs
+
+NEAR_MARGIN = 0.5  # [m] obstacles this far outside a window still count (:meth:`MapView.near`)
 
 
 class _once:
@@ -132,6 +135,30 @@ class MapView:
     @_once
     def _clearance_lookup(self):
         return gr.grid_clearance(self.clearance, self.geom)
+
+    def near(self, x: float, y: float, half: float
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, GridGeometry]:
+        """The square of cells within half [m] of (x, y): (free, occupied, best clearance,
+        its geometry). The best clearance is computed from the occupied cells of the square
+        and NEAR_MARGIN around it, so it is exact up to that value (farther obstacles cannot
+        make a cell narrower than that): what a body-fit test near the robot needs, at a
+        fraction of :attr:`best_clearance`'s cost on a large map."""
+        geom = self.geom
+        res = geom.resolution
+        row, col = (int(v) for v in geom.world_to_cell(x, y))
+        k = int(math.ceil(half / res))
+        m = k + int(math.ceil(NEAR_MARGIN / res))
+        a0, a1 = max(0, row - m), min(geom.height, row + m + 1)  # computed on ...
+        b0, b1 = max(0, col - m), min(geom.width, col + m + 1)
+        r0, r1 = max(0, row - k), min(geom.height, row + k + 1)  # ... returned
+        c0, c1 = max(0, col - k), min(geom.width, col + k + 1)
+        if r0 >= r1 or c0 >= c1:  # the robot is far outside the observed part
+            a0, a1, b0, b1 = r0, r1, c0, c1 = 0, geom.height, 0, geom.width
+        best = gs.best_clearance_map(self.occupied[a0:a1, b0:b1], res)
+        best = best[r0 - a0:r1 - a0, c0 - b0:c1 - b0]
+        sub = GridGeometry(res, geom.origin_x + c0 * res, geom.origin_y + r0 * res, c1 - c0,
+                           r1 - r0)
+        return self.free[r0:r1, c0:c1], self.occupied[r0:r1, c0:c1], best, sub
 
     def search(self, x: float, y: float, radius: float, fit: float | None = None,
                soft_radius: float = 0.0, soft_penalty: float = 0.0,

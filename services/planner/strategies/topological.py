@@ -24,6 +24,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from topoexplore.services.planner import graph as gr
+from topoexplore.services.planner import gridsearch as gs
 from topoexplore.services.planner.strategies.base import (
     Candidate,
     Config,
@@ -34,6 +35,8 @@ from topoexplore.services.planner.strategies.base import (
 from topoexplore.services.planner.strategies.completion import Completion
 
 P_UNSEEN = 0.5  # P of an end node the reliability message does not list yet (paper: initial P)
+ENTRY_WINDOW = 4.0  # [m] the way onto the skeleton is checked for the body's fit this far
+#   from the robot (farther, the nearest edge point is taken as before)
 
 
 @dataclass
@@ -141,10 +144,11 @@ class Topological:
     def _search(self, s: Scene) -> None:
         """Open end nodes, entry point (in line of sight on the map) and path costs."""
         s.open_ids = [i for i in s.ends if self.is_open(i, s)]
-        u, visible = s.u, None
+        u, visible, near = s.u, None, None
         if u.view is not None:
-            geom, radius = u.view.geom, self.cfg.radius
-            fits = u.view.free & (u.view.best_clearance + 1e-6 >= self.cfg.fit(geom.resolution))
+            radius = self.cfg.radius
+            free, _, best, geom = near = u.view.near(u.x, u.y, ENTRY_WINDOW)
+            fits = free & (best + 1e-6 >= self.cfg.fit(geom.resolution))
 
             def visible(x0: float, y0: float, x1: float, y1: float) -> bool:
                 # the straight way to the skeleton must fit the body, as the controller's
@@ -152,22 +156,24 @@ class Topological:
                 return gr.line_of_sight(fits, geom, x0, y0, x1, y1, radius)
 
         s.entry = gr.find_entry(s.index, u.x, u.y, visible)
-        if s.entry is not None and not s.entry.line_of_sight and u.view is not None:
-            s.entry = self._grid_entry(s) or s.entry
+        if s.entry is not None and not s.entry.line_of_sight and near is not None:
+            s.entry = self._grid_entry(s, near) or s.entry
         if s.entry is not None:
             s.dist, s.pred = gr.search_from_entry(s.index, s.entry)
 
-    def _grid_entry(self, s: Scene) -> gr.Entry | None:
+    def _grid_entry(self, s: Scene, near: tuple) -> gr.Entry | None:
         """No straight line from the robot to the skeleton fits its body (an obstacle beside
         it, a learned blockage ahead): join the skeleton over a grid path instead, the
-        frontier strategy's search (escape from a tight spot, narrow cells at a penalty), at
-        the skeleton point it reaches first. None if it reaches none."""
+        frontier strategy's narrow search (escape from a tight spot, narrow cells at a
+        penalty) within ENTRY_WINDOW of the robot, at the skeleton point it reaches first.
+        None if it reaches none."""
         from topoexplore.services.planner.strategies.frontier import NARROW_PENALTY
 
         u, cfg = s.u, self.cfg
-        geom = u.view.geom
-        gsr = u.view.search(u.x, u.y, cfg.need, fit=cfg.fit(geom.resolution),
-                            narrow_penalty=NARROW_PENALTY)
+        free, _, best_c, geom = near
+        fit = cfg.fit(geom.resolution)
+        gsr = gs.grid_search(free, free & (best_c + 1e-6 >= fit), best_c, geom, u.x, u.y,
+                             cfg.need, fit=fit, narrow_penalty=NARROW_PENALTY)
         if gsr.start is None:
             return None
         best: tuple[float, int, int, int, int] | None = None
