@@ -8,22 +8,22 @@ The watchdog measures what exploration is for, new information: the known area o
 grows by ``watchdog_area`` or an end node turns reliable. With neither for ``watchdog_time``
 of driving (a target followed), it escalates, one step per further ``watchdog_time``:
 
-1. ``blacklist``: the current target's region is blacklisted (by position, as a target
-   given up after ``max_attempts``) and the strategy chooses again;
-2. ``nearest_frontier``: the next target is the nearest reachable frontier group (the
-   explore_lite rule, path lengths over the grid through narrow passages too), whatever the
-   strategy: the least risky way to new information;
+1. ``nearest_frontier``: the targets from now on are the nearest reachable frontier groups
+   (the explore_lite rule, path lengths over the grid through narrow passages too), whatever
+   the strategy, and the robot commits to one: the least risky way to new information, and
+   one that strategy-level flicker cannot defeat (an end node that is visited, then not, as
+   the skeleton changes, while a frontier appears and vanishes with it: the robot turned
+   between the two on the spot);
+2. ``blacklist``: still nothing: every target followed since the last new information is
+   blacklisted (by position, as a target given up after ``max_attempts``): targets taken in
+   turn while nothing was learnt are all unproductive (a row of frontier specks at the holes
+   of a shelf a SLAM map left ragged), and the nearest-frontier mode goes on without them;
 3. ``stuck``: nothing helped and the robot hardly moved (less than ``min_travel`` in the
    last period): it cannot get anywhere. The planner reports the robot as stuck (never "done")
-   and asks the controller to turn on the spot to look around; ``stuck_timeout`` later it fails.
-
-A blacklist step gives up every target followed since the last new information, not only the
-current one: targets taken in turn while nothing was learnt are all unproductive (a row of
-frontier specks at the holes of a shelf a SLAM map left ragged; two targets whose
-reachability flickers). If the robot keeps driving yet learns nothing, the step after the
-nearest-frontier one is another blacklist step (and so on), not "stuck": the targets run out
-and the strategy's own rules end the run ("done", with the blacklist in the reason), or new
-information resets the level.
+   and asks the controller to turn on the spot to look around; ``stuck_timeout`` later it
+   fails. If it did move, this step is another blacklist step instead (and so on): the targets
+   run out and the strategy's own rules end the run ("done", with the blacklist in the
+   reason), or new information resets the level.
 
 New information resets the level. Every step is counted and logged (:attr:`counts`,
 :attr:`log`); the planner's state and ``report.json`` carry them.
@@ -35,7 +35,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-LEVELS = ("blacklist", "nearest_frontier", "stuck")
+LEVELS = ("nearest_frontier", "blacklist", "stuck")
 LOG_LIMIT = 50  # escalation events kept in the log (the counts keep the totals)
 WINDOW_LIMIT = 200  # targets remembered since the last new information
 SAME_RADIUS = 0.25  # [m] a target this close to a remembered one is that one
@@ -111,8 +111,11 @@ class Watchdog:
 
     @property
     def mode(self) -> str | None:
-        """The escalation in force (None: none)."""
-        return LEVELS[self.level - 1] if self.level else None
+        """The mode in force: "nearest_frontier" after the first step and the blacklist
+        step, "stuck" after the last, None before the first."""
+        if not self.level:
+            return None
+        return "stuck" if LEVELS[self.level - 1] == "stuck" else "nearest_frontier"
 
     def _reset(self, t: float, area: float, reliable: int) -> None:
         self.level = 0

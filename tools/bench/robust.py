@@ -57,7 +57,8 @@ LARGE = 60.0  # [m] side of the largest worlds
 NOISE = 2  # SLAM-noise level of the noisy half of the corpus
 GOOD_COVERAGE = 0.95
 STAGNANT_S = 600.0  # [s] sim time without map growth before the limit: a livelock
-QUICK = (("house", 0, None), ("house", 1, NOISE), ("cluttered", 1, None))
+QUICK = (("house", 0, None, (12.0, 10.0)), ("house", 1, NOISE, (12.0, 10.0)),
+         ("cluttered", 1, None, (12.0, 10.0)))  # --quick: small worlds of both halves
 
 
 @dataclass(frozen=True)
@@ -97,15 +98,14 @@ def build_corpus(corpus_dir: Path, half: str, quick: bool = False,
     from topoexplore.sim.generate import DEFAULT_SIZES, generate, write_generated
     from topoexplore.sim.world import load_world
 
-    specs = QUICK if quick else [(st, seed, lvl) for st in STYLES for seed in SEEDS
-                                 for lvl in (None, NOISE)]
+    specs = QUICK if quick else [(st, seed, lvl, size_of(st, seed, lvl)) for st in STYLES
+                                 for seed in SEEDS for lvl in (None, NOISE)]
     out: list[Item] = []
-    for style, seed, level in specs:
+    for style, seed, level, size in specs:
         if half != "all" and half != "real" and half_of(seed) != half:
             continue
         if half == "real" or (seeds is not None and seed not in seeds):
             continue
-        size = size_of(style, seed, level)
         w, h = size or DEFAULT_SIZES[style]
         if max_area is not None and w * h > max_area:
             continue
@@ -476,7 +476,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--seeds", default=None, help="only these seeds of the half (comma separated)")
     ap.add_argument("--max-area", type=float, default=None, metavar="M2",
                     help="only worlds of at most this area [m^2]")
-    ap.add_argument("--quick", action="store_true", help="three small worlds (a smoke run)")
+    ap.add_argument("--quick", action="store_true",
+                    help="three small worlds of 12 x 10 m (a smoke run)")
     ap.add_argument("--bus", type=int, default=0, metavar="N",
                     help="also run N runs (the smallest worlds) on the real processes and "
                          "compare")
