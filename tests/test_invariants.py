@@ -348,3 +348,19 @@ def test_the_way_onto_the_skeleton_fits_the_body_or_goes_round_on_the_grid():
     post = np.array([2.9, 1.5])
     gap = np.hypot(*(dense - post).T).min() - 0.1  # [m] from the post's surface (about)
     assert gap >= Config(params(), ROBOT.radius, 0.5, ROBOT.body_margin).fit(RES) - RES
+
+
+def test_body_fit_near_the_robot_equals_the_whole_map_s():
+    """MapView.near (the windowed best clearance the topological entry uses) gives the same
+    fit / no-fit answer as the whole map's best clearance, inside its window."""
+    rng = np.random.default_rng(1)
+    g = np.where(rng.random((120, 150)) < 0.05, 100, 0).astype(np.int8)
+    view = MapView(GridMap(g, GridGeometry(RES, 0.0, 0.0, 150, 120)), Occupancy(0.25, 0.65))
+    free, best, sub = view.near(7.0, 5.0, 3.0)
+    r0 = round((sub.origin_y - view.geom.origin_y) / RES)
+    c0 = round((sub.origin_x - view.geom.origin_x) / RES)
+    assert (sub.height, sub.width) == (61, 61) and best.shape == free.shape == (61, 61)
+    full = view.best_clearance[r0:r0 + sub.height, c0:c0 + sub.width]
+    for fit in (0.15, 0.2, 0.3, 0.5):
+        assert np.array_equal(full >= fit, best >= fit)
+    assert np.array_equal(free, view.free[r0:r0 + sub.height, c0:c0 + sub.width])

@@ -137,9 +137,9 @@ class MapView:
         return gr.grid_clearance(self.clearance, self.geom)
 
     def near(self, x: float, y: float, half: float
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, GridGeometry]:
-        """The square of cells within half [m] of (x, y): (free, occupied, best clearance,
-        its geometry). The best clearance is computed from the occupied cells of the square
+             ) -> tuple[np.ndarray, np.ndarray, GridGeometry]:
+        """The square of cells within half [m] of (x, y): (free, best clearance, its
+        geometry). The best clearance is computed from the occupied cells of the square
         and NEAR_MARGIN around it, so it is exact up to that value (farther obstacles cannot
         make a cell narrower than that): what a body-fit test near the robot needs, at a
         fraction of :attr:`best_clearance`'s cost on a large map."""
@@ -158,7 +158,7 @@ class MapView:
         best = best[r0 - a0:r1 - a0, c0 - b0:c1 - b0]
         sub = GridGeometry(res, geom.origin_x + c0 * res, geom.origin_y + r0 * res, c1 - c0,
                            r1 - r0)
-        return self.free[r0:r1, c0:c1], self.occupied[r0:r1, c0:c1], best, sub
+        return self.free[r0:r1, c0:c1], best, sub
 
     def search(self, x: float, y: float, radius: float, fit: float | None = None,
                soft_radius: float = 0.0, soft_penalty: float = 0.0,

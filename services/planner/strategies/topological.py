@@ -33,6 +33,7 @@ from topoexplore.services.planner.strategies.base import (
     id_list,
 )
 from topoexplore.services.planner.strategies.completion import Completion
+from topoexplore.services.planner.strategies.frontier import NARROW_PENALTY
 
 P_UNSEEN = 0.5  # P of an end node the reliability message does not list yet (paper: initial P)
 ENTRY_WINDOW = 4.0  # [m] the way onto the skeleton is checked for the body's fit this far
@@ -147,7 +148,7 @@ class Topological:
         u, visible, near = s.u, None, None
         if u.view is not None:
             radius = self.cfg.radius
-            free, _, best, geom = near = u.view.near(u.x, u.y, ENTRY_WINDOW)
+            free, best, geom = near = u.view.near(u.x, u.y, ENTRY_WINDOW)
             fits = free & (best + 1e-6 >= self.cfg.fit(geom.resolution))
 
             def visible(x0: float, y0: float, x1: float, y1: float) -> bool:
@@ -167,10 +168,8 @@ class Topological:
         frontier strategy's narrow search (escape from a tight spot, narrow cells at a
         penalty) within ENTRY_WINDOW of the robot, at the skeleton point it reaches first.
         None if it reaches none."""
-        from topoexplore.services.planner.strategies.frontier import NARROW_PENALTY
-
         u, cfg = s.u, self.cfg
-        free, _, best_c, geom = near
+        free, best_c, geom = near
         fit = cfg.fit(geom.resolution)
         gsr = gs.grid_search(free, free & (best_c + 1e-6 >= fit), best_c, geom, u.x, u.y,
                              cfg.need, fit=fit, narrow_penalty=NARROW_PENALTY)
