@@ -22,7 +22,8 @@ the same for every strategy:
   state is "stuck" (never "done"), the route asks the controller to turn on the spot to look
   around, and only stuck_timeout s later the state becomes "failed";
 - the global progress watchdog (:mod:`.watchdog`): no new map information for watchdog_time
-  s of driving escalates, blacklist the target's region -> nearest frontier -> stuck.
+  s of driving escalates: nearest frontier -> blacklist what was tried -> stuck (or, if the
+  robot still drives, blacklist again).
 """
 
 from __future__ import annotations
