@@ -102,6 +102,12 @@ class BadMessageCounter:
         with self._lock:
             return sum(self.counts.values())
 
+    def snapshot(self) -> tuple[dict[str, int], int, str]:
+        """(counts per key, their total, the last error), read together: a state reply whose
+        total counted messages its per-key counts did not yet show misled its reader."""
+        with self._lock:
+            return dict(self.counts), sum(self.counts.values()), self.last_error
+
 
 class Publisher:
     """Publisher of one message type on one key."""

@@ -259,6 +259,7 @@ class Node:
         self._state_fns.append(fn)
 
     def state(self, parameters: str = "") -> dict:
+        bad, bad_total, last_bad = self.bus.bad.snapshot()
         out: dict[str, Any] = {
             "service": self.service,
             "pid": os.getpid(),
@@ -266,9 +267,9 @@ class Node:
             "mode": "lockstep" if self.lockstep else "realtime",
             "processed": self.processed,
             "errors": self.errors,
-            "bad_messages": dict(self.bus.bad.counts),
-            "bad_messages_total": self.bus.bad.total,
-            "last_bad_message": self.bus.bad.last_error,
+            "bad_messages": bad,
+            "bad_messages_total": bad_total,
+            "last_bad_message": last_bad,
             "callback_errors": self.bus.callback_errors,
             "received": dict(self.inbox.received),
             "dropped": dict(self.inbox.dropped),
