@@ -79,6 +79,22 @@ def two_rooms(door_cells: int) -> tuple[np.ndarray, GridGeometry]:
     return g, geom
 
 
+def drive_about(core: PlannerCore, g: np.ndarray, geom: GridGeometry, amplitude: float,
+                updates: int) -> tuple[list[str], list[str]]:
+    """Updates every 0.5 s of a robot swaying amplitude [m] along x about (1.5, 2.0) on an
+    unchanging map (it never arrives, the map never grows), until the run ends: the states
+    and reasons."""
+    states, reasons = [], []
+    for k in range(updates):
+        pose = (1.5 + amplitude * math.sin(0.05 * k), 2.0, 0.0)
+        out = core.update(0.5 * k, pose, no_graph(), rel({}), GridMap(g, geom))
+        states.append(str(out.state))
+        reasons.append(out.status.reason)
+        if out.status.finished:
+            break
+    return states, reasons
+
+
 def crosses_wall(g: np.ndarray, geom: GridGeometry, wps: np.ndarray) -> bool:
     return gr.crosses(g >= 65, geom, wps)
 
@@ -255,16 +271,7 @@ def test_watchdog_in_the_core_goes_to_the_nearest_frontier_then_blacklists_then_
     g[:, 0] = -1
     core = PlannerCore(params(strategy="frontier", watchdog_time=30.0, stuck_timeout=20.0,
                               progress_timeout=1000.0))
-    pose = (1.5, 2.0, 0.0)
-    states, reasons = [], []
-    for k in range(0, 400):
-        t = 0.5 * k
-        pose = (1.5 + 0.3 * math.sin(0.05 * k), 2.0, 0.0)  # moving, never arriving
-        out = core.update(t, pose, no_graph(), rel({}), GridMap(g, geom))
-        states.append(str(out.state))
-        reasons.append(out.status.reason)
-        if out.status.finished:
-            break
+    states, reasons = drive_about(core, g, geom, 0.3, 400)  # moving, never arriving
     snap = core.snapshot()["watchdog"]
     assert states[-1] == "failed" and "done" not in states
     assert "stuck" in states
@@ -300,15 +307,7 @@ def test_watchdog_in_the_core_ends_done_when_every_frontier_is_unproductive():
     g[:, 0] = -1
     core = PlannerCore(params(strategy="frontier", watchdog_time=30.0, stuck_timeout=20.0,
                               progress_timeout=1000.0))
-    states, reasons = [], []
-    for k in range(0, 1200):
-        t = 0.5 * k
-        pose = (1.5 + 1.0 * math.sin(0.05 * k), 2.0, 0.0)  # driving about, never arriving
-        out = core.update(t, pose, no_graph(), rel({}), GridMap(g, geom))
-        states.append(str(out.state))
-        reasons.append(out.status.reason)
-        if out.status.finished:
-            break
+    states, reasons = drive_about(core, g, geom, 1.0, 1200)  # driving about, never arriving
     snap = core.snapshot()["watchdog"]
     assert states[-1] == "done" and "stuck" not in states and "failed" not in states
     assert snap["counts"]["nearest_frontier"] == 1 and snap["counts"]["blacklist"] >= 1

@@ -221,19 +221,25 @@ def _dijkstra8(passable, mult, seeds, seed_cost, res):  # pragma: no cover - jit
     return dist, parent
 
 
+def _cells_near(mask: np.ndarray, row: int, col: int, rad: int
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) of the True cells of `mask` within the square of rad cells around (row,
+    col), nearest first (ties in row-major order)."""
+    h, w = mask.shape
+    r0, r1 = max(0, row - rad), min(h, row + rad + 1)
+    c0, c1 = max(0, col - rad), min(w, col + rad + 1)
+    if r0 >= r1 or c0 >= c1:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    rr, cc = np.nonzero(mask[r0:r1, c0:c1])
+    rr, cc = rr + r0, cc + c0
+    order = np.argsort((rr - row) ** 2 + (cc - col) ** 2, kind="stable")
+    return rr[order], cc[order]
+
+
 def nearest_cell(mask: np.ndarray, row: int, col: int, radius_cells: int) -> tuple[int, int] | None:
     """The True cell of `mask` nearest to (row, col) within a square window; None if none."""
-    h, w = mask.shape
-    r0, r1 = max(0, row - radius_cells), min(h, row + radius_cells + 1)
-    c0, c1 = max(0, col - radius_cells), min(w, col + radius_cells + 1)
-    if r0 >= r1 or c0 >= c1:
-        return None
-    rr, cc = np.nonzero(mask[r0:r1, c0:c1])
-    if rr.size == 0:
-        return None
-    d2 = (rr + r0 - row) ** 2 + (cc + c0 - col) ** 2
-    k = int(np.argmin(d2))
-    return int(rr[k] + r0), int(cc[k] + c0)
+    rr, cc = _cells_near(mask, row, col, radius_cells)
+    return (int(rr[0]), int(cc[0])) if rr.size else None
 
 
 def grid_search(free: np.ndarray, passable: np.ndarray, clearance: np.ndarray,
@@ -325,13 +331,8 @@ def _nearest_in_sight(mask: np.ndarray, clear: np.ndarray, row: int, col: int, r
     """The True cell of `mask` nearest to (row, col) within rad cells whose straight line
     from (row, col) stays on `clear` cells (no wall in between); None if there is none."""
     h, w = mask.shape
-    r0, r1 = max(0, row - rad), min(h, row + rad + 1)
-    c0, c1 = max(0, col - rad), min(w, col + rad + 1)
-    if r0 >= r1 or c0 >= c1:
-        return None
-    rr, cc = np.nonzero(mask[r0:r1, c0:c1])
-    rr, cc = rr + r0, cc + c0
-    for k in np.argsort((rr - row) ** 2 + (cc - col) ** 2, kind="stable"):
+    rr, cc = _cells_near(mask, row, col, rad)
+    for k in range(rr.size):
         n = int(max(abs(rr[k] - row), abs(cc[k] - col))) * 2 + 1
         lr = np.rint(np.linspace(row, rr[k], n)).astype(int)
         lc = np.rint(np.linspace(col, cc[k], n)).astype(int)

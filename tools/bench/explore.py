@@ -690,6 +690,19 @@ def default_worlds() -> tuple[list[str], list[str]]:
 RESERVED_KEYS = ("planner.strategy", "sim.world", "sim.seed", "runtime.lockstep")  # set per run
 
 
+def parse_strategies(text: str) -> list[str]:
+    """A comma-separated --strategies value: known strategies, each once; BenchArgError
+    otherwise."""
+    strategies = [s.strip() for s in text.split(",") if s.strip()]
+    bad = [s for s in strategies if s not in STRATEGIES]
+    if bad or not strategies:
+        raise BenchArgError(f"unknown strategy {bad[0] if bad else '(none)'!r}: choose "
+                            f"from {', '.join(STRATEGIES)}")
+    if len(set(strategies)) != len(strategies):
+        raise BenchArgError("strategy given twice")
+    return strategies
+
+
 def check_overrides(params_file: str | None, overrides: Sequence[str]) -> None:
     """--params / --set for every run of a suite: every run would fail the same way, so say
     it once before anything runs (BenchArgError); the keys the suite sets itself are refused."""
@@ -731,16 +744,8 @@ def parse_config(argv: Sequence[str]) -> tuple[Config | None, argparse.Namespace
     dup = sorted({x for x in labels if labels.count(x) > 1})
     if dup:
         raise BenchArgError(f"world given twice: {', '.join(dup)}")
-    if args.strategies is not None:
-        strategies = [s.strip() for s in args.strategies.split(",") if s.strip()]
-        bad = [s for s in strategies if s not in STRATEGIES]
-        if bad or not strategies:
-            raise BenchArgError(f"unknown strategy {bad[0] if bad else '(none)'!r}: choose "
-                                f"from {', '.join(STRATEGIES)}")
-        if len(set(strategies)) != len(strategies):
-            raise BenchArgError("strategy given twice")
-    else:
-        strategies = list(STRATEGIES)
+    strategies = list(STRATEGIES) if args.strategies is None else parse_strategies(
+        args.strategies)
     seeds = args.seeds if args.seeds is not None else (1 if args.quick else DEFAULT_SEEDS)
     if seeds < 1:
         raise BenchArgError(f"--seeds must be >= 1 (got {seeds})")

@@ -45,6 +45,7 @@ from topoexplore.tools.bench.explore import (
     check_overrides,
     default_worlds,
     pair_ratios,
+    parse_strategies,
     resolve_world,
 )
 from topoexplore.tools.metrics import coverage
@@ -183,11 +184,7 @@ def parse(argv: Sequence[str]) -> tuple[list[tuple], argparse.Namespace]:
     else:
         names = [w for w in default_worlds()[0] if w != "large-office"]
     worlds = [resolve_world(w)[:2] for w in names]
-    strategies = [s.strip() for s in a.strategies.split(",") if s.strip()]
-    bad = [s for s in strategies if s not in STRATEGIES]
-    if bad or not strategies:
-        raise BenchArgError(f"--strategies: unknown {', '.join(bad) or '(none)'}; "
-                            f"choose from {', '.join(STRATEGIES)}")
+    strategies = parse_strategies(a.strategies)
     if a.seeds < 1 or a.jobs < 1:
         raise BenchArgError("--seeds and --jobs must be >= 1")
     if not (math.isfinite(a.max_sim_time) and a.max_sim_time > 0):

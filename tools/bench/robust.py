@@ -48,7 +48,12 @@ from typing import Any
 import numpy as np
 
 from topoexplore.common.params import STRATEGIES
-from topoexplore.tools.bench.explore import BenchArgError, check_overrides, geometric_mean
+from topoexplore.tools.bench.explore import (
+    BenchArgError,
+    check_overrides,
+    geometric_mean,
+    parse_strategies,
+)
 from topoexplore.tools.paths import shared_maps_dir
 
 STYLES = ("office", "house", "warehouse", "cluttered")
@@ -505,11 +510,7 @@ def _load_results(dirs: Sequence[Path]) -> list[tuple[Path, dict]]:
 
 
 def _plan(a: argparse.Namespace) -> tuple[list[tuple[Item, str]], list[str]]:
-    strategies = [s.strip() for s in a.strategies.split(",") if s.strip()]
-    bad = [s for s in strategies if s not in STRATEGIES]
-    if bad or not strategies:
-        raise BenchArgError(f"--strategies: unknown {', '.join(bad) or '(none)'}; choose from "
-                            f"{', '.join(STRATEGIES)}")
+    strategies = parse_strategies(a.strategies)
     if a.jobs < 1 or a.bus < 0:
         raise BenchArgError("--jobs must be >= 1 and --bus >= 0")
     check_overrides(None, a.set)
