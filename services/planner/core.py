@@ -79,10 +79,10 @@ class PlannerCore:
         self.p = params
         self.occ = occ or Occupancy()
         robot = robot or RobotParams()
-        self.strategy = strategies.make(Config(
-            params, robot.radius,
-            ReliabilityParams().p_reliable if p_reliable is None else p_reliable,
-            robot.body_margin))
+        self._cfg = Config(params, robot.radius,
+                           ReliabilityParams().p_reliable if p_reliable is None else p_reliable,
+                           robot.body_margin)  # shared with the watchdog's frontier search
+        self.strategy = strategies.make(self._cfg)
         self._target: Target | None = None
         self._blacklist = Blacklist(params.blacklist_radius)
         self._plan_id = 0
@@ -96,9 +96,7 @@ class PlannerCore:
                                   params.watchdog_travel)
         self._blockages = Blockages(params.blocked_time, params.blocked_radius,
                                     robot.radius + params.blocked_radius, params.blocked_memory)
-        self._cfg = Config(params, robot.radius, 0.0, robot.body_margin)
         self._last_t: float | None = None
-        self._x = self._y = 0.0  # [m] the robot's position at the last update
         self._last_eval_t = -math.inf
         self._had_path = False
         self._last: Plan | None = None
@@ -111,7 +109,6 @@ class PlannerCore:
         """One planning step at time t [s] for the robot at pose (x [m], y [m], theta [rad]);
         beliefs None: no reliability message yet."""
         x, y, th = (float(v) for v in pose)
-        self._x, self._y = x, y
         self._updates += 1
         if self._last_t is not None and t < self._last_t:  # clock reset: restart the timers
             self._last_eval_t = -math.inf
@@ -282,7 +279,7 @@ class PlannerCore:
             self._last_eval_t = t
         tg = self._target
         if tg is None:
-            return self._no_target(t, th, ev, notes)
+            return self._no_target(t, x, y, th, ev, notes)
         self._no_cand = 0
         self._stuck_n = 0
         self._fail_since = None
@@ -416,7 +413,8 @@ class PlannerCore:
                                    f"< {p.switch_ratio:g} x {rem:.1f} m)")
         return Decision.keep()
 
-    def _no_target(self, t: float, th: float, ev: Evaluation, notes: list[str]) -> Plan:
+    def _no_target(self, t: float, x: float, y: float, th: float, ev: Evaluation,
+                   notes: list[str]) -> Plan:
         """Stop; report done only once the situation is confirmed (one odd topology update
         must not end the run); stuck (turning on the spot to look around) when the robot
         cannot get anywhere, failed only after stuck_timeout."""
@@ -429,7 +427,7 @@ class PlannerCore:
                     f"confirming ({self._stuck_n}/{p.done_confirm}): {ev.failed}"]), ev, 0)
             if self._fail_since is None:
                 self._fail_since = t
-                self._look = (self._x, self._y, th + math.pi)  # recovery: look the other way
+                self._look = (x, y, th + math.pi)  # recovery: look the other way
                 self._plan_id += 1
             waited = t - self._fail_since
             if waited >= p.stuck_timeout:

@@ -236,12 +236,6 @@ def _cells_near(mask: np.ndarray, row: int, col: int, rad: int
     return rr[order], cc[order]
 
 
-def nearest_cell(mask: np.ndarray, row: int, col: int, radius_cells: int) -> tuple[int, int] | None:
-    """The True cell of `mask` nearest to (row, col) within a square window; None if none."""
-    rr, cc = _cells_near(mask, row, col, radius_cells)
-    return (int(rr[0]), int(cc[0])) if rr.size else None
-
-
 def grid_search(free: np.ndarray, passable: np.ndarray, clearance: np.ndarray,
                 geom: GridGeometry, x: float, y: float, robot_radius: float,
                 fit: float | None = None, soft_radius: float = 0.0, soft_penalty: float = 0.0,
