@@ -365,3 +365,19 @@ def test_body_fit_near_the_robot_equals_the_whole_map_s():
     for fit in (0.15, 0.2, 0.3, 0.5):
         assert np.array_equal(full >= fit, best >= fit)
     assert np.array_equal(free, view.free[r0:r0 + sub.height, c0:c0 + sub.width])
+
+
+def test_learned_blockages_are_occupied_discs_in_the_map_view():
+    """MapView marks every learned blockage disc (x, y, r) as OCCUPIED, exactly the cells whose
+    centres lie within it, at the grid's edges too."""
+    from topoexplore.common.grid import OCCUPIED
+
+    g, geom = np.zeros((80, 100), np.int8), GridGeometry(RES, 0.0, 0.0, 100, 80)
+    discs = [(3.0, 2.0, 0.15), (0.05, 0.05, 0.3), (9.95, 7.9, 0.25), (5.0, 5.0, 0.0)]
+    view = MapView(GridMap(g, geom), Occupancy(), discs)
+    rows, cols = np.mgrid[0:80, 0:100]
+    xs, ys = geom.cell_to_world(rows, cols)
+    want = np.zeros((80, 100), bool)
+    for bx, by, br in discs:
+        want |= (xs - bx) ** 2 + (ys - by) ** 2 <= br * br
+    assert want.sum() > 10 and np.array_equal(view.classes == OCCUPIED, want)

@@ -79,12 +79,18 @@ class MapView:
         """UNKNOWN / FREE / OCCUPIED per cell (:func:`common.grid.classify`); the learned
         obstacles (``blocked`` discs, :mod:`.blockage`) are OCCUPIED."""
         cls = classify(self.data, self.occ.p_free, self.occ.p_occ)
-        if self.blocked:
-            geom = self.geom
-            rows, cols = np.mgrid[0:geom.height, 0:geom.width]
+        geom = self.geom
+        for bx, by, br in self.blocked:  # each disc on its own bounding box of cells
+            (r0, r1), (c0, c1) = (geom.world_to_cell(np.array([bx - br, bx + br]),
+                                                     np.array([by - br, by + br])))
+            r0, r1 = max(0, int(r0)), min(geom.height, int(r1) + 1)
+            c0, c1 = max(0, int(c0)), min(geom.width, int(c1) + 1)
+            if r0 >= r1 or c0 >= c1:
+                continue
+            rows, cols = np.mgrid[r0:r1, c0:c1]
             xs, ys = geom.cell_to_world(rows, cols)
-            for bx, by, br in self.blocked:
-                cls[(xs - bx) ** 2 + (ys - by) ** 2 <= br * br] = OCCUPIED
+            box = cls[r0:r1, c0:c1]
+            box[(xs - bx) ** 2 + (ys - by) ** 2 <= br * br] = OCCUPIED
         return cls
 
     @_once
