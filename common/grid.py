@@ -250,3 +250,34 @@ def open_unknown(grid: np.ndarray, pocket_cells: int = 0, p_free: float = 0.35,
         sl = np.s_[y[k]:y[k] + bh[k], x[k]:x[k] + bw[k]]
         out[sl] &= labels[sl] != k
     return out
+
+
+def near_frontier(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, radius: float,
+                  p_free: float = 0.35, unknown: np.ndarray | None = None) -> bool:
+    """Is there a frontier cell (known free, 4-adjacent to unknown) within radius [m] of (nx, ny)?
+
+    A place next to a frontier is where the map simply stops; a wall hides the unknown behind
+    it (occupied cells are never frontier). grid: int8 occupancy (-1 unknown, 0..100);
+    radius <= 0: False. unknown: the unknown mask to use, the grid's shape
+    (:func:`open_unknown`; default: every never-observed cell). Used by the reliability index
+    (is an end node's surrounding examined?) and the planner (is a place still open?).
+    """
+    if radius <= 0.0:
+        return False
+    r, c = geom.world_to_cell(nx, ny)
+    k = int(math.ceil(radius / geom.resolution)) + 1
+    r0, r1 = max(0, int(r) - k), min(geom.height, int(r) + k + 1)
+    c0, c1 = max(0, int(c) - k), min(geom.width, int(c) + k + 1)
+    if r0 >= r1 or c0 >= c1:
+        return True  # node outside the map: nothing is known around it
+    win = grid[r0:r1, c0:c1]
+    free = (win >= 0) & (win < p_free * 100.0)
+    unk = win < 0 if unknown is None else unknown[r0:r1, c0:c1]
+    pad = np.pad(unk, 1, constant_values=False)
+    touch = pad[:-2, 1:-1] | pad[2:, 1:-1] | pad[1:-1, :-2] | pad[1:-1, 2:]
+    front = free & touch
+    if not front.any():
+        return False
+    rr, cc = np.nonzero(front)
+    x, y = geom.cell_to_world(rr + r0, cc + c0)
+    return bool(np.min(np.hypot(x - nx, y - ny)) <= radius)

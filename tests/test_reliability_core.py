@@ -29,7 +29,7 @@ from topoexplore.services.reliability.core import (
     new_viewpoint,
 )
 
-P = ReliabilityParams()
+P = ReliabilityParams(examined_radius=0.0)  # the index by the equations (eqs. 1-10) alone
 LASER = LaserParams()
 GEOM = GridGeometry(resolution=0.1, origin_x=-10.0, origin_y=-10.0, width=200, height=200)
 
@@ -539,3 +539,56 @@ def test_observations_of_a_node_owning_a_frontier_do_not_count():
     for k in range(4):
         out = upd(core, ends, [], (-2.0 - 0.3 * k, 0.0, math.pi), g, GEOM, edges=edges)
     assert {n.id: n.p for n in out}[1] > P.p_init
+
+
+# --- examined surroundings (docs/design.md, "Reliability") ---------------------------------
+
+P_EXAMINED = msgspec.structs.replace(P, examined_radius=1.0)
+
+
+def unknown_beyond(x: float) -> np.ndarray:
+    """Free grid, unknown from world x = x on (the map stops there)."""
+    g = free_grid()
+    _, col = GEOM.world_to_cell(x, 0.0)
+    g[:, int(col):] = -1
+    return g
+
+
+def test_a_node_whose_surroundings_are_mapped_is_reliable_from_afar():
+    """Seen from 4 m (D = 0.5 by eq. 2: no evidence) with nothing unknown within 1 m: the
+    place is examined, the observation counts as from close by."""
+    core = ReliabilityCore(P_EXAMINED)
+    n = upd(core, [(1, 4.0, 0.0)], [], (0.0, 0.0, 0.0), free_grid(), GEOM)[0]
+    assert n.visible and n.d == 1.0 and n.p >= P.p_reliable
+    assert core.snapshot()["nodes"]["1"]["examined"]
+    paper = ReliabilityCore(P)
+    n = upd(paper, [(1, 4.0, 0.0)], [], (0.0, 0.0, 0.0), free_grid(), GEOM)[0]
+    assert n.d == pytest.approx(4.0 / 7.5) and n.p < P.p_reliable
+
+
+def test_a_node_with_unknown_space_near_is_not_examined():
+    """Unknown 0.8 m beyond the node (a frontier within examined_radius, outside
+    frontier_radius): eq. 2 decides, as without the rule."""
+    core = ReliabilityCore(P_EXAMINED)
+    n = upd(core, [(1, 4.0, 0.0)], [], (0.0, 0.0, 0.0), unknown_beyond(4.8), GEOM)[0]
+    assert n.visible and n.d == pytest.approx(4.0 / 7.5) and n.p < P.p_reliable
+    assert not core.snapshot()["nodes"]["1"]["examined"]
+
+
+def test_unknown_behind_a_wall_does_not_hold_a_node_open():
+    """A wall between the node and the unknown space: no frontier, so examined."""
+    g = unknown_beyond(4.6)
+    _, col = GEOM.world_to_cell(4.5, 0.0)
+    g[:, int(col)] = 100
+    core = ReliabilityCore(P_EXAMINED)
+    n = upd(core, [(1, 4.0, 0.0)], [], (0.0, 0.0, 0.0), g, GEOM)[0]
+    assert n.d == 1.0 and n.p >= P.p_reliable
+
+
+def test_examined_stays_with_the_node_until_it_moves():
+    core = ReliabilityCore(P_EXAMINED)
+    upd(core, [(1, 4.0, 0.0)], [], (0.0, 0.0, 0.0), free_grid(), GEOM)
+    n = upd(core, [(1, 4.0, 0.0)], [], (0.0, 0.0, math.pi), free_grid(), GEOM)[0]
+    assert not n.visible and n.d == 1.0
+    n = upd(core, [(1, 5.0, 0.0)], [], (0.0, 0.0, math.pi), free_grid(), GEOM)[0]
+    assert n.d == 0.0 and n.p == P.p_init  # moved beyond move_tolerance: a new history

@@ -31,7 +31,7 @@ from numba import njit
 from scipy.spatial import cKDTree
 
 from topoexplore.common.domain import Belief, Graph, GridMap, Pose
-from topoexplore.common.grid import GridGeometry, Occupancy, open_unknown
+from topoexplore.common.grid import GridGeometry, Occupancy, near_frontier, open_unknown
 from topoexplore.common.kernels import flood_fill
 from topoexplore.common.params import LaserParams, ReliabilityParams
 
@@ -230,37 +230,6 @@ def _in_fov_range(nx: float, ny: float, lx: float, ly: float, theta: float,
     return abs(rel) <= 0.5 * laser.fov + 1e-12
 
 
-def near_frontier(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, radius: float,
-                  p_free: float = 0.35, unknown: np.ndarray | None = None) -> bool:
-    """Is there a frontier cell (known free, 4-adjacent to unknown) within radius [m] of the node?
-
-    Our interpretation of "the environment around the end node is examined" (paper §3.2): a
-    node next to a frontier sits where the map simply stops, so an observation of it says
-    nothing about whether it will stay (a wall hides the unknown behind it: occupied cells are
-    never frontier). radius <= 0 disables the test. unknown: the unknown mask to use
-    (:func:`open_unknown`; default: every never-observed cell).
-    """
-    if radius <= 0.0:
-        return False
-    r, c = geom.world_to_cell(nx, ny)
-    k = int(math.ceil(radius / geom.resolution)) + 1
-    r0, r1 = max(0, int(r) - k), min(geom.height, int(r) + k + 1)
-    c0, c1 = max(0, int(c) - k), min(geom.width, int(c) + k + 1)
-    if r0 >= r1 or c0 >= c1:
-        return True  # node outside the map: nothing is known around it
-    win = grid[r0:r1, c0:c1]
-    free = (win >= 0) & (win < p_free * 100.0)
-    unk = win < 0 if unknown is None else unknown[r0:r1, c0:c1]
-    pad = np.pad(unk, 1, constant_values=False)
-    touch = pad[:-2, 1:-1] | pad[2:, 1:-1] | pad[1:-1, :-2] | pad[1:-1, 2:]
-    front = free & touch
-    if not front.any():
-        return False
-    rr, cc = np.nonzero(front)
-    x, y = geom.cell_to_world(rr + r0, cc + c0)
-    return bool(np.min(np.hypot(x - nx, y - ny)) <= radius)
-
-
 _CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
 
 
@@ -439,6 +408,7 @@ class _Track:
     visited: bool = False
     visible: bool = False
     resets: int = field(default=0)
+    examined: bool = False  # seen once with no frontier within examined_radius (D = 1)
     view: tuple[float, float, float] | None = None  # robot x, y [m], bearing [rad] last counted
 
 
@@ -505,7 +475,7 @@ class ReliabilityCore:
     def _unknown(self, grid: np.ndarray, geom: GridGeometry) -> np.ndarray | None:
         """Unexplored cells for the frontier tests (None when both are off)."""
         pr = self.params
-        if pr.frontier_group <= 0 and pr.frontier_radius <= 0:
+        if pr.frontier_group <= 0 and pr.frontier_radius <= 0 and pr.examined_radius <= 0:
             return None
         return open_unknown(grid, int(pr.pocket_area / geom.resolution ** 2), self.occ.p_free,
                             self.occ.p_occ)
@@ -550,15 +520,19 @@ class ReliabilityCore:
         tr.r_min = min(tr.r_min, dist)
         if dist > 1e-9:
             self._add_bearing(tr, math.atan2(ny - ry, nx - rx))
-        tr.d = distance_index(tr.r_min, pr)
         tr.a = angle_index(tr.alpha_max, pr)
         bearing = math.atan2(ny - ry, nx - rx)
-        if (new_viewpoint(tr.view, rx, ry, bearing, pr) and not owned
-                and not near_frontier(nx, ny, grid, geom, pr.frontier_radius, self.occ.p_free,
-                                      unknown)):
-            tr.view = (rx, ry, bearing)
-            tr.p = min(bayes_update(tr.p, reliability_index(tr.d, tr.a)), pr.p_max)
-            self._remember(tr)
+        if not new_viewpoint(tr.view, rx, ry, bearing, pr) or owned or near_frontier(
+                nx, ny, grid, geom, pr.frontier_radius, self.occ.p_free, unknown):
+            tr.d = 1.0 if tr.examined else distance_index(tr.r_min, pr)
+            return
+        if pr.examined_radius > 0.0 and not tr.examined:
+            tr.examined = not near_frontier(nx, ny, grid, geom, pr.examined_radius,
+                                            self.occ.p_free, unknown)
+        tr.d = 1.0 if tr.examined else distance_index(tr.r_min, pr)
+        tr.view = (rx, ry, bearing)
+        tr.p = min(bayes_update(tr.p, reliability_index(tr.d, tr.a)), pr.p_max)
+        self._remember(tr)
 
     # -- public --
 
@@ -600,7 +574,7 @@ class ReliabilityCore:
                 "r_min": tr.r_min if math.isfinite(tr.r_min) else None,
                 "alpha_max_deg": math.degrees(tr.alpha_max), "n_obs": tr.n_obs,
                 "n_bearings": tr.n_bearings, "visible": tr.visible, "visited": tr.visited,
-                "resets": tr.resets,
+                "resets": tr.resets, "examined": tr.examined,
                 "reliable": tr.p >= self.params.p_reliable,
             }
         return {
