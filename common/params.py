@@ -35,6 +35,9 @@ from topoexplore.common.keys import (
 __all__ = [
     "ParamError",
     "STRATEGIES",
+    "VARIANTS",
+    "STRATEGY_NAMES",
+    "strategy_overrides",
     "MOVED",
     "RobotParams",
     "LaserParams",
@@ -74,6 +77,30 @@ Strategy = Literal["reliability", "all-end-nodes", "frontier"]
 STRATEGIES: tuple[str, ...] = get_args(Strategy)  # the one list of exploration strategies
 SkeletonMethod = Literal["zhang", "skimage", "lee"]
 
+# Named variants: a strategy run with a set of parameters. "reliability-paper" is the paper's
+# rule exactly as it is written, the reference for our departures (docs/design.md,
+# "Reliability" and "Completion phase"): one Bayes update per scan in view, no frontier tests,
+# no recall of examined places, no completion phase, done only when every end node is reliable.
+VARIANTS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "reliability-paper": ("reliability", (
+        "reliability.view_distance=0", "reliability.frontier_radius=0",
+        "reliability.frontier_group=0", "reliability.examined_radius=0",
+        "reliability.recall_radius=0", "planner.frontier_completion=false",
+        "planner.stop_when_mapped=false")),
+}
+STRATEGY_NAMES: tuple[str, ...] = STRATEGIES + tuple(VARIANTS)  # what --strategy accepts
+
+
+def strategy_overrides(name: str) -> list[str]:
+    """The ``--set`` overrides that run strategy or variant ``name`` (ParamError if unknown);
+    the user's own overrides go after them."""
+    if name in STRATEGIES:
+        return [f'planner.strategy="{name}"']
+    if name in VARIANTS:
+        base, sets = VARIANTS[name]
+        return [f'planner.strategy="{base}"', *sets]
+    raise ParamError(f"unknown strategy {name!r}: choose from {', '.join(STRATEGY_NAMES)}")
+
 
 class _P(msgspec.Struct, kw_only=True, forbid_unknown_fields=True, frozen=True):
     pass
@@ -90,9 +117,10 @@ def _need(ok: bool, text: str) -> None:
 
 class RobotParams(_P):
     radius: Pos = 0.2  # [m] paper: Pioneer 2DX, a circle of 0.2 m
-    body_margin: NonNeg = 0.05  # [m] least gap kept beside the body: the controller stops
-    #   for returns within radius + this of its path, and the planner routes through a
-    #   narrow passage only where the grid clearance is at least radius + this
+    body_margin: NonNeg = 0.05  # [m] gap kept beside the body: the controller creeps past
+    #   returns within radius + this of its path (it stops only for those in the body's
+    #   own path), and the planner routes through a narrow passage only where the grid
+    #   clearance is at least about radius + this
     v_limit: Pos = 1.0  # [m/s] base limits: the simulator (or a driver) clips commands
     w_limit: Pos = 2.0  # [rad/s]
 
@@ -202,6 +230,9 @@ class ReliabilityParams(_P):
     view_angle: NonNeg = math.radians(5.0)  # [rad] ... or change of bearing to the node
     frontier_radius: NonNeg = 0.5  # [m] observations of a node this close to a frontier
     # don't count (docs/design.md, "Reliability")
+    examined_radius: NonNeg = 1.0  # [m] a node seen with no frontier this close has its
+    # surroundings examined: the observation counts as from close by (D = 1), whatever the
+    # distance (docs/design.md, "Reliability"); 0 disables
     frontier_group: NonNeg = 0.0  # [m] ... nor of a node whose leaf chain is the nearest
     # skeleton to a frontier group of at least this length; 0 disables
     recall_radius: NonNeg = 0.25  # [m] a new or moved end node this close to where a node was
@@ -245,7 +276,9 @@ class PlannerParams(_P):
     #   move, so the watchdog gives up what it tried (again) instead of calling it stuck
     blocked_time: Pos = 8.0  # [s] following a path without moving or turning -> the way
     #   ahead is blocked: a learned obstacle there
-    blocked_radius: Pos = 0.15  # [m] ... a disc this big, just ahead of the robot ...
+    blocked_radius: NonNeg = 0.0  # [m] ... a disc this big, just ahead of the robot (0: the
+    #   controller's corridor half width, robot.radius + robot.body_margin, so that the gap
+    #   it refused is closed to every search, the escape through any free cell included) ...
     blocked_memory: Pos = 300.0  # [s] ... remembered this long
     stuck_timeout: Pos = 60.0  # [s] stuck (no way out, or the watchdog's last step) this
     #   long -> failed
@@ -257,6 +290,8 @@ class PlannerParams(_P):
     completion_pocket_area: NonNeg = 1.5  # [m^2] ... and not next to a smaller enclosed pocket
     stop_when_mapped: bool = True  # reliability: done once no frontier is left by the
     # completion rules, even with end nodes below p_reliable (a departure; docs/design.md)
+    open_radius: NonNeg = 1.0  # [m] ... except the end nodes with a frontier this close
+    # (unexplored space beside them, however fragmented its frontier): still visited; 0: none
     approach_narrow: bool = True  # an open end node behind a narrow edge: go up to the
     # narrow point and look (docs/design.md, "Approach through a narrow passage")
 

@@ -115,3 +115,22 @@ def test_structs_built_in_code_are_checked_by_validated_and_with_changes():
         with_changes(p, "planner", clearance_margin=-1.0)
     with pytest.raises(ParamError):
         with_changes(p, "controller", slow_distance=0.1)
+
+
+def test_strategy_variants_are_strategies_with_parameters():
+    from topoexplore.common.params import STRATEGIES, STRATEGY_NAMES, VARIANTS, strategy_overrides
+
+    assert STRATEGY_NAMES[:len(STRATEGIES)] == STRATEGIES
+    assert strategy_overrides("frontier") == ['planner.strategy="frontier"']
+    p = load_params(None, strategy_overrides("reliability-paper"))
+    assert p.planner.strategy == VARIANTS["reliability-paper"][0] == "reliability"
+    r = p.reliability
+    assert (r.view_distance, r.frontier_radius, r.frontier_group, r.examined_radius,
+            r.recall_radius) == (0.0, 0.0, 0.0, 0.0, 0.0)
+    assert not p.planner.frontier_completion and not p.planner.stop_when_mapped
+    # the user's own overrides come after, and win
+    p = load_params(None, [*strategy_overrides("reliability-paper"),
+                           "reliability.view_distance=0.1"])
+    assert p.reliability.view_distance == 0.1
+    with pytest.raises(ParamError, match="unknown strategy 'greedy'"):
+        strategy_overrides("greedy")

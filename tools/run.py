@@ -35,13 +35,13 @@ from topoexplore.common import messages as m
 from topoexplore.common.bus import Bus, BusError
 from topoexplore.common.keys import DEFAULT_ENDPOINT, Keys
 from topoexplore.common.node import add_bus_args, add_param_args, params_from_args
-from topoexplore.common.params import STRATEGIES, ParamError, Params
+from topoexplore.common.params import STRATEGY_NAMES, ParamError, Params, strategy_overrides
 from topoexplore.tools.extras import ExtraMissing, require
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--world", default="paper-room", help="built-in world name or world file")
-    p.add_argument("--strategy", default="reliability", choices=STRATEGIES)
+    p.add_argument("--strategy", default="reliability", choices=STRATEGY_NAMES)
     p.add_argument("--lockstep", action="store_true",
                    help="deterministic lockstep simulation (faster than real time)")
     p.add_argument("--speed", type=float, default=1.0, help="real-time factor (real-time mode)")
@@ -411,7 +411,7 @@ def run_overrides(args: argparse.Namespace) -> list[str]:
     run, the user's own ``--set``, and a free router port unless ``--connect`` names one."""
     overrides = [f"sim.world={json.dumps(args.world)}", f"sim.seed={args.seed}",
                  f"runtime.lockstep={'true' if args.lockstep else 'false'}",
-                 f"sim.speed={args.speed}", f'planner.strategy="{args.strategy}"'] + list(args.set)
+                 f"sim.speed={args.speed}", *strategy_overrides(args.strategy)] + list(args.set)
     if args.connect is None:
         endpoint = DEFAULT_ENDPOINT
         if port_in_use(endpoint):

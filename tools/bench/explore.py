@@ -58,7 +58,7 @@ from typing import Any
 
 import numpy as np
 
-from topoexplore.common.params import STRATEGIES
+from topoexplore.common.params import STRATEGIES, STRATEGY_NAMES
 from topoexplore.tools.extras import ExtraMissing, require
 from topoexplore.tools.paths import checkout_root, shared_maps_dir
 
@@ -694,10 +694,10 @@ def parse_strategies(text: str) -> list[str]:
     """A comma-separated --strategies value: known strategies, each once; BenchArgError
     otherwise."""
     strategies = [s.strip() for s in text.split(",") if s.strip()]
-    bad = [s for s in strategies if s not in STRATEGIES]
+    bad = [s for s in strategies if s not in STRATEGY_NAMES]
     if bad or not strategies:
         raise BenchArgError(f"unknown strategy {bad[0] if bad else '(none)'!r}: choose "
-                            f"from {', '.join(STRATEGIES)}")
+                            f"from {', '.join(STRATEGY_NAMES)}")
     if len(set(strategies)) != len(strategies):
         raise BenchArgError("strategy given twice")
     return strategies
@@ -846,7 +846,7 @@ def _run_command(label: str, world_arg: str, strategy: str, seed: int, run_dir: 
            strategy, "--seed", str(seed), "--lockstep", "--quiet", "--out", str(run_dir.resolve()),
            "--connect", f"tcp/127.0.0.1:{_free_port()}",
            "--namespace", f"bench{os.getpid()}{re.sub('[^A-Za-z0-9]', '', label)[:12]}"
-                          f"{STRATEGIES.index(strategy)}s{seed}",
+                          f"{STRATEGY_NAMES.index(strategy)}s{seed}",
            "--max-sim-time", f"{max_sim_time:g}", "--max-wall-time", f"{max_wall_time:g}"]
     if params:
         cmd += ["--params", params]

@@ -32,7 +32,13 @@ import numpy as np
 
 from topoexplore.common import convert
 from topoexplore.common import messages as m
-from topoexplore.common.params import STRATEGIES, Params, load_params
+from topoexplore.common.params import (
+    STRATEGIES,
+    STRATEGY_NAMES,
+    Params,
+    load_params,
+    strategy_overrides,
+)
 from topoexplore.services.controller.core import ControllerCore
 from topoexplore.services.mapper.core import MapperCore
 from topoexplore.services.planner.core import PlannerCore
@@ -87,8 +93,7 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
     to stop the run. ``wire``: every hop goes through the message round trip (:class:`Wire`).
     Returns the run's figures."""
     P = load_params(None, [f"sim.world={json.dumps(world)}", f"sim.seed={int(seed)}",
-                           f"planner.strategy={json.dumps(strategy)}", "runtime.lockstep=true",
-                           *sets])
+                           *strategy_overrides(strategy), "runtime.lockstep=true", *sets])
     w = load_world(P.sim.world)
     c = _pipeline(P, w)
     hop = Wire() if wire else _direct
@@ -210,7 +215,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{r['world_label']:14s} {r['strategy']:14s} s{r['seed']} {r['state']:8s} "
               f"path {r['path_length_m']} m  sim {r['sim_time_s']} s  coverage {cov} "
               f"(free {cov_free})  collisions {r['collisions']}  wall {r['wall_s']} s")
-    strategies = sorted({r["strategy"] for r in runs}, key=STRATEGIES.index)
+    strategies = sorted({r["strategy"] for r in runs}, key=STRATEGY_NAMES.index)
     ratios = {}
     for den in ("frontier", "all-end-nodes"):
         if "reliability" in strategies and den in strategies:

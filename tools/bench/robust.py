@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from topoexplore.common.params import STRATEGIES
+from topoexplore.common.params import STRATEGY_NAMES
 from topoexplore.tools.bench.explore import (
     BenchArgError,
     check_overrides,
@@ -318,7 +318,9 @@ def analyse(runs: Sequence[dict], strategies: Sequence[str]) -> dict[str, Any]:
             continue
         h: dict[str, Any] = {"strategies": {s: strategy_table(rs, s) for s in strategies}}
         h["ratios"] = {f"{a}/{b}": path_ratio(rs, a, b)
-                       for a, b in (("reliability", "frontier"), ("reliability", "all-end-nodes"))
+                       for a, b in (("reliability", "frontier"), ("reliability", "all-end-nodes"),
+                                    ("reliability", "reliability-paper"),
+                                    ("reliability-paper", "frontier"))
                        if a in strategies and b in strategies}
         if "reliability" in strategies and "frontier" in strategies:
             h["ratios_by_style"] = {st: path_ratio(rs, "reliability", "frontier", st)
@@ -405,7 +407,7 @@ def merge(docs: Sequence[tuple[Path, dict]]) -> dict:
             by[(r["world"], r["strategy"])] = r
     runs = sorted(by.values(), key=lambda r: ({"tune": 0, "held": 1, "real": 2}[r["half"]],
                                               r["world"], r["strategy"]))
-    strategies = [s for s in STRATEGIES if any(r["strategy"] == s for r in runs)]
+    strategies = [s for s in STRATEGY_NAMES if any(r["strategy"] == s for r in runs)]
     commands: list[str] = []
     for _, d in docs:
         commands += d.get("commands") or [d["command"]]
@@ -471,7 +473,9 @@ class _Parser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     ap = _Parser(prog="topoexplore bench robust", description=__doc__.split("\n\n")[0])
     ap.add_argument("--half", choices=("tune", "held", "real", "all"), default="all")
-    ap.add_argument("--strategies", default=",".join(STRATEGIES))
+    ap.add_argument("--strategies", default=",".join(STRATEGY_NAMES),
+                    help="comma-separated strategies and variants (default: all, with "
+                         "reliability-paper, the paper's rule as written)")
     ap.add_argument("--worlds", default=None, help="only these corpus worlds (comma separated)")
     ap.add_argument("--corpus", type=Path, default=Path("runs/robust-corpus"))
     ap.add_argument("--out", type=Path, default=Path("runs/bench-robust"))
