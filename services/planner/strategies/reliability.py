@@ -1,10 +1,13 @@
 """The ``reliability`` strategy (the paper, §3.2): the open end nodes are those with position
 probability P < p_reliable (eq. 6); done when none is left, or (``stop_when_mapped``, a
 departure from the paper, docs/design.md) as soon as the completion rules find no frontier
-left, even with end nodes still below p_reliable."""
+left and no end node still below p_reliable has unexplored space beside it (``open_radius``)."""
 
 from __future__ import annotations
 
+import dataclasses
+
+from topoexplore.common.grid import near_frontier
 from topoexplore.services.planner.strategies.base import Evaluation, Update
 from topoexplore.services.planner.strategies.topological import Scene, Topological
 
@@ -32,7 +35,19 @@ class Reliability(Topological):
         ev = self.evaluate_graph(u)
         if (self.cfg.params.stop_when_mapped and ev.cands and u.view is not None
                 and self.completion.mapped(u)):
+            beside = [c for c in ev.cands if self._beside_unknown(u, c.x, c.y)]
+            if beside:  # the frontier rules miss it (fragmented by noise, short, narrow)
+                return dataclasses.replace(ev, cands=beside)
             return Evaluation(end_nodes=ev.end_nodes, reliable=ev.reliable, done=(
                 f"the map is complete ({self.completion.why}); {len(ev.cands)} end node(s) "
-                f"below P {self.cfg.p_reliable:g} left unvisited"))
+                f"below P {self.cfg.p_reliable:g} left unvisited, none beside unexplored "
+                "space"))
         return self.complete(u, ev)
+
+    def _beside_unknown(self, u: Update, x: float, y: float) -> bool:
+        """Is there a frontier cell within open_radius of (x, y) [m]? Enclosed pockets smaller
+        than completion_pocket_area (the inside of a box) do not count."""
+        p, v = self.cfg.params, u.view
+        cells = int(p.completion_pocket_area / v.geom.resolution ** 2)
+        return near_frontier(x, y, v.data, v.geom, p.open_radius, v.occ.p_free,
+                             v.open_unknown(cells))
