@@ -94,8 +94,9 @@ class PlannerCore:
         #   (x [m], y [m]) to the heading [rad]
         self._watchdog = Watchdog(params.watchdog_time, params.watchdog_area,
                                   params.watchdog_travel)
-        self._blockages = Blockages(params.blocked_time, params.blocked_radius,
-                                    robot.radius + params.blocked_radius, params.blocked_memory)
+        mark_r = params.blocked_radius or robot.radius + robot.body_margin  # [m]
+        self._blockages = Blockages(params.blocked_time, mark_r, robot.radius + mark_r,
+                                    params.blocked_memory)
         self._last_t: float | None = None
         self._last_eval_t = -math.inf
         self._had_path = False
