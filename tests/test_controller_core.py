@@ -192,6 +192,20 @@ def test_obstacle_beside_corridor_does_not_slow():
     assert mode == "track" and v == pytest.approx(P.v_max)
 
 
+def test_a_door_of_the_body_width_plus_the_margins_is_passed_at_a_creep():
+    """Door posts 0.24 m either side of the path (a 0.48 m door for a 0.4 m body; the
+    margin band is 0.2..0.25 m), right beside the robot: no stop, the slowest speed. The same
+    post in the body's own path stops it."""
+    core = ControllerCore(P)
+    posts = [(0.1, 0.24), (0.1, -0.24), (0.2, 0.24), (0.2, -0.24)]
+    v, _, mode = step(core, 0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False, scan_with(posts))
+    assert mode == "slow" and v == pytest.approx(P.v_max * P.slow_min_scale)
+    core = ControllerCore(P)
+    v, _, mode = step(core, 0.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False,
+                      scan_with([(0.2, 0.15)]))
+    assert mode == "blocked" and v == 0.0
+
+
 def test_empty_path_and_done_stop():
     core = ControllerCore(P)
     assert step(core, 0.0, (0.0, 0.0, 0.0), np.zeros((0, 2)), 1, False, free_scan()) == (

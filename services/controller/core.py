@@ -3,7 +3,9 @@
 DESIGN.md §4 "Controller": pure pursuit on the planned path with v <= v_max (paper §4: the
 Pioneer 2DX moved at most 200 mm/s), rotate in place when the heading error is large, slow down
 near obstacles, hard stop when the front sector of the latest scan is closer than a safety
-distance, stop on an empty plan. Additionally: progress along the path is tracked so the
+distance, stop on an empty plan. The hard stop looks at the body's own path (|y| <= radius);
+returns within robot.body_margin beside it only slow the robot to slow_min_scale (a door as
+wide as the body plus twice the margin is passable). Additionally: progress along the path is tracked so the
 lookahead point never goes back, and a stuck robot backs up and turns toward the path.
 
 Modes: "idle" (no path), "done" (exploration over), "arrived" (end of path reached), "rotate"
@@ -222,7 +224,8 @@ class ControllerCore:
         self._recovery: str | None = None  # None | "backup" | "turn"
         self._rec_start = 0.0  # [s]
         self.recoveries = 0
-        self.front = math.inf  # [m]
+        self.front = math.inf  # [m] nearest return in the body's path ahead (stops) ...
+        self.front_margin = math.inf  # [m] ... within body_margin beside it (slows)
         self.target: tuple[float, float] | None = None
         self.heading_error = 0.0  # [rad]
         self.goal_heading: float | None = None  # [rad] of the current path
@@ -342,6 +345,9 @@ class ControllerCore:
         scale = obstacle_scale(self.front, p)
         if scale <= 0.0:
             return self._out(0.0, self._turn_w(alpha), "blocked", True, t, pose)
+        # a return beside the body's path (within body_margin of it) slows to a creep, never
+        # stops: the body passes it, and a gap of the body's width plus the margins is a door
+        scale = min(scale, max(p.slow_min_scale, obstacle_scale(self.front_margin, p)))
         v = p.v_max * scale
         if abs(kappa) * v > p.w_max:
             v = p.w_max / abs(kappa)
@@ -364,7 +370,8 @@ class ControllerCore:
             self._recovery = None
             self._look_left, self._look_th = self.params.start_turn, None
         self._t_last = t
-        self.front = front_distance(scan, self.params, self.half_width)
+        self.front = front_distance(scan, self.params, self.radius)
+        self.front_margin = front_distance(scan, self.params, self.half_width)
         self._take_route(route)
         if bool(done):
             return self._out(0.0, 0.0, "done", False, t, pose)
@@ -408,6 +415,7 @@ class ControllerCore:
             "heading_error": self.heading_error,
             "goal_heading": self.goal_heading,
             "front": self.front if math.isfinite(self.front) else None,
+            "front_margin": self.front_margin if math.isfinite(self.front_margin) else None,
             "recovery": self._recovery,
             "recoveries": self.recoveries,
         }
