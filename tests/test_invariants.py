@@ -239,6 +239,20 @@ def test_a_flickering_target_is_kept_not_swapped():
     del pose
 
 
+def test_a_flickering_target_that_is_the_only_one_is_kept():
+    """The same flicker with no other end node: on the odd updates nothing is reachable, and
+    the periodic re-evaluation has no candidate to compare the kept target with (it raised
+    once, on a SLAM-noise warehouse)."""
+    core = PlannerCore(params(approach_narrow=False, frontier_completion=False))
+    for k in range(20):
+        g = flicker_graph(k % 2 == 1)
+        only = Graph.from_edges([n for n in g.nodes if n.id != 2],
+                                [(e.a, e.b, e.points, e.length, e.clearance) for e in g.edges
+                                 if 2 not in (e.a, e.b)])
+        out = core.update(0.4 * k, (0.1 * k, 0.0, 0.0), only, rel({1: 0.5}), None)
+        assert out.route.target_id == 1, out.status.reason
+
+
 def test_a_target_unreachable_for_good_is_given_up():
     core = PlannerCore(params(approach_narrow=False, progress_timeout=4.0))
     out = core.update(0.0, (0.0, 0.0, 0.0), flicker_graph(False), rel({1: 0.5, 2: 0.5}), None)

@@ -405,6 +405,8 @@ class PlannerCore:
         """The periodic re-evaluation: switch to a much cheaper target, or take a much
         shorter path to the same one."""
         p = self.p
+        if not cands:  # kept through a flicker (_grace): nothing to compare it with
+            return Decision.keep()
         best, _ = self._choose(cands, x, y, th)
         margin = (1 - p.switch_ratio) * c.scale * c.dist
         if not self._same(best, c) and best.cost < c.cost - margin:
