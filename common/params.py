@@ -81,7 +81,10 @@ SkeletonMethod = Literal["zhang", "skimage", "lee"]
 # rule exactly as it is written, the reference for our departures (docs/design.md,
 # "Reliability" and "Completion phase"): one Bayes update per scan in view, no frontier tests,
 # no recall of examined places, no completion phase, done only when every end node is reliable.
+# "reliability-distance" is our rule without the examined-surroundings test: D from the
+# distance alone (eq. 2), every other departure kept (what chose that test's default).
 VARIANTS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "reliability-distance": ("reliability", ("reliability.examined_radius=0",)),
     "reliability-paper": ("reliability", (
         "reliability.view_distance=0", "reliability.frontier_radius=0",
         "reliability.frontier_group=0", "reliability.examined_radius=0",

@@ -110,29 +110,31 @@ def test_corpus_halves_sizes_and_filters(tmp_path):
 @pytest.mark.timeout(600)
 def test_smoke_corpus_every_strategy_writes_results_summary_and_pictures(tmp_path):
     """The --quick corpus (three generated 12 x 10 m worlds: a house, the same style with SLAM
-    noise, a cluttered floor) x all three strategies, in process, two at a time (~45 s): no
-    run errs, fails or livelocks, and the files hold what the tables say."""
+    noise, a cluttered floor) x all three strategies and the paper's rule, in process, two at
+    a time (~60 s): no run errs, fails or livelocks, and the files hold what the tables say.
+    The paper's rule (no completion phase) may stop early; it is the reference, not held to
+    the coverage."""
     out = tmp_path / "out"
     rc = rb.main(["--quick", "--jobs", "2", "--no-progress", "--corpus", str(tmp_path / "c"),
                   "--out", str(out)])
     assert rc == 0
     doc = json.loads((out / "results.json").read_text())
     runs = doc["runs"]
-    assert len(runs) == 9 and {r["strategy"] for r in runs} == set(rb.STRATEGIES)
+    assert len(runs) == 12 and {r["strategy"] for r in runs} == set(rb.DEFAULT_STRATEGIES)
     assert {r["world"] for r in runs} == {"house-s0-12x10", "house-s1-12x10-n2",
                                           "cluttered-s1-12x10"}
     for r in runs:
         assert r["outcome"] in ("finished", "early-done", "timeout"), (r["world"], r["outcome"])
-        assert r["coverage"] >= 0.9 and r["collisions"] == 0
-        assert (out / r["picture"]).is_file()
+        assert r["collisions"] == 0 and (out / r["picture"]).is_file()
+        assert r["coverage"] >= 0.9 or r["strategy"] == "reliability-paper"
     tables = doc["analysis"]
     assert set(tables) == {"tune", "held"}
-    assert sum(t["runs"] for h in tables.values() for t in h["strategies"].values()) == 9
+    assert sum(t["runs"] for h in tables.values() for t in h["strategies"].values()) == 12
     assert sum(t["finished"] for h in tables.values() for t in h["strategies"].values()) == \
         sum(r["outcome"] == "finished" for r in runs)
     md = (out / "summary.md").read_text()
     assert "house-s1-12x10-n2" in md and "Held-back half" in md
-    assert len((out / "runs.jsonl").read_text().splitlines()) == 9
+    assert len((out / "runs.jsonl").read_text().splitlines()) == 12
 
 
 def _results_dir(path, runs, command):

@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from topoexplore.common.params import STRATEGY_NAMES
+from topoexplore.common.params import STRATEGIES, STRATEGY_NAMES
 from topoexplore.tools.bench.explore import (
     BenchArgError,
     check_overrides,
@@ -60,6 +60,7 @@ STYLES = ("office", "house", "warehouse", "cluttered")
 SEEDS = tuple(range(8))
 LARGE = 60.0  # [m] side of the largest worlds
 NOISE = 2  # SLAM-noise level of the noisy half of the corpus
+DEFAULT_STRATEGIES = (*STRATEGIES, "reliability-paper")  # every strategy and the paper's rule
 GOOD_COVERAGE = 0.95
 STAGNANT_S = 600.0  # [s] sim time without map growth before the limit: a livelock
 QUICK = (("house", 0, None, (12.0, 10.0)), ("house", 1, NOISE, (12.0, 10.0)),
@@ -320,6 +321,7 @@ def analyse(runs: Sequence[dict], strategies: Sequence[str]) -> dict[str, Any]:
         h["ratios"] = {f"{a}/{b}": path_ratio(rs, a, b)
                        for a, b in (("reliability", "frontier"), ("reliability", "all-end-nodes"),
                                     ("reliability", "reliability-paper"),
+                                    ("reliability", "reliability-distance"),
                                     ("reliability-paper", "frontier"))
                        if a in strategies and b in strategies}
         if "reliability" in strategies and "frontier" in strategies:
@@ -473,9 +475,10 @@ class _Parser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     ap = _Parser(prog="topoexplore bench robust", description=__doc__.split("\n\n")[0])
     ap.add_argument("--half", choices=("tune", "held", "real", "all"), default="all")
-    ap.add_argument("--strategies", default=",".join(STRATEGY_NAMES),
-                    help="comma-separated strategies and variants (default: all, with "
-                         "reliability-paper, the paper's rule as written)")
+    ap.add_argument("--strategies", default=",".join(DEFAULT_STRATEGIES),
+                    help="comma-separated strategies and variants (default: "
+                         f"{','.join(DEFAULT_STRATEGIES)}; reliability-paper is the paper's "
+                         f"rule as written; also {', '.join(sorted(set(STRATEGY_NAMES) - set(DEFAULT_STRATEGIES)))})")
     ap.add_argument("--worlds", default=None, help="only these corpus worlds (comma separated)")
     ap.add_argument("--corpus", type=Path, default=Path("runs/robust-corpus"))
     ap.add_argument("--out", type=Path, default=Path("runs/bench-robust"))
