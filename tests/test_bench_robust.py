@@ -70,6 +70,20 @@ def test_tables_ratios_and_worst_per_half():
     assert held["ratios"]["reliability/frontier"]["geomean"] is None
 
 
+def test_the_papers_rule_is_compared_but_not_the_yardstick_nor_among_the_worst():
+    runs = RUNS + [run("a", "reliability-paper", path=3.0),
+                   run("a", "reliability-distance", path=17.0),
+                   run("c", "reliability-paper", "done", 0.1, 1.0, half="held")]
+    a = rb.analyse(runs, list(rb.DEFAULT_STRATEGIES) + ["reliability-distance"])
+    over = a["tune"]["over_2x_shortest"]  # against the three strategies' best (8 m), not 3 m
+    assert {"world": "a", "strategy": "reliability-distance", "ratio": 2.12} in over
+    assert not any(o["strategy"] == "reliability" for o in over if o["world"] == "a")
+    assert a["tune"]["ratios"]["reliability/reliability-paper"]["worlds"] == {"a": 2.667}
+    assert a["tune"]["ratios"]["reliability/reliability-distance"]["n"] == 1
+    assert all(w["strategy"] != "reliability-paper" for h in a.values() for w in h["worst"])
+    assert a["held"]["strategies"]["reliability-paper"]["early-done"] == 1
+
+
 def test_summary_names_every_half_and_the_command():
     doc = {"created": "now", "command": "topoexplore bench robust", "jobs": 2, "runs": RUNS,
            "wall_s": 1.0, "analysis": rb.analyse(RUNS, ["reliability", "frontier",
