@@ -253,8 +253,10 @@ def open_unknown(grid: np.ndarray, pocket_cells: int = 0, p_free: float = 0.35,
 
 
 def near_frontier(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, radius: float,
-                  p_free: float = 0.35, unknown: np.ndarray | None = None) -> bool:
-    """Is there a frontier cell (known free, 4-adjacent to unknown) within radius [m] of (nx, ny)?
+                  p_free: float = 0.35, unknown: np.ndarray | None = None,
+                  min_cells: int = 1) -> bool:
+    """Is there a frontier cell (known free, 4-adjacent to unknown) within radius [m] of (nx, ny)
+    (at least min_cells of them)?
 
     A place next to a frontier is where the map simply stops; a wall hides the unknown behind
     it (occupied cells are never frontier). grid: int8 occupancy (-1 unknown, 0..100);
@@ -280,4 +282,4 @@ def near_frontier(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, ra
         return False
     rr, cc = np.nonzero(front)
     x, y = geom.cell_to_world(rr + r0, cc + c0)
-    return bool(np.min(np.hypot(x - nx, y - ny)) <= radius)
+    return int(np.count_nonzero(np.hypot(x - nx, y - ny) <= radius)) >= max(1, min_cells)

@@ -293,8 +293,9 @@ class PlannerParams(_P):
     completion_pocket_area: NonNeg = 1.5  # [m^2] ... and not next to a smaller enclosed pocket
     stop_when_mapped: bool = True  # reliability: done once no frontier is left by the
     # completion rules, even with end nodes below p_reliable (a departure; docs/design.md)
-    open_radius: NonNeg = 1.0  # [m] ... except the end nodes with a frontier this close
-    # (unexplored space beside them, however fragmented its frontier): still visited; 0: none
+    open_radius: NonNeg = 1.0  # [m] ... except the end nodes with min_frontier_size of
+    # frontier cells this close (unexplored space beside them, however fragmented its
+    # frontier): still visited; 0: none
     approach_narrow: bool = True  # an open end node behind a narrow edge: go up to the
     # narrow point and look (docs/design.md, "Approach through a narrow passage")
 

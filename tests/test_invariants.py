@@ -208,6 +208,39 @@ def test_wide_ways_are_preferred_to_narrow_ones():
     assert out.state == "exploring" and out.route.waypoints[:, 0].max() < 3.0
 
 
+# --- a map that looks complete, beside an open end node ----------------------------------------
+
+
+def holed_wall(holes: int) -> tuple[np.ndarray, GridGeometry]:
+    """A known room 6 x 4 m whose right part (x > 5 m) is unknown behind a wall at x = 5 m
+    with `holes` one-cell holes (every third cell from y = 1 m: SLAM speckle), so each hole
+    gives a frontier group of one cell, far below every completion size."""
+    g, geom = room(60, 40)
+    g[1:-1, 50] = 100
+    g[1:-1, 51:59] = -1
+    for k in range(holes):
+        g[10 + 3 * k, 50] = -1
+    return g, geom
+
+
+@pytest.mark.parametrize("holes,visited", [(7, True), (2, False)])
+def test_an_open_end_node_beside_fragmented_unknown_space_is_still_visited(holes, visited):
+    """The completion rules see no frontier group worth a trip (every piece is one cell), so
+    the map looks complete; the open end node at the holed wall still has 7 frontier cells
+    within open_radius, unexplored space however fragmented, and stays a target. Two specks
+    are not enough: then the map is complete and the run done."""
+    g, geom = holed_wall(holes)
+    tp = Graph.from_edges([Node(1, "end", 1.0, 2.0), Node(2, "end", 4.5, 1.6)],
+                          [(1, 2, [[1.0, 2.0], [4.5, 1.6]], 3.5, 0.8)])
+    core = PlannerCore(params())
+    for k in range(3):
+        out = core.update(0.4 * k, (1.0, 2.0, 0.0), tp, rel({1: 0.95, 2: 0.5}), GridMap(g, geom))
+    if visited:
+        assert out.state == "exploring" and out.route.target_id == 2, out.status.reason
+    else:
+        assert out.state == "done" and "the map is complete" in out.status.reason
+
+
 # --- commitment against flickering reachability ---------------------------------------------
 
 

@@ -6,6 +6,7 @@ left and no end node still below p_reliable has unexplored space beside it (``op
 from __future__ import annotations
 
 import dataclasses
+import math
 
 from topoexplore.common.grid import near_frontier
 from topoexplore.services.planner.strategies.base import Evaluation, Update
@@ -45,9 +46,11 @@ class Reliability(Topological):
         return self.complete(u, ev)
 
     def _beside_unknown(self, u: Update, x: float, y: float) -> bool:
-        """Is there a frontier cell within open_radius of (x, y) [m]? Enclosed pockets smaller
-        than completion_pocket_area (the inside of a box) do not count."""
+        """Is there at least min_frontier_size of frontier (in cells, however fragmented)
+        within open_radius of (x, y) [m]? Enclosed pockets smaller than
+        completion_pocket_area (the inside of a box) do not count, nor do specks."""
         p, v = self.cfg.params, u.view
-        cells = int(p.completion_pocket_area / v.geom.resolution ** 2)
+        res = v.geom.resolution
         return near_frontier(x, y, v.data, v.geom, p.open_radius, v.occ.p_free,
-                             v.open_unknown(cells))
+                             v.open_unknown(int(p.completion_pocket_area / res ** 2)),
+                             min_cells=int(math.ceil(p.min_frontier_size / res - 1e-9)))
