@@ -208,6 +208,30 @@ def test_wide_ways_are_preferred_to_narrow_ones():
     assert out.state == "exploring" and out.route.waypoints[:, 0].max() < 3.0
 
 
+# --- learned blockages are no proof that nothing is left -------------------------------------
+
+
+@pytest.mark.parametrize("strategy", STRATEGIES)
+def test_done_is_never_said_on_the_strength_of_learned_blockages(strategy):
+    """The only door to the unexplored room holds a learned blockage (the controller stopped
+    there once): with the mark nothing is reachable, but "done" is withheld, the mark
+    forgotten, and the room behind the door is the target again."""
+    from topoexplore.services.planner.blockage import Mark
+
+    g, geom = two_rooms(6)
+    core = PlannerCore(params(strategy=strategy))
+    core._blockages.marks.append(Mark(3.05, 2.0, 0.3, 0.0))
+    states, reasons = [], []
+    for k in range(4):
+        out = core.update(0.4 * k, (1.5, 2.0, 0.0), no_graph(), rel({}), GridMap(g, geom))
+        states.append(str(out.state))
+        reasons.append(out.status.reason)
+    assert "done" not in states, reasons
+    assert any("done withheld: 1 learned blockage(s) forgotten" in r for r in reasons)
+    assert out.state == "exploring" and out.route.waypoints[:, 0].max() > 3.0, reasons[-1]
+    assert core.snapshot()["blocked"]["forgotten"] == 1
+
+
 # --- a map that looks complete, beside an open end node ----------------------------------------
 
 

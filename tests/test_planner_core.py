@@ -292,6 +292,9 @@ def test_blacklists_after_no_progress_by_id_and_position():
     out = core.update(t + 1, POSE, renamed, rel({3: 0.5, 9: 0.5, 5: 0.5}), None)
     assert out.route.target_id == 5
     out = core.update(t + 2, POSE, renamed, rel({3: 0.95, 9: 0.5, 5: 0.95}), None)
+    # the robot stood still while following: the learned blockages go first (done withheld)
+    assert "done withheld" in out.status.reason
+    out = core.update(t + 3, POSE, renamed, rel({3: 0.95, 9: 0.5, 5: 0.95}), None)
     assert out.state == "done" and "1 blacklisted" in out.status.reason
     snap = core.snapshot()
     assert snap["blacklist"][0]["id"] == 4 and "no progress" in snap["blacklist"][0]["reason"]

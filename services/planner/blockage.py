@@ -9,7 +9,9 @@ moving ``STILL_DISTANCE`` nor turning ``STILL_ANGLE`` for ``blocked_time`` s mea
 is blocked. It then marks a disc of ``blocked_radius`` just ahead of the robot (at its radius
 plus that, where the controller's front sector saw the obstacle) as occupied in every grid the
 planner derives for ``blocked_memory`` s: searches and clearances route around it, paths
-through it are re-planned, and the robot, facing it, turns to a way out. The disc is as wide as
+through it are re-planned, and the robot, facing it, turns to a way out. A mark is a belief
+about a moment, not the map: "done" is never said while marks are remembered (the planner
+forgets them and searches again; :meth:`forget`). The disc is as wide as
 the controller's corridor (robot.radius + robot.body_margin by default): a smaller one left
 free cells beside it in a gap just wider than the body, and the escape from a tight spot,
 which may use any free cell, routed the robot through the gap it had just refused (a
@@ -45,6 +47,7 @@ class Blockages:
     memory: float
     marks: list[Mark] = field(default_factory=list)
     made: int = 0  # marks made so far
+    forgotten: int = 0  # marks dropped before their time (:meth:`forget`)
     _anchor: tuple[float, float, float, float] | None = None  # (t, x, y, theta)
 
     def observe(self, t: float, x: float, y: float, th: float, following: bool
@@ -70,6 +73,15 @@ class Blockages:
         """(x, y, r) [m] of the marks still remembered at t [s]."""
         return [(m.x, m.y, m.r) for m in self.marks if 0.0 <= t - m.t < self.memory]
 
+    def forget(self, t: float) -> int:
+        """Drop every mark still remembered at t [s] (they end when it says so); the number
+        dropped."""
+        n = len(self.active(t))
+        if n:
+            self.marks = [m for m in self.marks if not 0.0 <= t - m.t < self.memory]
+            self.forgotten += n
+        return n
+
     def snapshot(self) -> dict:
-        return {"made": self.made,
+        return {"made": self.made, "forgotten": self.forgotten,
                 "marks": [{"x": m.x, "y": m.y, "r": m.r, "t": m.t} for m in self.marks[-20:]]}

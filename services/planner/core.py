@@ -445,6 +445,12 @@ class PlannerCore:
         self._stuck_n = 0
         self._no_cand += 1
         if self._no_cand >= p.done_confirm:
+            n = self._blockages.forget(t)
+            if n:  # nothing reachable only with the learned marks: without them, look again
+                self._no_cand = 0
+                return self._emit(ExploreState.EXPLORING, "; ".join(notes + [
+                    f"done withheld: {n} learned blockage(s) forgotten, searching again "
+                    f"({ev.done})"]), ev, 0)
             return self._emit(ExploreState.DONE, "; ".join(notes + [ev.done]), ev, 0)
         return self._emit(ExploreState.EXPLORING, "; ".join(notes + [
             f"no candidate left, confirming ({self._no_cand}/{p.done_confirm}): {ev.done}"]),

@@ -134,7 +134,8 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
             "coverage": round(cov, 4), "coverage_free": round(cov_free, 4),
             "collisions": int(c.sim.collisions), "wall_s": round(time.monotonic() - t0, 1),
             "escalations": c.planner.snapshot()["watchdog"]["counts"],
-            "blocked_marks": c.planner.snapshot()["blocked"]["made"]}
+            "blocked_marks": c.planner.snapshot()["blocked"]["made"],
+            "blocked_forgotten": c.planner.snapshot()["blocked"]["forgotten"]}
 
 
 def _coverages(P: Params, w: World, grid: Any) -> tuple[float, float]:
