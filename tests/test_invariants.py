@@ -230,6 +230,12 @@ def test_done_is_never_said_on_the_strength_of_learned_blockages(strategy):
     assert any("done withheld: 1 learned blockage(s) forgotten" in r for r in reasons)
     assert out.state == "exploring" and out.route.waypoints[:, 0].max() > 3.0, reasons[-1]
     assert core.snapshot()["blocked"]["forgotten"] == 1
+    # the controller refuses the door again: a mark there now is confirmed, and kept
+    core._blockages.marks.append(Mark(3.1, 2.0, 0.3, 2.0))
+    for k in range(4, 8):
+        out = core.update(0.4 * k, (1.5, 2.0, 0.0), no_graph(), rel({}), GridMap(g, geom))
+    assert out.state == "done" and core.snapshot()["blocked"]["forgotten"] == 1, \
+        out.status.reason
 
 
 # --- a map that looks complete, beside an open end node ----------------------------------------

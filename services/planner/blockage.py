@@ -10,8 +10,9 @@ is blocked. It then marks a disc of ``blocked_radius`` just ahead of the robot (
 plus that, where the controller's front sector saw the obstacle) as occupied in every grid the
 planner derives for ``blocked_memory`` s: searches and clearances route around it, paths
 through it are re-planned, and the robot, facing it, turns to a way out. A mark is a belief
-about a moment, not the map: "done" is never said while marks are remembered (the planner
-forgets them and searches again; :meth:`forget`). The disc is as wide as
+about a moment, not the map: "done" is not said while unconfirmed marks are remembered (the
+planner forgets them and searches again, :meth:`forget`); a mark made again where one was
+forgotten is confirmed and stays. The disc is as wide as
 the controller's corridor (robot.radius + robot.body_margin by default): a smaller one left
 free cells beside it in a gap just wider than the body, and the escape from a tight spot,
 which may use any free cell, routed the robot through the gap it had just refused (a
@@ -48,6 +49,7 @@ class Blockages:
     marks: list[Mark] = field(default_factory=list)
     made: int = 0  # marks made so far
     forgotten: int = 0  # marks dropped before their time (:meth:`forget`)
+    _dropped: list[tuple[float, float, float]] = field(default_factory=list)  # where (x, y, r)
     _anchor: tuple[float, float, float, float] | None = None  # (t, x, y, theta)
 
     def observe(self, t: float, x: float, y: float, th: float, following: bool
@@ -74,13 +76,23 @@ class Blockages:
         return [(m.x, m.y, m.r) for m in self.marks if 0.0 <= t - m.t < self.memory]
 
     def forget(self, t: float) -> int:
-        """Drop every mark still remembered at t [s] (they end when it says so); the number
-        dropped."""
-        n = len(self.active(t))
-        if n:
-            self.marks = [m for m in self.marks if not 0.0 <= t - m.t < self.memory]
-            self.forgotten += n
+        """Drop the marks still remembered at t [s], except those confirmed: made again where
+        a mark had been forgotten (within its radius), the controller refusing the same place
+        twice. Returns the number dropped (0: every mark left is confirmed)."""
+        keep, n = [], 0
+        for m in self.marks:
+            if 0.0 <= t - m.t < self.memory and not self._confirmed(m):
+                self._dropped.append((m.x, m.y, m.r))
+                n += 1
+            else:
+                keep.append(m)
+        self.marks = keep
+        del self._dropped[:-MARK_LIMIT]
+        self.forgotten += n
         return n
+
+    def _confirmed(self, m: Mark) -> bool:
+        return any(math.hypot(m.x - x, m.y - y) <= max(m.r, r) for x, y, r in self._dropped)
 
     def snapshot(self) -> dict:
         return {"made": self.made, "forgotten": self.forgotten,
