@@ -353,6 +353,8 @@ def _half_md(name: str, h: dict, link) -> list[str]:
          "timeout | collisions | watchdog | blockages | coverage min | p5 | median |",
          "|" + "---|" * 13]
     for st, t in h["strategies"].items():
+        if not t["runs"]:
+            continue
         L.append(f"| {st} | {t['runs']} | {t['finished']} | {t['early-done']} | {t['failed']} "
                  f"| {t['livelock']} | {t['timeout']} | {t['collisions']} | {t['escalations']} | "
                  f"{t['blocked_marks']} | "
@@ -360,10 +362,13 @@ def _half_md(name: str, h: dict, link) -> list[str]:
                  f"{_f(t['coverage_median'])} |")
     L.append("")
     for key, rr in h["ratios"].items():
+        if not rr["n"]:
+            continue
         L.append(f"- path {key}: geometric mean **{_f(rr['geomean'])}** over {rr['n']} "
                  "world(s) where both finished")
-    for st, rr in h.get("ratios_by_style", {}).items():
-        L.append(f"  - {st}: {_f(rr['geomean'])} ({rr['n']} worlds)")
+        if key == "reliability/frontier":  # by style right below it
+            for st, rs in h.get("ratios_by_style", {}).items():
+                L.append(f"  - {st}: {_f(rs['geomean'])} ({rs['n']} worlds)")
     over = h["over_2x_shortest"]
     L.append(f"- runs over 2 x the shortest path of the three strategies on their world: "
              f"{len(over)}"
