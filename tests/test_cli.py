@@ -127,3 +127,18 @@ def test_map_save_and_render_live_then_saved_dir(procs, endpoint, namespace, tmp
 def test_render_bad_directory(tmp_path):
     one_line_error(cli("render", str(tmp_path)))
     one_line_error(cli("render"))
+
+
+def test_run_takes_a_strategy_variant_and_the_user_overrides_win():
+    import argparse
+
+    from topoexplore.common.params import load_params
+    from topoexplore.tools.run import add_arguments, run_overrides
+
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    args = p.parse_args(["--strategy", "reliability-paper", "--connect", "tcp/127.0.0.1:7447",
+                         "--set", "reliability.view_distance=0.1"])
+    params = load_params(None, run_overrides(args))
+    assert params.planner.strategy == "reliability" and not params.planner.frontier_completion
+    assert params.reliability.examined_radius == 0.0 and params.reliability.view_distance == 0.1
