@@ -9,14 +9,16 @@ moving ``STILL_DISTANCE`` nor turning ``STILL_ANGLE`` for ``blocked_time`` s mea
 is blocked. It then marks a disc of ``blocked_radius`` just ahead of the robot (at its radius
 plus that, where the controller's front sector saw the obstacle) as occupied in every grid the
 planner derives for ``blocked_memory`` s: searches and clearances route around it, paths
-through it are re-planned, and the robot, facing it, turns to a way out. A mark is a belief
-about a moment, not the map: "done" is not said while unconfirmed marks are remembered (the
-planner forgets them and searches again, :meth:`forget`); a mark made again where one was
-forgotten is confirmed and stays. The disc is as wide as
-the controller's corridor (robot.radius + robot.body_margin by default): a smaller one left
-free cells beside it in a gap just wider than the body, and the escape from a tight spot,
-which may use any free cell, routed the robot through the gap it had just refused (a
-cluttered floor: 43 marks in one place, then "stuck", coverage 0.83).
+through it are re-planned, and the robot, facing it, turns to a way out.
+
+The disc is as wide as the controller's corridor (robot.radius + robot.body_margin by
+default): a smaller one left free cells beside it in a gap just wider than the body, and the
+escape from a tight spot, which may use any free cell, routed the robot through the gap it had
+just refused (a cluttered floor: 43 marks in one place, then "stuck", coverage 0.83).
+
+A mark is a belief about a moment, not the map: "done" is not said while unconfirmed marks are
+remembered (the planner forgets them and searches again, :meth:`forget`); a mark made again
+where one was forgotten is confirmed and stays.
 """
 
 from __future__ import annotations

@@ -473,7 +473,7 @@ class ReliabilityCore:
             tr.alpha_max = circular_spread(tr.bins[~np.isnan(tr.bins)])
 
     def _unknown(self, grid: np.ndarray, geom: GridGeometry) -> np.ndarray | None:
-        """Unexplored cells for the frontier tests (None when both are off)."""
+        """Unexplored cells for the frontier and examined tests (None when all are off)."""
         pr = self.params
         if pr.frontier_group <= 0 and pr.frontier_radius <= 0 and pr.examined_radius <= 0:
             return None
