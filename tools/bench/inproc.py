@@ -128,14 +128,14 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
             state = "timeout"
             break
     cov, cov_free = _coverages(P, w, grid)
+    snap = c.planner.snapshot()
     return {"world": world, "strategy": strategy, "seed": int(seed), "state": str(state),
             "finished": state == "done", "stop_reason": plan.status.reason if plan else "",
             "path_length_m": round(c.sim.path_length, 2), "sim_time_s": round(c.sim.time, 1),
             "coverage": round(cov, 4), "coverage_free": round(cov_free, 4),
             "collisions": int(c.sim.collisions), "wall_s": round(time.monotonic() - t0, 1),
-            "escalations": c.planner.snapshot()["watchdog"]["counts"],
-            "blocked_marks": c.planner.snapshot()["blocked"]["made"],
-            "blocked_forgotten": c.planner.snapshot()["blocked"]["forgotten"]}
+            "escalations": snap["watchdog"]["counts"], "blocked_marks": snap["blocked"]["made"],
+            "blocked_forgotten": snap["blocked"]["forgotten"]}
 
 
 def _coverages(P: Params, w: World, grid: Any) -> tuple[float, float]:
