@@ -208,6 +208,59 @@ def test_wide_ways_are_preferred_to_narrow_ones():
     assert out.state == "exploring" and out.route.waypoints[:, 0].max() < 3.0
 
 
+# --- a path made on an older map ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("strategy", STRATEGIES)
+def test_a_path_that_a_new_wall_leaves_at_the_body_limit_is_made_again(strategy):
+    """A path made along the middle of a hall; then the hall turns out to be a corridor 0.8 m
+    wide whose one wall is 0.2 m beside the path (its sides first glimpsed from its end). The
+    old path still lies on free cells within path_tolerance of the skeleton, so only the
+    clearance it was planned with tells that it now grazes the wall: the planner makes a new
+    one, along the corridor's middle."""
+    g, geom = room(80, 40)
+    g[1:-1, 70:79] = -1  # unknown beyond x = 7 m: the place to go
+    core = PlannerCore(params(strategy=strategy))
+    pose = (0.8, 2.0, 0.0)
+
+    def graph(y: float) -> Graph:
+        pts = [[0.5, 2.0], [1.5, y], [6.0, y], [6.9, 2.0]]
+        return Graph.from_edges([Node(0, "branch", 0.5, 2.0), Node(1, "end", 6.9, 2.0)],
+                                [(0, 1, pts, 7.0, 0.4)])
+
+    for k in range(2):
+        out = core.update(0.4 * k, pose, graph(2.0), rel({1: 0.5}), GridMap(g, geom))
+    first = out.route.plan_id
+    wps = out.route.waypoints
+    assert out.state == "exploring" and np.all(np.abs(wps[:, 1] - 2.0) < 0.1), wps
+    g2 = g.copy()
+    g2[22, 15:60] = g2[13, 15:60] = 100  # the corridor: y in [1.4, 2.2] for x in [1.5, 6]
+    out = core.update(0.8, pose, graph(1.8), rel({1: 0.5}), GridMap(g2, geom))
+    assert out.route.plan_id != first, out.status.reason
+    assert "closer to an obstacle seen since it was made" in out.status.reason
+    view = MapView(GridMap(g2, geom), Occupancy())
+    ahead = out.route.waypoints[1:]
+    ahead = ahead[(ahead[:, 0] > 1.7) & (ahead[:, 0] < 5.8)]
+    assert len(ahead) and view.clearance_at(ahead).min() >= 0.3 - 1e-6, out.route.waypoints
+
+
+def test_a_path_planned_through_a_narrow_passage_is_not_made_again_for_a_cell_of_wall():
+    """Waypoints planned below the needed clearance (a narrow passage) are not judged: there
+    a ragged wall's cell more or less is the passage itself, and a new path would be no
+    wider, only a new start for the controller."""
+    g, geom = room(80, 40)
+    g[1:-1, 70:79] = -1
+    core = PlannerCore(params(strategy="frontier"))
+    for k in range(2):
+        out = core.update(0.4 * k, (0.8, 2.0, 0.0), no_graph(), rel({}), GridMap(g, geom))
+    first = out.route.plan_id
+    core._target.planned_clearance[:] = 0.29  # as if made through a passage 0.58 m wide
+    g2 = g.copy()
+    g2[22, 15:60] = 100
+    out = core.update(0.8, (0.8, 2.0, 0.0), no_graph(), rel({}), GridMap(g2, geom))
+    assert out.route.plan_id == first, out.status.reason
+
+
 # --- learned blockages are no proof that nothing is left -------------------------------------
 
 

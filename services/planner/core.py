@@ -64,6 +64,8 @@ from topoexplore.services.planner.watchdog import Watchdog
 
 ENTRY_SKIP = 0.05  # [m] an entry point this close to the robot is not a separate waypoint
 MAX_CROSSING_REPLANS = 2  # new paths per target when its path crosses a wall seen later
+NARROWED_TOLERANCE = 0.5  # [cells] a waypoint planned with the clearance the planner needs
+#   may lose this much of it before the path is re-made
 
 
 def angle_diff(a: float, b: float) -> float:
@@ -102,6 +104,7 @@ class PlannerCore:
         self._had_path = False
         self._last: Plan | None = None
         self._updates = 0
+        self._view: MapView | None = None  # this update's map view
 
     # --- public ------------------------------------------------------------------------------
 
@@ -119,9 +122,11 @@ class PlannerCore:
         self._last_t = t
         tg = self._target
         self._blockages.observe(t, x, y, th, tg is not None and tg.arrived_t is None)
-        u = Update(t, x, y, th, graph, beliefs,
-                   None if grid is None else MapView(grid, self.occ, self._blockages.active(t)),
-                   None if self._target is None else self._target.cand, self._blacklist.covers)
+        self._view = None if grid is None else MapView(grid, self.occ,
+                                                        self._blockages.active(t))
+        u = Update(t, x, y, th, graph, beliefs, self._view,
+                   None if self._target is None else self._target.cand, self._blacklist.covers,
+                   fresh=tg is not None and self._narrowed(tg))
         ev = self.strategy.evaluate(u)
         if ev.waiting is not None:
             self._target = None
@@ -261,8 +266,34 @@ class PlannerCore:
         self._target = Target(c, c.x, c.y, wps, cum, 0, float(cum[-1]),
                               t if progress_t is None else progress_t, None,
                               t if progress_t is None or self._target is None
-                              else self._target.chosen_t, why, c.partial)
+                              else self._target.chosen_t, why, c.partial,
+                              planned_clearance=self._clearance(wps))
         self._plan_id += 1
+
+    def _clearance(self, wps: np.ndarray) -> np.ndarray | None:
+        """Clearance [m] of the waypoints on this update's map (None: no map)."""
+        return None if self._view is None else self._view.clearance_at(wps)
+
+    def _narrowed(self, tg: Target) -> bool:
+        """The rest of the path now passes closer to an obstacle than it was planned to: a
+        waypoint planned with the clearance the planner needs (robot radius +
+        clearance_margin) now has more than NARROWED_TOLERANCE cells less. (A waypoint planned
+        through a narrow passage is not judged: there a cell more or less of a ragged wall is
+        the passage, and a new path would be no wider.)
+
+        A path is made on the map of its moment; a wall seen later beside it (one side of a
+        corridor first glimpsed from its end) can leave the path along that wall at the
+        body's limit, while path_ok, which only asks for the skeleton or a free cell, keeps it.
+        The controller then stops for the wall it grazes, and the mark it earns there closes
+        the corridor (a house floor: "done" at coverage 0.40)."""
+        if tg.planned_clearance is None or self._view is None or tg.idx + 1 >= len(tg.wps):
+            return False
+        need = self._cfg.need
+        wide = tg.planned_clearance[tg.idx + 1:] + 1e-6 >= need
+        if not np.any(wide):
+            return False
+        now = self._view.clearance_at(tg.wps[tg.idx + 1:][wide])
+        return bool(np.any(now < need - NARROWED_TOLERANCE * self._view.geom.resolution))
 
     # --- decision machine --------------------------------------------------------------------
 
@@ -374,6 +405,9 @@ class PlannerCore:
             return Decision.repath(t, f"target moved {tg.moved():.2f} m: new path")
         if not ev.path_ok(tg.wps[tg.idx + 1:]):
             return Decision.repath(tg.progress_t, "the path left the current map: new path")
+        if self._narrowed(tg):
+            return Decision.repath(tg.progress_t, "the path passes closer to an obstacle seen "
+                                   "since it was made: new path")
         if tg.crossings < MAX_CROSSING_REPLANS and not ev.path_clear(tg.wps[tg.idx:]):
             # a wall seen after the path was made (a corridor side glimpsed through gaps): the
             # waypoints may still lie near the skeleton on its far side, so path_ok passes

@@ -60,6 +60,7 @@ class Target:
     partial: bool = False  # the path was cut at a narrow passage (Candidate.partial when made)
     crossings: int = 0  # new paths made because the path crossed an obstacle seen since
     unreachable_since: float | None = None  # [s] kept while its reachability flickers
+    planned_clearance: np.ndarray | None = None  # (n,) [m] of wps on the map it was made on
 
     def moved(self) -> float:
         """[m] how far the target is from where it was when the path was made."""

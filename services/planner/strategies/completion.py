@@ -42,7 +42,7 @@ class Completion:
         never "done")."""
         cached = self._ev
         if (cached is not None and u.target is not None and u.target.id < 0 and cached.cands
-                and 0.0 <= u.t - self._t < self.cfg.params.frontier_period):
+                and u.may_reuse(self.cfg.params.frontier_period, self._t)):
             fe = cached  # following a completion target: keep the last search
         else:
             fe = self._search(u)

@@ -3,7 +3,8 @@ groups of the map are the candidates, cost = potential_scale * path - gain_scale
 
 :func:`frontier_evaluation` is also what the completion rules (:mod:`.completion`) search with.
 While the core follows a target, the search runs at most once per ``frontier_period`` (as
-explore_lite's ``planner_frequency``); with no target it runs on every update.
+explore_lite's ``planner_frequency``); with no target, or when the map changed under the
+path followed (:attr:`base.Update.fresh`), it runs on every update.
 """
 
 from __future__ import annotations
@@ -161,8 +162,8 @@ class Frontier:
 
     def evaluate(self, u: Update) -> Evaluation:
         cached = self._ev
-        if (cached is not None and u.target is not None and cached.cands
-                and 0.0 <= u.t - self._t < self.cfg.params.frontier_period):
+        if (cached is not None and cached.cands
+                and u.may_reuse(self.cfg.params.frontier_period, self._t)):
             ev = cached  # following a target: keep the last search
         else:
             ev = (Evaluation(waiting="waiting for map") if u.view is None
