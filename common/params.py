@@ -236,6 +236,10 @@ class ReliabilityParams(_P):
     examined_radius: NonNeg = 1.0  # [m] a node seen with no frontier this close has its
     # surroundings examined: the observation counts as from close by (D = 1), whatever the
     # distance (docs/design.md, "Reliability"); 0 disables
+    min_frontier: NonNeg = 0.5  # [m] both tests count frontier cells only when at least
+    # this much of them (in cells: this / resolution) lies within their radius, as the
+    # planner's min_frontier_size: a few cells of SLAM speckle or a gap in a ragged wall are
+    # no frontier (docs/design.md, "Reliability"); 0: any single cell
     frontier_group: NonNeg = 0.0  # [m] ... nor of a node whose leaf chain is the nearest
     # skeleton to a frontier group of at least this length; 0 disables
     recall_radius: NonNeg = 0.25  # [m] a new or moved end node this close to where a node was

@@ -585,6 +585,26 @@ def test_unknown_behind_a_wall_does_not_hold_a_node_open():
     assert n.d == 1.0 and n.p >= P.p_reliable
 
 
+@pytest.mark.parametrize("gap_cells,examined", [(2, True), (4, True), (8, False)])
+def test_a_few_cells_of_frontier_are_speckle_a_door_is_a_frontier(gap_cells, examined):
+    """A wall 0.5 m beyond the node with a gap in it: a gap of fewer than min_frontier (0.5 m,
+    5 cells) of frontier cells is a hole in a ragged SLAM wall, as the planner's frontier
+    rules see it, and the node is examined; an 0.8 m gap is a door to unknown space."""
+    g = unknown_beyond(4.6)
+    _, col = GEOM.world_to_cell(4.5, 0.0)
+    row, _ = GEOM.world_to_cell(0.0, 0.0)
+    g[:, int(col)] = 100
+    lo = int(row) - gap_cells // 2
+    g[lo:lo + gap_cells, int(col)] = 0
+    core = ReliabilityCore(P_EXAMINED)
+    n = upd(core, [(1, 4.0, 0.0)], [], (0.0, 0.0, 0.0), g, GEOM)[0]
+    assert core.snapshot()["nodes"]["1"]["examined"] is examined
+    assert (n.p >= P.p_reliable) is examined
+    one = ReliabilityCore(msgspec.structs.replace(P_EXAMINED, min_frontier=0.0))
+    upd(one, [(1, 4.0, 0.0)], [], (0.0, 0.0, 0.0), g, GEOM)
+    assert not one.snapshot()["nodes"]["1"]["examined"]  # 0: any single cell counts
+
+
 def test_examined_stays_with_the_node_until_it_moves():
     core = ReliabilityCore(P_EXAMINED)
     upd(core, [(1, 4.0, 0.0)], [], (0.0, 0.0, 0.0), free_grid(), GEOM)

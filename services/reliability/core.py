@@ -522,13 +522,14 @@ class ReliabilityCore:
             self._add_bearing(tr, math.atan2(ny - ry, nx - rx))
         tr.a = angle_index(tr.alpha_max, pr)
         bearing = math.atan2(ny - ry, nx - rx)
+        cells = max(1, int(math.ceil(pr.min_frontier / geom.resolution - 1e-9)))
         if not new_viewpoint(tr.view, rx, ry, bearing, pr) or owned or near_frontier(
-                nx, ny, grid, geom, pr.frontier_radius, self.occ.p_free, unknown):
+                nx, ny, grid, geom, pr.frontier_radius, self.occ.p_free, unknown, cells):
             tr.d = 1.0 if tr.examined else distance_index(tr.r_min, pr)
             return
         if pr.examined_radius > 0.0 and not tr.examined:
             tr.examined = not near_frontier(nx, ny, grid, geom, pr.examined_radius,
-                                            self.occ.p_free, unknown)
+                                            self.occ.p_free, unknown, cells)
         tr.d = 1.0 if tr.examined else distance_index(tr.r_min, pr)
         tr.view = (rx, ry, bearing)
         tr.p = min(bayes_update(tr.p, reliability_index(tr.d, tr.a)), pr.p_max)
