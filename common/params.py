@@ -301,7 +301,9 @@ class PlannerParams(_P):
     # frontier cells this close (unexplored space beside them, however fragmented its
     # frontier): still visited; 0: none
     approach_narrow: bool = True  # an open end node behind a narrow edge: go up to the
-    # narrow point and look (docs/design.md, "Approach through a narrow passage")
+    # narrow point and look (docs/design.md, "Approach through a narrow passage") ...
+    approach_radius: NonNeg = 1.0  # [m] ... only when min_frontier_size of frontier cells
+    # lie this close to the end node (unexplored space to look at); 0: every such end node
 
 
 class ControllerParams(_P):

@@ -518,12 +518,28 @@ def test_trim_narrow_tip_keeps_the_wide_part():
     assert len(out) == len(pts) - 2 or len(out) == len(pts)
 
 
+def test_a_node_behind_a_narrow_passage_in_mapped_surroundings_is_not_approached():
+    """Everything within approach_radius of the node is mapped: looking through the gap
+    would show nothing new, so the node is unreachable at once (clutter: most such nodes lie
+    between furniture in mapped rooms); with approach_radius 0 it is approached."""
+    g, geom = corridor_grid()
+    g[10:17, 30] = 100
+    tp = topo(*door_parts())
+    out = PlannerCore(params()).update(0.0, (0.6, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}),
+                                       grid(g, geom))
+    assert out.state == "done" and "(ids 2)" in out.status.reason, out.status.reason
+    out = PlannerCore(params(approach_radius=0.0)).update(
+        0.0, (0.6, 0.5, 0.0), tp, rel({1: 0.95, 2: 0.5}), grid(g, geom))
+    assert out.state == "exploring" and "narrow passage" in out.status.reason
+
+
 def test_approaches_a_node_behind_a_narrow_passage_once():
     """An open end node behind a narrow point: the robot goes up to the narrow point (where it
     can look through), never beyond; standing there the node counts as unreachable, and the
     way becoming wide gives the whole path."""
     g, geom = corridor_grid()
     g[10:17, 30] = 100  # 0.3 m door at x in [2.0, 2.1]
+    g[10:20, 60:71] = -1  # unexplored beyond x = 5 m: something to look at through the door
     tp = topo(*door_parts())
     p = params()
     core = PlannerCore(p)

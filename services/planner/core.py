@@ -405,14 +405,14 @@ class PlannerCore:
             return Decision.repath(t, f"target moved {tg.moved():.2f} m: new path")
         if not ev.path_ok(tg.wps[tg.idx + 1:]):
             return Decision.repath(tg.progress_t, "the path left the current map: new path")
-        if self._narrowed(tg):
-            return Decision.repath(tg.progress_t, "the path passes closer to an obstacle seen "
-                                   "since it was made: new path")
         if tg.crossings < MAX_CROSSING_REPLANS and not ev.path_clear(tg.wps[tg.idx:]):
             # a wall seen after the path was made (a corridor side glimpsed through gaps): the
             # waypoints may still lie near the skeleton on its far side, so path_ok passes
             return Decision.repath(tg.progress_t, "the path crosses an obstacle seen since it "
                                    "was made: new path", cross=True)
+        if self._narrowed(tg):
+            return Decision.repath(tg.progress_t, "the path passes closer to an obstacle seen "
+                                   "since it was made: new path")
         if t - self._last_eval_t >= p.replan_period:
             self._last_eval_t = t
             return self._reconsider(tg, c, cands, rem, x, y, th)

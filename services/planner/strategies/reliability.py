@@ -6,9 +6,7 @@ left and no end node still below p_reliable has unexplored space beside it (``op
 from __future__ import annotations
 
 import dataclasses
-import math
 
-from topoexplore.common.grid import near_frontier
 from topoexplore.services.planner.strategies.base import Evaluation, Update
 from topoexplore.services.planner.strategies.topological import Scene, Topological
 
@@ -36,7 +34,7 @@ class Reliability(Topological):
         ev = self.evaluate_graph(u)
         if (self.cfg.params.stop_when_mapped and ev.cands and u.view is not None
                 and self.completion.mapped(u)):
-            beside = [c for c in ev.cands if self._beside_unknown(u, c.x, c.y)]
+            beside = [c for c in ev.cands if self.beside_unknown(u, c.x, c.y, self.cfg.params.open_radius)]
             if beside:  # the frontier rules miss it (fragmented by noise, short, narrow)
                 return dataclasses.replace(ev, cands=beside)
             return Evaluation(end_nodes=ev.end_nodes, reliable=ev.reliable, done=(
@@ -44,13 +42,3 @@ class Reliability(Topological):
                 f"below P {self.cfg.p_reliable:g} left unvisited, none beside unexplored "
                 "space"))
         return self.complete(u, ev)
-
-    def _beside_unknown(self, u: Update, x: float, y: float) -> bool:
-        """Is there at least min_frontier_size of frontier (in cells, however fragmented)
-        within open_radius of (x, y) [m]? Enclosed pockets smaller than
-        completion_pocket_area (the inside of a box) do not count, nor do specks."""
-        p, v = self.cfg.params, u.view
-        res = v.geom.resolution
-        return near_frontier(x, y, v.data, v.geom, p.open_radius, v.occ.p_free,
-                             v.open_unknown(int(p.completion_pocket_area / res ** 2)),
-                             min_cells=int(math.ceil(p.min_frontier_size / res - 1e-9)))

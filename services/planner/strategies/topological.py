@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from topoexplore.common.grid import near_frontier
 from topoexplore.services.planner import graph as gr
 from topoexplore.services.planner import gridsearch as gs
 from topoexplore.services.planner.strategies.base import (
@@ -252,6 +253,9 @@ class Topological:
                                                          self.cfg.need)])
         if len(pts) - nlead < 2 or len(pts) == len(full):
             return None
+        r = self.cfg.params.approach_radius
+        if r > 0 and not self.beside_unknown(s.u, nx, ny, r):
+            return None  # its surroundings are mapped: nothing to look at through the gap
         reach = float(gr.polyline_lengths(pts)[-1])
         px, py = float(pts[-1, 0]), float(pts[-1, 1])
         u = s.u
@@ -265,6 +269,18 @@ class Topological:
         return Candidate(i, nx, ny, dist[i], to_entry + reach, 1.0, self.target_p(i, s),
                          lambda: pts, label=f"{self.label(i, s)} up to a narrow passage",
                          partial=True)
+
+    def beside_unknown(self, u: Update, x: float, y: float, radius: float) -> bool:
+        """Is there at least min_frontier_size of frontier (in cells, however fragmented)
+        within radius [m] of (x, y) [m]? Enclosed pockets smaller than
+        completion_pocket_area (the inside of a box) do not count, nor do specks."""
+        p, v = self.cfg.params, u.view
+        if v is None:
+            return True
+        res = v.geom.resolution
+        return near_frontier(x, y, v.data, v.geom, radius, v.occ.p_free,
+                             v.open_unknown(int(p.completion_pocket_area / res ** 2)),
+                             min_cells=int(math.ceil(p.min_frontier_size / res - 1e-9)))
 
     def _has_looked(self, px: float, py: float) -> bool:
         r2 = self.cfg.params.blacklist_radius ** 2
