@@ -34,7 +34,8 @@ class Reliability(Topological):
         ev = self.evaluate_graph(u)
         if (self.cfg.params.stop_when_mapped and ev.cands and u.view is not None
                 and self.completion.mapped(u)):
-            beside = [c for c in ev.cands if self.beside_unknown(u, c.x, c.y, self.cfg.params.open_radius)]
+            r = self.cfg.params.open_radius
+            beside = [c for c in ev.cands if self.beside_unknown(u, c.x, c.y, r)]
             if beside:  # the frontier rules miss it (fragmented by noise, short, narrow)
                 return dataclasses.replace(ev, cands=beside)
             return Evaluation(end_nodes=ev.end_nodes, reliable=ev.reliable, done=(
