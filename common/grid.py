@@ -68,6 +68,12 @@ class GridGeometry:
         )
 
 
+def cells_for(length: float, resolution: float) -> int:
+    """Whole cells [cells] that cover a length [m] (ceil, with a tolerance for lengths that
+    are a multiple of the resolution up to float error): 0.5 m at 0.1 m is 5 cells."""
+    return int(math.ceil(length / resolution - 1e-9))
+
+
 def check_grid(data, geom: GridGeometry) -> np.ndarray:
     """The one grid check: a 2-D integer array of shape (geom.height, geom.width) and a geometry
     with a positive resolution and a finite origin. Returns the array; GridError otherwise."""

@@ -9,6 +9,7 @@ import pytest
 from topoexplore.common.grid import (
     UNKNOWN,
     GridGeometry,
+    cells_for,
     classify,
     crop_known,
     distance_transform,
@@ -119,3 +120,11 @@ def test_distance_transform_is_a_function_of_the_mask_alone():
     ours = [distance_transform(_at(m, off)) for off in (0, 1, 3, 8, 16)]
     assert all(np.array_equal(ours[0], o) for o in ours[1:])
     assert np.allclose(ours[0], raw[0], rtol=1e-6, atol=1e-6) and ours[0].dtype == np.float32
+
+
+def test_cells_for_a_length():
+    assert cells_for(0.5, 0.1) == 5
+    assert cells_for(1.1, 0.1) == 11  # 1.1 / 0.1 is 11.000000000000002 in floats
+    assert cells_for(0.51, 0.1) == 6
+    assert cells_for(0.3, 0.05) == 6
+    assert cells_for(0.0, 0.1) == 0

@@ -105,6 +105,7 @@ class PlannerCore:
         self._last: Plan | None = None
         self._updates = 0
         self._view: MapView | None = None  # this update's map view
+        self._narrowed_now = False  # ... under which the followed path narrowed (_narrowed)
 
     # --- public ------------------------------------------------------------------------------
 
@@ -124,9 +125,10 @@ class PlannerCore:
         self._blockages.observe(t, x, y, th, tg is not None and tg.arrived_t is None)
         self._view = None if grid is None else MapView(grid, self.occ,
                                                         self._blockages.active(t))
+        self._narrowed_now = tg is not None and self._narrowed(tg)
         u = Update(t, x, y, th, graph, beliefs, self._view,
                    None if self._target is None else self._target.cand, self._blacklist.covers,
-                   fresh=tg is not None and self._narrowed(tg))
+                   fresh=self._narrowed_now)
         ev = self.strategy.evaluate(u)
         if ev.waiting is not None:
             self._target = None
@@ -410,7 +412,7 @@ class PlannerCore:
             # waypoints may still lie near the skeleton on its far side, so path_ok passes
             return Decision.repath(tg.progress_t, "the path crosses an obstacle seen since it "
                                    "was made: new path", cross=True)
-        if self._narrowed(tg):
+        if self._narrowed_now:
             return Decision.repath(tg.progress_t, "the path passes closer to an obstacle seen "
                                    "since it was made: new path")
         if t - self._last_eval_t >= p.replan_period:

@@ -31,7 +31,13 @@ from numba import njit
 from scipy.spatial import cKDTree
 
 from topoexplore.common.domain import Belief, Graph, GridMap, Pose
-from topoexplore.common.grid import GridGeometry, Occupancy, near_frontier, open_unknown
+from topoexplore.common.grid import (
+    GridGeometry,
+    Occupancy,
+    cells_for,
+    near_frontier,
+    open_unknown,
+)
 from topoexplore.common.kernels import flood_fill
 from topoexplore.common.params import LaserParams, ReliabilityParams
 
@@ -522,7 +528,7 @@ class ReliabilityCore:
             self._add_bearing(tr, math.atan2(ny - ry, nx - rx))
         tr.a = angle_index(tr.alpha_max, pr)
         bearing = math.atan2(ny - ry, nx - rx)
-        cells = max(1, int(math.ceil(pr.min_frontier / geom.resolution - 1e-9)))
+        cells = max(1, cells_for(pr.min_frontier, geom.resolution))
         if not new_viewpoint(tr.view, rx, ry, bearing, pr) or owned or near_frontier(
                 nx, ny, grid, geom, pr.frontier_radius, self.occ.p_free, unknown, cells):
             tr.d = 1.0 if tr.examined else distance_index(tr.r_min, pr)
@@ -550,7 +556,7 @@ class ReliabilityCore:
         unknown = self._unknown(g, geom)
         owned: dict[int, int] = {}
         if graph.edges and pr.frontier_group > 0:
-            min_cells = max(1, int(math.ceil(pr.frontier_group / geom.resolution - 1e-9)))
+            min_cells = max(1, cells_for(pr.frontier_group, geom.resolution))
             owned = frontier_owned(list(nodes), graph, g, geom, self.occ.p_free, min_cells,
                                    self.laser.range_max, unknown)
         self._forget(graph.gone, nodes)

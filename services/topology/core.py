@@ -35,6 +35,7 @@ from topoexplore.common.domain import Graph, GridMap, Node
 from topoexplore.common.grid import (
     GridGeometry,
     Occupancy,
+    cells_for,
     distance_transform,
     free_mask,
     occupied_mask,
@@ -195,7 +196,7 @@ class TopologyCore:
         spur_px = p.spur_length / res
         spur_max_px = max(p.spur_length, p.spur_max_length) / res
         gr = g.build_graph(skel, entry, seen, nodeid, buf)
-        front_cells = (int(math.ceil(p.frontier_spur_length / res - 1e-9))
+        front_cells = (cells_for(p.frontier_spur_length, res)
                        if p.frontier_spur_length > 0 else 0)
         grid8 = np.ascontiguousarray(grid, dtype=np.int8)
         if front_cells > 0:  # frontier spurs see the undecided band at the laser's reach as

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from topoexplore.common.grid import near_frontier
+from topoexplore.common.grid import cells_for, near_frontier
 from topoexplore.services.planner import graph as gr
 from topoexplore.services.planner import gridsearch as gs
 from topoexplore.services.planner.strategies.base import (
@@ -280,7 +280,7 @@ class Topological:
         res = v.geom.resolution
         return near_frontier(x, y, v.data, v.geom, radius, v.occ.p_free,
                              v.open_unknown(int(p.completion_pocket_area / res ** 2)),
-                             min_cells=int(math.ceil(p.min_frontier_size / res - 1e-9)))
+                             min_cells=cells_for(p.min_frontier_size, res))
 
     def _has_looked(self, px: float, py: float) -> bool:
         r2 = self.cfg.params.blacklist_radius ** 2
