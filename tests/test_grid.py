@@ -124,7 +124,7 @@ def test_distance_transform_is_a_function_of_the_mask_alone():
 
 def test_cells_for_a_length():
     assert cells_for(0.5, 0.1) == 5
-    assert cells_for(1.1, 0.1) == 11  # 1.1 / 0.1 is 11.000000000000002 in floats
+    assert cells_for(3 * 0.1, 0.1) == 3  # 3 * 0.1 / 0.1 is 3.0000000000000004 in floats
     assert cells_for(0.51, 0.1) == 6
     assert cells_for(0.3, 0.05) == 6
     assert cells_for(0.0, 0.1) == 0
