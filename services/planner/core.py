@@ -125,6 +125,8 @@ class PlannerCore:
         self._blockages.observe(t, x, y, th, tg is not None and tg.arrived_t is None)
         self._view = None if grid is None else MapView(grid, self.occ,
                                                         self._blockages.active(t))
+        if tg is not None:
+            tg.remaining(x, y)  # the robot located on its path: _narrowed judges what is ahead
         self._narrowed_now = tg is not None and self._narrowed(tg)
         u = Update(t, x, y, th, graph, beliefs, self._view,
                    None if self._target is None else self._target.cand, self._blacklist.covers,
