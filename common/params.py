@@ -295,6 +295,10 @@ class PlannerParams(_P):
     completion_min_size: NonNeg = 1.0  # [m] ... those at least this long
     completion_near: NonNeg = 4.0  # [m] ... or shorter (down to min_frontier_size) and this near
     completion_pocket_area: NonNeg = 1.5  # [m^2] ... and not next to a smaller enclosed pocket
+    pickup_radius: NonNeg = 0.0  # [m] while end nodes are left, the frontier groups the
+    # completion rules count this near by path are candidates too (cost: path length), so
+    # that a corner is not left for a long trip back later; 0: off (the default: not yet
+    # measured on the held-back half, docs/design.md "Experimental, off by default")
     stop_when_mapped: bool = True  # reliability: done once no frontier is left by the
     # completion rules, even with end nodes below p_reliable (a departure; docs/design.md)
     open_radius: NonNeg = 1.0  # [m] ... except the end nodes with min_frontier_size of
@@ -304,6 +308,15 @@ class PlannerParams(_P):
     # narrow point and look (docs/design.md, "Approach through a narrow passage") ...
     approach_radius: NonNeg = 1.0  # [m] ... only when min_frontier_size of frontier cells
     # lie this close to the end node (unexplored space to look at); 0: every such end node
+    examine_range: NonNeg = 0.0  # [m] a frontier cell looked at squarely from this close,
+    # in line of sight, examine_views times and still a frontier cell is a surface, not an
+    # opening: no frontier for any strategy; 0: off (the default: docs/design.md
+    # "Experimental, off by default"; 2.0 is the value tried)
+    examine_bearing: Annotated[float, Meta(gt=0.0, le=math.pi)] = 1.4  # [rad] ... within this
+    # of the heading (no wider than half the laser's field of view) ...
+    examine_angle: Annotated[float, Meta(gt=0.0, lt=math.pi / 2)] = math.pi / 4  # [rad] ...
+    # the line of sight this close to the direction of an unknown neighbour ...
+    examine_views: PosInt = 3  # ... on this many updates
 
 
 class ControllerParams(_P):

@@ -51,6 +51,7 @@ from topoexplore.services.planner import graph as gr
 from topoexplore.services.planner import strategies
 from topoexplore.services.planner.blockage import Blockages
 from topoexplore.services.planner.decision import Action, Blacklist, Decision, Target
+from topoexplore.services.planner.examined import Examined
 from topoexplore.services.planner.mapview import MapView
 from topoexplore.services.planner.strategies.base import (
     Candidate,
@@ -99,6 +100,8 @@ class PlannerCore:
         mark_r = params.blocked_radius or robot.radius + robot.body_margin  # [m]
         self._blockages = Blockages(params.blocked_time, mark_r, robot.radius + mark_r,
                                     params.blocked_memory)
+        self._examined = Examined(params.examine_range, params.examine_bearing,
+                                  params.examine_angle, params.examine_views)
         self._last_t: float | None = None
         self._last_eval_t = -math.inf
         self._had_path = False
@@ -124,7 +127,10 @@ class PlannerCore:
         tg = self._target
         self._blockages.observe(t, x, y, th, tg is not None and tg.arrived_t is None)
         self._view = None if grid is None else MapView(grid, self.occ,
-                                                        self._blockages.active(t))
+                                                        self._blockages.active(t),
+                                                        self._examined.mask)
+        if self._view is not None:
+            self._examined.observe(x, y, th, self._view.classes, self._view.geom)
         if tg is not None:
             tg.remaining(x, y)  # the robot located on its path: _narrowed judges what is ahead
         self._narrowed_now = tg is not None and self._narrowed(tg)
@@ -207,6 +213,7 @@ class PlannerCore:
             **self.strategy.snapshot(),
             "watchdog": self._watchdog.snapshot(),
             "blocked": self._blockages.snapshot(),
+            "examined": self._examined.snapshot(),
             "candidates": st.candidates if st else 0,
             "end_nodes": st.end_nodes if st else 0,
             "reliable": st.reliable if st else 0,

@@ -54,10 +54,12 @@ class MapView:
     """Lazily derived grids of one map (on its observed part) for one planning update."""
 
     def __init__(self, grid: GridMap, occ: Occupancy,
-                 blocked: Sequence[tuple[float, float, float]] = ()):
+                 blocked: Sequence[tuple[float, float, float]] = (),
+                 examined: Callable[[GridGeometry], np.ndarray | None] | None = None):
         self._grid = grid
         self.occ = occ
         self.blocked = tuple(blocked)  # (x, y, r) [m]: discs learned to be impassable
+        self._examined = examined  # geom -> the examined frontier cells (:mod:`.examined`)
         self._open: dict[int, np.ndarray] = {}
         self._passable: dict[float, np.ndarray] = {}
 
@@ -96,6 +98,13 @@ class MapView:
     @_once
     def free(self) -> np.ndarray:
         return self.classes == FREE
+
+    @_once
+    def frontier_free(self) -> np.ndarray:
+        """Free cells that may be frontier cells: :attr:`free` without the examined frontier
+        cells (:mod:`.examined`: looked at squarely and still beside unknown space)."""
+        closed = None if self._examined is None else self._examined(self.geom)
+        return self.free if closed is None else self.free & ~closed
 
     @_once
     def occupied(self) -> np.ndarray:

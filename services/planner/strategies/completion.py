@@ -23,6 +23,7 @@ from topoexplore.services.planner.strategies.base import Config, Evaluation, Upd
 from topoexplore.services.planner.strategies.frontier import frontier_evaluation
 
 COMPLETION_NOTE = " (completion: no end node left)"
+NEAR_NOTE = " (near the robot: before it is left behind)"
 
 
 class Completion:
@@ -35,6 +36,8 @@ class Completion:
         self._mapped_t = -math.inf  # map-complete check: time [s] of the last check ...
         self._mapped_ok = False  # ... its answer ...
         self.why = ""  # ... and the frontier summary behind it
+        self._near_ev: Evaluation | None = None  # frontier groups near the robot ...
+        self._near_t = -math.inf  # ... searched at this time [s]
 
     def phase(self, u: Update, ev: Evaluation) -> Evaluation:
         """The topological evaluation ev found no candidate: the frontier groups as
@@ -54,6 +57,24 @@ class Completion:
         # this update's end node counts and summary, whether the search is new or kept
         return dataclasses.replace(fe, end_nodes=ev.end_nodes, reliable=ev.reliable,
                                    done=f"{ev.done}; {fe.done}")
+
+    def nearby(self, u: Update, radius: float) -> Evaluation | None:
+        """The frontier groups the completion rules count whose path is at most radius [m]
+        (cost = path length, as an end node's), or None without any. The search runs at most
+        once per frontier_period while a target is followed."""
+        if radius <= 0.0:
+            return None
+        if self._near_ev is None or not u.may_reuse(self.cfg.params.frontier_period,
+                                                    self._near_t):
+            fe = self._search(u)
+            cands = []
+            for c in fe.cands:
+                if c.dist <= radius and not c.narrow:
+                    c.cost, c.scale = c.dist, 1.0
+                    c.label += NEAR_NOTE
+                    cands.append(c)
+            self._near_ev, self._near_t = dataclasses.replace(fe, cands=cands), u.t
+        return self._near_ev if self._near_ev.cands else None
 
     def mapped(self, u: Update) -> bool:
         """Is no frontier left by the completion rules? First a cheap pass (a reachable group

@@ -95,7 +95,7 @@ def _evaluate(cfg: Config, u: Update, min_size: float | None, pocket_area: float
         return ev
     res = view.geom.resolution
     unknown = view.open_unknown(int(pocket_area / res ** 2)) if pocket_area > 0 else view.unknown
-    groups, dropped = gs.find_frontiers(view.free, unknown, view.geom, search, floor,
+    groups, dropped = gs.find_frontiers(view.frontier_free, unknown, view.geom, search, floor,
                                         p.potential_scale, p.gain_scale)
     unreachable, black = 0, 0
     for g in groups:

@@ -15,6 +15,7 @@ becomes wide or its narrow point lies more than blacklist_radius from every poin
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -112,11 +113,18 @@ class Topological:
         return self.complete(u, self.evaluate_graph(u))
 
     def complete(self, u: Update, ev: Evaluation) -> Evaluation:
-        """The completion phase once no end node is left (frontier_completion)."""
-        if (self.cfg.params.frontier_completion and not ev.cands and ev.waiting is None
-                and ev.failed is None and u.view is not None):
+        """The completion phase once no end node is left (frontier_completion); while end
+        nodes are left, the frontier groups within pickup_radius join them."""
+        p = self.cfg.params
+        if not p.frontier_completion or ev.waiting is not None or ev.failed is not None \
+                or u.view is None:
+            return ev
+        if not ev.cands:
             return self.completion.phase(u, ev)
-        return ev
+        near = self.completion.nearby(u, p.pickup_radius)
+        if near is None:
+            return ev
+        return _joined(ev, near, u.target is not None and u.target.id < 0)
 
     def evaluate_graph(self, u: Update) -> Evaluation:
         """The open end nodes as candidates."""
@@ -332,3 +340,11 @@ def _near_skeleton(index: gr.TopoIndex, tolerance: float, lead: np.ndarray | Non
         return bool(np.all(np.isfinite(d)))
 
     return path_ok
+
+
+def _joined(ev: Evaluation, near: Evaluation, on_frontier: bool) -> Evaluation:
+    """ev's end nodes and near's frontier groups as one evaluation; the path checks of the
+    kind of target followed (on_frontier: a frontier group's)."""
+    src = near if on_frontier else ev
+    return dataclasses.replace(ev, cands=ev.cands + near.cands, path_ok=src.path_ok,
+                               path_clear=src.path_clear, status_of=src.status_of)

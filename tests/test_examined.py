@@ -1,0 +1,114 @@
+"""Examined frontier cells (services/planner/examined.py): a frontier cell looked at squarely
+from close by on several updates, and still beside unknown space, is a surface."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from topoexplore.common.domain import GridMap
+from topoexplore.common.grid import FREE, OCCUPIED, UNKNOWN, GridGeometry, Occupancy
+from topoexplore.services.planner.examined import Examined
+from topoexplore.services.planner.mapview import MapView
+
+RES = 0.1  # [m]
+
+
+def wall_room(origin=(0.0, 0.0)) -> tuple[np.ndarray, GridGeometry]:
+    """80 x 80 cells: free above row 10; row 10 is a wall face with two free cells
+    (cols 20, 21: grazing beams cleared them) and unknown below (the wall's inside)."""
+    cls = np.full((80, 80), FREE, dtype=np.int8)
+    cls[:10] = UNKNOWN
+    cls[10] = OCCUPIED
+    cls[10, 20:22] = FREE
+    return cls, GridGeometry(RES, origin[0], origin[1], 80, 80)
+
+
+def examined(views: int = 3) -> Examined:
+    return Examined(2.0, 1.4, math.pi / 4, views)
+
+
+def test_a_face_cell_looked_at_squarely_three_times_is_examined():
+    cls, geom = wall_room()
+    ex = examined()
+    x, y = 2.05, 2.05  # 1 m above cell (10, 20), facing down
+    assert ex.observe(x, y, -math.pi / 2, cls, geom) == 0
+    assert ex.observe(x, y, -math.pi / 2, cls, geom) == 0
+    assert ex.observe(x, y, -math.pi / 2, cls, geom) == 2
+    m = ex.mask(geom)
+    assert m is not None and m[10, 20] and m[10, 21] and m.sum() == 2
+    assert ex.snapshot() == {"examined": 2, "viewed": 0}
+
+
+@pytest.mark.parametrize("pose, why", [
+    ((4.05, 1.35, math.pi), "grazing: the line of sight runs along the wall"),
+    ((2.05, 4.05, -math.pi / 2), "too far (2.9 m)"),
+    ((2.05, 2.05, math.pi / 2), "behind the robot"),
+])
+def test_views_that_could_not_map_the_neighbour_do_not_count(pose, why):
+    cls, geom = wall_room()
+    ex = examined(views=1)
+    assert ex.observe(*pose, cls, geom) == 0, why
+    assert ex.mask(geom) is None
+
+
+def test_a_cell_behind_an_obstacle_is_not_in_view():
+    cls, geom = wall_room()
+    cls[15, 19:23] = OCCUPIED  # a box between the robot and the face cells
+    ex = examined(views=1)
+    assert ex.observe(2.05, 2.05, -math.pi / 2, cls, geom) == 0
+    cls[15, 19:23] = FREE
+    assert ex.observe(2.05, 2.05, -math.pi / 2, cls, geom) == 2
+
+
+def test_examined_cells_keep_their_place_when_the_map_grows():
+    cls, geom = wall_room()
+    ex = examined(views=1)
+    ex.observe(2.05, 2.05, -math.pi / 2, cls, geom)
+    grown = GridGeometry(RES, -1.0, -0.5, 100, 90)  # 10 more columns left, 5 rows below
+    m = ex.mask(grown)
+    assert list(zip(*np.nonzero(m), strict=True)) == [(15, 30), (15, 31)]
+
+
+def test_examined_cells_are_no_frontier_for_the_map_view():
+    cls, geom = wall_room()
+    data = np.where(cls == FREE, 0, np.where(cls == OCCUPIED, 100, -1)).astype(np.int8)
+    grid = GridMap(data, geom)
+    ex = examined(views=1)
+    view = MapView(grid, Occupancy(), (), ex.mask)
+    face = view.geom.world_to_cell(np.array([2.05, 2.15]), np.array([1.05, 1.05]))
+    assert view.frontier_free[face].all()
+    ex.observe(2.05, 2.05, -math.pi / 2, view.classes, view.geom)
+    again = MapView(grid, Occupancy(), (), ex.mask)
+    assert not again.frontier_free[face].any()
+    assert again.free[face].all()  # still free for paths
+
+
+def test_off_means_nothing_is_examined():
+    cls, geom = wall_room()
+    ex = Examined(0.0, 1.4, math.pi / 4, 1)
+    assert not ex.enabled
+    assert ex.observe(2.05, 2.05, -math.pi / 2, cls, geom) == 0
+    assert ex.mask(geom) is None
+
+
+def test_near_frontier_groups_join_the_end_nodes_with_their_own_path_checks():
+    from topoexplore.services.planner.strategies.base import Candidate, Evaluation
+    from topoexplore.services.planner.strategies.topological import _joined
+
+    def cand(i):
+        return Candidate(i, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0, lambda: np.zeros((0, 2)))
+
+    def topo_ok(wps):
+        return False
+
+    def frontier_ok(wps):
+        return True
+
+    ev = Evaluation(cands=[cand(3)], path_ok=topo_ok)
+    near = Evaluation(cands=[cand(-1)], path_ok=frontier_ok)
+    on_node = _joined(ev, near, on_frontier=False)
+    assert [c.id for c in on_node.cands] == [3, -1] and on_node.path_ok is topo_ok
+    assert _joined(ev, near, on_frontier=True).path_ok is frontier_ok
