@@ -61,9 +61,6 @@ class Examined:
     def enabled(self) -> bool:
         return self.reach > 0.0
 
-    def __len__(self) -> int:
-        return len(self._closed)
-
     def observe(self, x: float, y: float, th: float, classes: np.ndarray,
                 geom: GridGeometry) -> int:
         """Count this update's square views of frontier cells from the robot at (x [m],
