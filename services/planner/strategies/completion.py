@@ -8,6 +8,9 @@
 - Map complete (``stop_when_mapped``, reliability only): no frontier group is left by the same
   rules, so no trip can add to the map.
 
+- Near the robot (``pickup_radius``, off by default): while end nodes are left, the groups
+  these rules count within that path length join them as candidates (:meth:`Completion.nearby`).
+
 Only groups of at least ``completion_min_size`` count, or shorter ones (down to
 ``min_frontier_size``) whose path is at most ``completion_near``, and none next to an enclosed
 unknown pocket smaller than ``completion_pocket_area``. Both searches run at most once per

@@ -15,10 +15,9 @@ becomes wide or its narrow point lies more than blacklist_radius from every poin
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -346,5 +345,5 @@ def _joined(ev: Evaluation, near: Evaluation, on_frontier: bool) -> Evaluation:
     """ev's end nodes and near's frontier groups as one evaluation; the path checks of the
     kind of target followed (on_frontier: a frontier group's)."""
     src = near if on_frontier else ev
-    return dataclasses.replace(ev, cands=ev.cands + near.cands, path_ok=src.path_ok,
+    return replace(ev, cands=ev.cands + near.cands, path_ok=src.path_ok,
                                path_clear=src.path_clear, status_of=src.status_of)
