@@ -181,6 +181,11 @@ class MapperParams(_P):
     l_free: Neg = -0.4  # log-odds added along a beam
     l_min: Neg = -4.0  # clamp so cells can change back
     l_max: Pos = 4.0
+    surface_reach: NonNeg = 0.0  # [m] a beam does not clear the cells within this distance
+    # of its hit that the surface it hit passes through (a wall face inside a cell, crossed by
+    # grazing beams); 0 = off (services/mapper/core.py, docs/design.md "Mapping")
+    surface_step: Pos = 0.5  # [m] ... judged from hits at most this far apart (wider: a gap,
+    # such as a door no beam went through, not a surface)
     p_free: Annotated[float, Meta(gt=0.0, lt=0.5)] = 0.35  # below: known free
     p_occ: Annotated[float, Meta(gt=0.5, lt=1.0)] = 0.65  # above: occupied
     initial_size: Pos = 20.0  # [m] grid side at start, centred on the first pose

@@ -22,6 +22,7 @@ from topoexplore.services.mapper.core import (
     beam_endpoints,
     grow_axis,
     logodds_to_int8,
+    surface_normals,
 )
 
 INC = math.pi / 180.0  # [rad] 1 deg, 181 beams
@@ -175,8 +176,9 @@ def test_clamp_and_cells_change_back():
     assert n == math.ceil((p.l_max - math.log(p.p_free / (1 - p.p_free))) / -p.l_free + 1e-9)
 
 
-def test_room_map_is_right():
-    core = MapperCore(MapperParams())
+@pytest.mark.parametrize("reach", [0.0, 2.0])
+def test_room_map_is_right(reach):
+    core = MapperCore(params(surface_reach=reach))
     for k in range(12):
         th = k * math.pi / 6
         pose = (0.3 * math.cos(th), 0.2 * math.sin(th), th)
@@ -193,6 +195,85 @@ def test_room_map_is_right():
     xx, yy = g.cell_to_world(rr, cc)
     inner = (np.abs(xx) < 2.7) & (np.abs(yy) < 1.7)
     assert (cls[rr[inner], cc[inner]] == FREE).mean() > 0.99
+
+
+def test_surface_normals():
+    # 0..3 on y = 1, 3..5 on x = 3 (3 is the corner), 6 off both lines
+    ex = np.array([0.0, 1.0, 2.0, 3.0, 3.0, 3.0, 5.0])
+    ey = np.array([1.0, 1.0, 1.0, 1.0, 2.0, 3.0, 3.0])
+    hit = np.ones(7, bool)
+    ok, near, nx, ny, lo, hi = surface_normals(ex, ey, hit, 5.0)
+    assert (near == ok).all()  # every step within 5 m
+    assert not surface_normals(ex, ey, hit, 0.5)[1].any()  # steps of 1 m: none near
+    # 1, 2 and 4 centred; 0 from the run it starts, 3 and 5 from the run they end
+    assert ok.tolist() == [True] * 6 + [False]
+    assert np.allclose(np.abs(ny[:4]), 1.0) and np.allclose(np.abs(nx[4:6]), 1.0)
+    # the stretch each line is known over: the span of its three hits, from the hit
+    assert np.allclose(np.abs(hi - lo)[:6], 2.0) and (lo <= 0).all() and (hi >= 0).all()
+    assert np.allclose(sorted(np.abs([lo[0], hi[0]])), [0.0, 2.0])  # 0 is an end of its run
+    assert np.allclose(sorted(np.abs([lo[1], hi[1]])), [1.0, 1.0])  # 1 is the middle
+    hit[2] = False  # no return: no run through beam 2
+    ok, _, nx, ny, _, _ = surface_normals(ex, ey, hit, 5.0)
+    assert ok.tolist() == [False, False, False, True, True, True, False]
+    assert np.allclose(np.abs(nx[3:6]), 1.0)
+
+
+def wall_ranges(lx, ly, th, face_x, n=181, amin=AMIN, inc=INC):
+    """Exact ranges from the laser at (lx, ly) to a wall x >= face_x (no return elsewhere)."""
+    a = th + amin + np.arange(n) * inc
+    c = np.cos(a)
+    with np.errstate(divide="ignore"):
+        return np.where(c > 1e-9, (face_x - lx) / np.where(c > 1e-9, c, 1.0), np.inf)
+
+
+@pytest.mark.parametrize("reach", [0.0, 2.0])
+def test_grazing_beams_and_a_wall_face_inside_a_cell(reach):
+    """A robot drives along a wall whose face (x = 1.65 m) lies in the middle of a cell
+    column, 0.55 m away, looking along it: the far face cells are only seen at grazing angles.
+    Without the surface rule those beams clear them (free cells beside the unknown inside the
+    wall: a false frontier); with it, none is cleared, the cells in front are."""
+    core = MapperCore(params(surface_reach=reach))
+    for k in range(30):
+        y = 0.05 * k
+        scan(core, (1.1, y, math.pi / 2), wall_ranges(1.1, y, math.pi / 2, 1.65))
+    g = core.geometry
+    cls = classify(core.occupancy())
+    rows = np.arange(g.height)
+    _, ys = g.cell_to_world(rows, np.zeros_like(rows))
+    far = rows[(ys > 3.0) & (ys < 6.0)]  # 1.5 m ahead of the last pose and beyond
+    face = int(g.world_to_cell(1.65, 3.0)[1])
+    front = int(g.world_to_cell(1.45, 3.0)[1])
+    face_free = (cls[far, face] == FREE).mean()
+    assert (cls[far, front] == FREE).mean() > 0.9
+    if reach == 0.0:
+        assert face_free > 0.5  # the mismatch the rule is for
+    else:
+        assert face_free == 0.0
+
+
+def test_a_beam_through_a_doorway_clears_it():
+    """A wall along y = 2.05 (face inside a cell row) with a 0.8 m doorway, seen obliquely:
+    the beams through the door cross the wall's line there, and the doorway's cells are
+    cleared with the surface rule on, as without it."""
+    lx, ly = 0.0, 0.0
+    a = math.pi / 2 + AMIN + np.arange(181) * INC  # looking along +y
+    s, c = np.sin(a), np.cos(a)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(s > 1e-9, (2.05 - ly) / np.where(s > 1e-9, s, 1.0), np.inf)
+        x = lx + t * c
+        door = (x > 1.0) & (x < 1.8)
+        t = np.where(door, np.where(s > 1e-9, (4.0 - ly) / np.where(s > 1e-9, s, 1.0), np.inf), t)
+    free = {}
+    for reach in (0.0, 2.0):
+        core = MapperCore(params(surface_reach=reach))
+        for _ in range(5):
+            core.integrate(Pose(lx, ly, math.pi / 2), mk(t))
+        g = core.geometry
+        cls = classify(core.occupancy())
+        r = int(g.world_to_cell(1.4, 2.05)[0])
+        cols = [int(g.world_to_cell(x, 2.05)[1]) for x in np.arange(1.15, 1.7, 0.1)]
+        free[reach] = (cls[r, cols] == FREE).tolist()
+    assert all(free[0.0]) and free[2.0] == free[0.0]
 
 
 def test_laser_offset():

@@ -18,6 +18,20 @@ Model (inverse sensor model in log-odds form, Thrun et al. "Probabilistic Roboti
   would count as twenty independent observations. So within one scan each cell receives at most
   one update: hits are applied first and take precedence (a cell hit by one beam is not cleared by
   a grazing neighbour beam in the same scan), then every other crossed cell gets l_free once.
+- **The surface a beam hit** (``surface_reach`` > 0): a thin ray that meets a wall at a
+  grazing angle crosses, before its hit, cells that the wall's face passes through (a face in
+  the middle of a cell). Clearing them is a model mismatch: with l_free on every crossed cell,
+  the grazing beams of many scans clear the face cells of a wall seen from afar, the unknown
+  inside the wall then borders free cells, and that false frontier along the wall only closes
+  when the robot passes close by. So a beam does not clear a cell, within ``surface_reach`` of
+  its hit, that the surface it hit passes through; the hit is applied as usual. A beam's
+  surface is the straight line through its hit and two neighbouring hits when the three lie on
+  one line (:func:`surface_normals`), and only over the stretch those hits span (half a cell
+  more), so a beam through a doorway is not stopped by the wall line beside it. A beam also
+  respects its neighbour beams' surfaces (one that grazes a face and just misses its end), but
+  only where their hits lie at most ``surface_step`` apart: farther apart, a gap between them
+  (a door no beam went through) cannot be told from wall. Without such a line (a lone hit,
+  no-return neighbours) a beam clears every crossed cell as before.
 - The int8 occupancy (ROS values: -1 never touched, else round(100 p)) is kept current cell by
   cell inside the numba kernel, so no whole-grid conversion ever happens per scan.
 
@@ -45,6 +59,7 @@ __all__ = [
     "MapperCore",
     "beam_endpoints",
     "grow_axis",
+    "surface_normals",
     "logodds_to_int8",
     "prob_to_logodds",
 ]
@@ -98,6 +113,49 @@ def beam_endpoints(pose: Pose, scan: Scan, laser_offset: float = 0.0
     return lx, ly, ex, ey, hit
 
 
+def surface_normals(ex: np.ndarray, ey: np.ndarray, hit: np.ndarray, max_step: float,
+                    straight: float = math.cos(math.radians(20.0))
+                    ) -> tuple[np.ndarray, ...]:
+    """The straight surface seen at each beam's end point: ``(ok, near, nx, ny, lo, hi)``.
+
+    Known (ok) for a hit that lies on one straight line with two neighbouring hits: k-1 and
+    k+1 (centred), else k-2 and k-1, else k+1 and k+2 (one-sided: the last beam before a
+    corner, a depth jump or a gap). Three end points a, b, c are on one line when the steps
+    b - a and c - b point the same way within acos(straight); near where both steps are at
+    most max_step [m] long as well (at a grazing angle the hits of one wall lie far apart,
+    and then an unseen gap between them, a door no beam went through, cannot be told from
+    wall: only the beam's own hit is trusted then). (nx, ny) is the unit normal,
+    perpendicular to c - a; lo <= 0 <= hi [m] bound the stretch of the line the three hits
+    span, measured from the hit along the tangent (ny, -nx): the surface is known only there.
+    """
+    n = ex.shape[0]
+    ok = np.zeros(n, bool)
+    near = np.zeros(n, bool)
+    nx, ny, lo, hi = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+    if n < 3:
+        return ok, near, nx, ny, lo, hi
+    # for every run of three beams (i, i+1, i+2): on one line, and the chord c - a
+    sx, sy = ex[1:] - ex[:-1], ey[1:] - ey[:-1]
+    sn = np.hypot(sx, sy)
+    line = hit[:-2] & hit[1:-1] & hit[2:] & (sn[:-1] > 1e-9) & (sn[1:] > 1e-9)
+    short = (sn[:-1] <= max_step) & (sn[1:] <= max_step)
+    line &= (sx[:-1] * sx[1:] + sy[:-1] * sy[1:]) >= straight * sn[:-1] * sn[1:]
+    cx, cy = sx[:-1] + sx[1:], sy[:-1] + sy[1:]
+    for first in (1, 2, 0):  # the run centred on k, then the one ending at k, then starting
+        k = np.nonzero(line)[0] + first
+        k = k[~ok[k]]
+        i = k - first
+        ok[k] = True
+        near[k] = short[i]
+        cn = np.maximum(np.hypot(cx[i], cy[i]), 1e-12)
+        tx, ty = cx[i] / cn, cy[i] / cn
+        nx[k], ny[k] = -ty, tx
+        along = [(ex[i + m] - ex[k]) * tx + (ey[i + m] - ey[k]) * ty for m in range(3)]
+        lo[k] = np.minimum(np.minimum(along[0], along[1]), along[2])
+        hi[k] = np.maximum(np.maximum(along[0], along[1]), along[2])
+    return ok, near, nx, ny, lo, hi
+
+
 # --- the numba kernel ----------------------------------------------------------------------
 
 
@@ -114,11 +172,17 @@ def _apply(logodds, occ, r, c, delta, l_min, l_max):  # pragma: no cover - compi
 
 @njit(cache=True, nogil=True)
 def _integrate_kernel(logodds, occ, stamp, scan_id, r0, c0, er, ec, hit,
-                      l_free, l_occ, l_min, l_max):  # pragma: no cover - compiled
+                      l_free, l_occ, l_min, l_max, surf, near, hc, hr, nx, ny, lo, hi,
+                      reach):  # pragma: no cover - compiled
     """Apply one scan in place; return the touched window (row0, row1, col0, col1), half-open.
 
     Bresenham (:func:`topoexplore.common.kernels.bresenham`) from (r0, c0) to each
-    (er[k], ec[k]); all indices must be inside the grid. ``stamp[r, c] == scan_id`` marks a
+    (er[k], ec[k]); all indices must be inside the grid. Where surf[k], the hit is at
+    (hc[k], hr[k]) in cell units (column, row; cell (r, c) spans [c, c+1) x [r, r+1)) on a
+    straight surface of unit normal (nx[k], ny[k]), known from lo[k] to hi[k] [cells] along
+    its tangent (ny[k], -nx[k]) from the hit; a beam does not clear the cells within reach
+    [cells] of its own hit, or of a neighbour's hit where near[j], that the known stretch of
+    that surface passes through. ``stamp[r, c] == scan_id`` marks a
     cell already updated in this scan.
     """
     h, w = logodds.shape
@@ -147,6 +211,19 @@ def _integrate_kernel(logodds, occ, stamp, scan_id, r0, c0, er, ec, hit,
         for i in range(m):
             r = rows[i]
             c = cols[i]
+            on = False  # does the surface this beam or a neighbour hit pass through the cell?
+            for j in range(max(k - 1, 0), min(k + 2, n)):
+                if surf[j] and (j == k or near[j]):
+                    ax = c + 0.5 - hc[j]
+                    ay = r + 0.5 - hr[j]
+                    u = ny[j] * ax - nx[j] * ay  # along the surface from the hit
+                    if (ax * ax + ay * ay <= reach * reach and abs(nx[j] * ax + ny[j] * ay)
+                            < 0.5 * (abs(nx[j]) + abs(ny[j])) - 0.05
+                            and lo[j] - 0.5 <= u <= hi[j] + 0.5):
+                        on = True
+                        break
+            if on:
+                continue
             if stamp[r, c] != scan_id:
                 stamp[r, c] = scan_id
                 _apply(logodds, occ, r, c, l_free, l_min, l_max)
@@ -171,8 +248,11 @@ def _warm_up() -> None:
     occ = np.full((4, 4), -1, np.int8)
     st = np.zeros((4, 4), np.int32)
     e = np.array([3, 0], np.int64)
+    f = np.zeros(2)
     _integrate_kernel(lo, occ, st, np.int64(1), np.int64(1), np.int64(1), e, e[::-1].copy(),
-                      np.array([True, False]), -0.4, 0.85, -4.0, 4.0)
+                      np.array([True, False]), -0.4, 0.85, -4.0, 4.0,
+                      np.array([True, False]), np.array([True, False]), f, f, f, f, f, f,
+                      0.0)
     _WARMED = True
 
 
@@ -350,11 +430,26 @@ class MapperCore:
             np.ascontiguousarray(hit, dtype=np.bool_),
             float(self.params.l_free), float(self.params.l_occ),
             float(self.params.l_min), float(self.params.l_max),
+            *self._surfaces(ex, ey, hit),
         )
         if changed_shape:
             h, w = self._l.shape
             return 0, h, 0, w
         return tuple(int(v) for v in window)
+
+    def _surfaces(self, ex: np.ndarray, ey: np.ndarray, hit: np.ndarray) -> tuple:
+        """The kernel's surface arguments (surf, hc, hr, nx, ny, lo, hi, reach; lengths in
+        cells) for the end points ex, ey [m] in the current grid; none when surface_reach is
+        0."""
+        reach = float(self.params.surface_reach) / self._res
+        if reach <= 0.0:
+            z = np.zeros(ex.shape[0])
+            ok, near, nx, ny, lo, hi = z.astype(bool), z.astype(bool), z, z, z, z
+        else:
+            ok, near, nx, ny, lo, hi = surface_normals(ex, ey, hit, self.params.surface_step)
+        hc = (ex - self._origin_x()) / self._res
+        hr = (ey - self._origin_y()) / self._res
+        return ok, near, hc, hr, nx, ny, lo / self._res, hi / self._res, reach
 
     def _create(self, x: float, y: float) -> None:
         """First grid: initial_size square centred on (x, y), cell edges on multiples of res."""
