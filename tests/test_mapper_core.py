@@ -440,33 +440,43 @@ def test_a_grid_map_checks_its_array_against_its_geometry(grid, geom, match):
 
 
 def benchmark(n: int = 500) -> None:
-    """Median time per 181-beam scan on a 1000x1000 grid, including the int8 cache."""
+    """Median time per 181-beam scan on a 1000x1000 grid, including the int8 cache, with the
+    surface rule off (surface_reach 0) and on (2 m), the two interleaved scan by scan."""
     import time
 
-    p = MapperParams()
-    t0 = time.perf_counter()
-    core = MapperCore.from_grid(GridMap(np.full((1000, 1000), -1, np.int8),
-                                        GridGeometry(0.1, -50.0, -50.0, 1000, 1000)), p)
-    print(f"construct 1000x1000 (incl. numba warm-up) {1e3 * (time.perf_counter() - t0):.0f} ms")
+    cores = {}
+    for reach in (0.0, 2.0):
+        t0 = time.perf_counter()
+        cores[reach] = MapperCore.from_grid(
+            GridMap(np.full((1000, 1000), -1, np.int8), GridGeometry(0.1, -50.0, -50.0, 1000,
+                                                                        1000)),
+            params(surface_reach=reach))
+        print(f"construct 1000x1000 (incl. numba warm-up) {1e3 * (time.perf_counter() - t0):.0f}"
+              f" ms (surface_reach {reach})")
     rng = np.random.default_rng(0)
     kinds = {
-        "office 0.5-4 m": lambda: rng.uniform(0.5, 4.0, 181),
-        "mixed, 30% no return": lambda: np.where(rng.random(181) < 0.3, 8.0,
-                                                 rng.uniform(0.5, 7.9, 181)),
-        "all max range 8 m": lambda: np.full(181, 8.0),
+        "office 0.5-4 m": lambda pose: rng.uniform(0.5, 4.0, 181),
+        "mixed, 30% no return": lambda pose: np.where(rng.random(181) < 0.3, 8.0,
+                                                      rng.uniform(0.5, 7.9, 181)),
+        "all max range 8 m": lambda pose: np.full(181, 8.0),
+        "room walls 12x8 m": lambda pose: np.minimum(
+            room_ranges((pose[0] % 5 - 2.5, pose[1] % 3 - 1.5, pose[2]), 6.0, 4.0)
+            + rng.normal(0, 0.01, 181), 7.99),
     }
     for name, gen in kinds.items():
-        ts = []
+        ts = {0.0: [], 2.0: []}
         for _ in range(n):
-            pose = Pose(rng.uniform(-30, 30), rng.uniform(-30, 30), rng.uniform(-3, 3))
-            r = gen()
-            t = time.perf_counter()
-            core.integrate(Pose(*pose), mk(r))
-            core.occupancy()
-            ts.append(time.perf_counter() - t)
-        ts = np.array(ts) * 1e3
-        print(f"{name:22s} median {np.median(ts):.3f} ms  p95 {np.percentile(ts, 95):.3f} ms"
-              f"  max {ts.max():.3f} ms  (n={n})")
+            pose = (rng.uniform(-30, 30), rng.uniform(-30, 30), rng.uniform(-3, 3))
+            r = gen(pose)
+            for reach, core in cores.items():
+                t = time.perf_counter()
+                core.integrate(Pose(*pose), mk(r))
+                core.occupancy()
+                ts[reach].append(time.perf_counter() - t)
+        for reach in ts:
+            v = np.array(ts[reach]) * 1e3
+            print(f"{name:22s} reach {reach:.0f} m  median {np.median(v):.3f} ms"
+                  f"  p95 {np.percentile(v, 95):.3f} ms  max {v.max():.3f} ms  (n={n})")
 
 
 if __name__ == "__main__":
