@@ -217,6 +217,8 @@ def _integrate_kernel(logodds, occ, stamp, scan_id, r0, c0, er, ec, hit,
                     ax = c + 0.5 - hc[j]
                     ay = r + 0.5 - hr[j]
                     u = ny[j] * ax - nx[j] * ay  # along the surface from the hit
+                    # the line crosses the cell: centre closer than the cell's half extent
+                    # along the normal (less 0.05 cell, so a face on a cell edge does not)
                     if (ax * ax + ay * ay <= reach * reach and abs(nx[j] * ax + ny[j] * ay)
                             < 0.5 * (abs(nx[j]) + abs(ny[j])) - 0.05
                             and lo[j] - 0.5 <= u <= hi[j] + 0.5):
@@ -438,9 +440,9 @@ class MapperCore:
         return tuple(int(v) for v in window)
 
     def _surfaces(self, ex: np.ndarray, ey: np.ndarray, hit: np.ndarray) -> tuple:
-        """The kernel's surface arguments (surf, hc, hr, nx, ny, lo, hi, reach; lengths in
-        cells) for the end points ex, ey [m] in the current grid; none when surface_reach is
-        0."""
+        """The kernel's surface arguments (surf, near, hc, hr, nx, ny, lo, hi, reach; lengths
+        in cells) for the end points ex, ey [m] in the current grid (:func:`surface_normals`);
+        none when surface_reach is 0."""
         reach = float(self.params.surface_reach) / self._res
         if reach <= 0.0:
             z = np.zeros(ex.shape[0])
