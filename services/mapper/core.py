@@ -212,7 +212,7 @@ def _integrate_kernel(logodds, occ, stamp, scan_id, r0, c0, er, ec, hit,
             r = rows[i]
             c = cols[i]
             on = False  # does the surface this beam or a neighbour hit pass through the cell?
-            for j in range(max(k - 1, 0), min(k + 2, n)):
+            for j in range(max(k - 1, 0), min(k + 2, n) if reach > 0.0 else 0):
                 if surf[j] and (j == k or near[j]):
                     ax = c + 0.5 - hc[j]
                     ay = r + 0.5 - hr[j]
