@@ -276,6 +276,28 @@ def test_a_beam_through_a_doorway_clears_it():
     assert all(free[0.0]) and free[2.0] == free[0.0]
 
 
+def test_a_beam_past_a_jamb_is_not_stopped_by_the_wall_line_beyond_the_hits():
+    """Five beams 7.5 deg apart from (0, 0): three hit a wall along y = 2.05 (face inside a
+    cell row) at x = 0.2, 0.48, 0.77; the next ones pass a doorway (x > 0.95) to y = 4. The
+    wall's line, extended past its last hit, runs through the cell where the first beam past
+    the jamb crosses y = 2.05 (x = 1.09), the only beam that crosses it: the surface is known
+    only over the stretch its hits span, so that doorway cell is cleared as without the rule
+    (with the line extended, it stays unknown)."""
+    amin, inc = math.radians(54.4), math.radians(7.5)
+    a = amin + np.arange(5) * inc
+    x = 2.05 / np.tan(a)
+    t = np.where(x > 0.95, 4.0 / np.sin(a), 2.05 / np.sin(a))
+    cell = {}
+    for reach in (0.0, 2.0):
+        core = MapperCore(params(surface_reach=reach))
+        for _ in range(5):
+            core.integrate(Pose(0.0, 0.0, 0.0), mk(t, amin=amin, inc=inc))
+        g = core.geometry
+        r, c = (int(v) for v in g.world_to_cell(2.03 / math.tan(a[1]), 2.03))
+        cell[reach] = int(classify(core.occupancy())[r, c])
+    assert cell[0.0] == FREE and cell[2.0] == FREE
+
+
 def test_laser_offset():
     p = MapperParams()
     core = MapperCore(p, laser_offset=0.5)
