@@ -442,13 +442,12 @@ class MapperCore:
     def _surfaces(self, ex: np.ndarray, ey: np.ndarray, hit: np.ndarray) -> tuple:
         """The kernel's surface arguments (surf, near, hc, hr, nx, ny, lo, hi, reach; lengths
         in cells) for the end points ex, ey [m] in the current grid (:func:`surface_normals`);
-        none when surface_reach is 0."""
+        empty when surface_reach is 0."""
         reach = float(self.params.surface_reach) / self._res
-        if reach <= 0.0:
-            z = np.zeros(ex.shape[0])
-            ok, near, nx, ny, lo, hi = z.astype(bool), z.astype(bool), z, z, z, z
-        else:
-            ok, near, nx, ny, lo, hi = surface_normals(ex, ey, hit, self.params.surface_step)
+        if reach <= 0.0:  # the kernel reads none of them: empty arrays of the right types
+            z, b = np.zeros(0), np.zeros(0, bool)
+            return b, b, z, z, z, z, z, z, 0.0
+        ok, near, nx, ny, lo, hi = surface_normals(ex, ey, hit, self.params.surface_step)
         hc = (ex - self._origin_x()) / self._res
         hr = (ey - self._origin_y()) / self._res
         return ok, near, hc, hr, nx, ny, lo / self._res, hi / self._res, reach
