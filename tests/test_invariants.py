@@ -431,6 +431,43 @@ def test_watchdog_while_driving_gives_up_what_it_tried_again_instead_of_stuck():
     assert w.mode is None and w.window == [] and w.travel == 0.0
 
 
+def test_watchdog_gives_a_long_trip_to_the_first_target_time_while_it_gets_nearer():
+    """A trip of 30 m through known space to the one target left learns nothing on the way;
+    while the remaining path to that first target keeps shrinking the watchdog waits, and
+    escalates one period after the robot stops getting nearer (arrived, or held up)."""
+    from types import SimpleNamespace as C
+
+    w = Watchdog(period=10.0, min_area=0.5, min_travel=1.0)
+    far = C(id=-1, x=30.0, y=0.0)
+    steps = [w.observe(float(k), 5.0, 0, True, (0.2 * k, 0.0), far, 30.0 - 0.2 * k)
+             for k in range(0, 150)]  # 0.2 m/s: 150 s to get there, no step meanwhile
+    assert not any(steps) and w.approaches >= 25
+    steps = [w.observe(150.0 + k, 5.0, 0, True, (30.0, 0.0), far, 0.05 + 0.01 * (k % 2))
+             for k in range(1, 12)]  # at the goal, nothing to learn there
+    assert [s for s in steps if s] == ["nearest_frontier"]
+    assert w.snapshot()["approaches"] == w.approaches
+
+
+def test_watchdog_credits_no_approach_to_targets_taken_in_turn():
+    """Only the first target taken since the last information earns time: a row of targets
+    approached one after another (frontier specks that never clear), or two targets taken
+    in turn as their reachability flickers, still escalate after one period."""
+    from types import SimpleNamespace as C
+
+    w = Watchdog(period=10.0, min_area=0.5, min_travel=1.0)
+    specks = [C(id=-1, x=2.0 * i, y=1.0) for i in range(12)]
+    steps = []
+    for k in range(0, 24):  # each speck approached from 2 m away down to 0, 2 s apiece
+        rem = 2.0 - 1.9 * (k % 2)
+        steps.append(w.observe(float(k), 5.0, 0, True, (float(k), 0.0), specks[k // 2], rem))
+    assert steps.index("nearest_frontier") == 10  # one period: only the first speck counted
+    w = Watchdog(period=10.0, min_area=0.5, min_travel=1.0)
+    a, b = C(id=7, x=3.0, y=0.0), C(id=9, x=-3.0, y=0.0)
+    steps = [w.observe(float(k), 5.0, 0, True, (0.1 * (k % 2), 0.0), (a, b)[k % 2],
+                       3.0 - 0.1 * (k % 2)) for k in range(0, 24)]  # turning on the spot
+    assert steps.index("nearest_frontier") == 10 and w.approaches == 0
+
+
 def test_watchdog_in_the_core_ends_done_when_every_frontier_is_unproductive():
     """The map never grows although the robot drives about (frontiers at the holes of a ragged
     shelf yield nothing): the watchdog blacklists what it tried until nothing is left and the

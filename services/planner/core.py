@@ -109,6 +109,7 @@ class PlannerCore:
         self._updates = 0
         self._view: MapView | None = None  # this update's map view
         self._narrowed_now = False  # ... under which the followed path narrowed (_narrowed)
+        self._rem: float | None = None  # [m] this update's remaining path to the target
 
     # --- public ------------------------------------------------------------------------------
 
@@ -131,8 +132,8 @@ class PlannerCore:
                                                         self._examined.mask)
         if self._view is not None:
             self._examined.observe(x, y, th, self._view.classes, self._view.geom)
-        if tg is not None:
-            tg.remaining(x, y)  # the robot located on its path: _narrowed judges what is ahead
+        self._rem = None if tg is None else tg.remaining(x, y)  # [m] the robot located on
+        #   its path: _narrowed judges what is ahead, the watchdog how near the target is
         self._narrowed_now = tg is not None and self._narrowed(tg)
         u = Update(t, x, y, th, graph, beliefs, self._view,
                    None if self._target is None else self._target.cand, self._blacklist.covers,
@@ -154,7 +155,8 @@ class PlannerCore:
         if grid is not None:
             area = float(np.count_nonzero(grid.data != -1)) * grid.geom.resolution ** 2
         cur = None if self._target is None else self._target.cand
-        step = self._watchdog.observe(u.t, area, ev.reliable, cur is not None, (u.x, u.y), cur)
+        step = self._watchdog.observe(u.t, area, ev.reliable, cur is not None, (u.x, u.y), cur,
+                                      self._rem)
         if step is not None:
             what = self._watchdog.log[-1].why
             self._replans += 1

@@ -27,6 +27,15 @@ of driving (a target followed), it escalates, one step per further ``watchdog_ti
 
 New information resets the level. Every step is counted and logged (:attr:`counts`,
 :attr:`log`); the planner's state and ``report.json`` carry them.
+
+A long trip is not a livelock. The first target taken after new information (or after an
+escalation step) earns time while the robot gets nearer to it: each time its remaining path
+is ``min_travel`` shorter than ever before, the period starts again (the level stays). Only
+the first: a row of targets taken in turn, each approached and none informative, is what
+the watchdog is for, and two targets taken in turn as their reachability flickers get no
+nearer than before. Without this, a trip across a large floor to the last frontier (34 m at
+the narrow-passage pace) ran out the period on the way, and the nearest-frontier step then
+toured the floor's specks: 133 m of a 236 m run on a held-back house.
 """
 
 from __future__ import annotations
@@ -69,14 +78,18 @@ class Watchdog:
     log: list[Event] = field(default_factory=list)
     travel: float = 0.0  # [m] driven since the last step or new information
     window: list[Any] = field(default_factory=list)  # targets followed since then
+    approaches: int = 0  # periods started again by the first target's approach
     _xy: tuple[float, float] | None = None
+    _first: Any = None  # the first target taken since new information or the last step ...
+    _first_best: float = math.inf  # ... and its least remaining path so far [m]
 
     def observe(self, t: float, area: float, reliable: int, driving: bool,
-                xy: tuple[float, float] | None = None, target: Any = None) -> str | None:
+                xy: tuple[float, float] | None = None, target: Any = None,
+                remaining: float | None = None) -> str | None:
         """One planning update at t [s] with the map's known area [m^2] and the number of
         reliable end nodes; driving: a target is being followed; xy [m]: the robot's position;
-        target: the one followed (remembered in :attr:`window` until new information).
-        Returns the step to act on now, or None."""
+        target: the one followed (remembered in :attr:`window` until new information);
+        remaining [m]: its remaining path length. Returns the step to act on now, or None."""
         if xy is not None:
             if self._xy is not None:
                 self.travel += math.hypot(xy[0] - self._xy[0], xy[1] - self._xy[1])
@@ -93,6 +106,10 @@ class Watchdog:
         if not driving:  # standing still to confirm "done" or waiting: not a livelock
             self.info_t = t if self.level == 0 else self.info_t
             return None
+        if self._approached(target, remaining):  # on a long trip to the first target
+            self.info_t = t
+            self.travel = 0.0
+            return None
         if t - self.info_t < self.period or self.level >= len(LEVELS):
             return None
         why = (f"no new map information for {t - self.info_t:.0f} s of driving (known area "
@@ -107,7 +124,22 @@ class Watchdog:
         del self.log[:-LOG_LIMIT]
         self.info_t = t  # the next step only after another period without information
         self.travel = 0.0
+        self._first, self._first_best = None, math.inf
         return name
+
+    def _approached(self, target: Any, remaining: float | None) -> bool:
+        """Is the robot min_travel nearer than ever before to the first target taken since
+        new information or the last step (remembering it if there is none yet)?"""
+        if target is None or remaining is None or not math.isfinite(remaining):
+            return False
+        if self._first is None:
+            self._first, self._first_best = target, remaining
+            return False
+        if not _same(target, self._first) or remaining > self._first_best - self.min_travel:
+            return False
+        self._first_best = remaining
+        self.approaches += 1
+        return True
 
     @property
     def mode(self) -> str | None:
@@ -122,8 +154,9 @@ class Watchdog:
         self.info_t, self.area, self.reliable = t, area, reliable
         self.travel = 0.0
         self.window.clear()
+        self._first, self._first_best = None, math.inf
 
     def snapshot(self) -> dict:
         return {"level": self.mode, "last_information_t": self.info_t,
-                "counts": dict(self.counts),
+                "counts": dict(self.counts), "approaches": self.approaches,
                 "log": [{"t": e.t, "level": e.level, "why": e.why} for e in self.log]}
