@@ -285,6 +285,7 @@ def planner_robustness(state: dict) -> dict:
     core = state.get("core") or {}
     wd, bl = core.get("watchdog") or {}, core.get("blocked") or {}
     return {"watchdog_escalations": wd.get("counts", {}), "watchdog_log": wd.get("log", []),
+            "watchdog_approaches": wd.get("approaches", 0),
             "blocked_marks": bl.get("made", 0), "blocked_forgotten": bl.get("forgotten", 0),
             "replans": core.get("replans", 0)}
 

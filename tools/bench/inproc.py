@@ -134,7 +134,9 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
             "path_length_m": round(c.sim.path_length, 2), "sim_time_s": round(c.sim.time, 1),
             "coverage": round(cov, 4), "coverage_free": round(cov_free, 4),
             "collisions": int(c.sim.collisions), "wall_s": round(time.monotonic() - t0, 1),
-            "escalations": snap["watchdog"]["counts"], "blocked_marks": snap["blocked"]["made"],
+            "escalations": snap["watchdog"]["counts"],
+            "watchdog_approaches": snap["watchdog"]["approaches"],
+            "blocked_marks": snap["blocked"]["made"],
             "blocked_forgotten": snap["blocked"]["forgotten"]}
 
 
