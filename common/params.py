@@ -285,7 +285,9 @@ class PlannerParams(_P):
     watchdog_area: Pos = 0.5  # [m^2] new information: the known area grew this much ...
     #   (or an end node became reliable)
     watchdog_travel: Pos = 1.0  # [m] driven in a period without information: the robot can
-    #   move, so the watchdog gives up what it tried (again) instead of calling it stuck
+    #   move, so the watchdog gives up what it tried (again) instead of calling it stuck; and
+    #   the first target's remaining path this much shorter than ever: a long trip, the
+    #   period starts again (watchdog.py)
     blocked_time: Pos = 8.0  # [s] following a path without moving or turning -> the way
     #   ahead is blocked: a learned obstacle there
     blocked_radius: NonNeg = 0.0  # [m] ... a disc this big, just ahead of the robot (0: the
