@@ -109,7 +109,6 @@ class PlannerCore:
         self._updates = 0
         self._view: MapView | None = None  # this update's map view
         self._narrowed_now = False  # ... under which the followed path narrowed (_narrowed)
-        self._rem: float | None = None  # [m] this update's remaining path to the target
 
     # --- public ------------------------------------------------------------------------------
 
@@ -132,8 +131,8 @@ class PlannerCore:
                                                         self._examined.mask)
         if self._view is not None:
             self._examined.observe(x, y, th, self._view.classes, self._view.geom)
-        self._rem = None if tg is None else tg.remaining(x, y)  # [m] the robot located on
-        #   its path: _narrowed judges what is ahead, the watchdog how near the target is
+        rem = None if tg is None else tg.remaining(x, y)  # [m] the robot located on its
+        #   path: _narrowed judges what is ahead, the watchdog how near the target is
         self._narrowed_now = tg is not None and self._narrowed(tg)
         u = Update(t, x, y, th, graph, beliefs, self._view,
                    None if self._target is None else self._target.cand, self._blacklist.covers,
@@ -144,19 +143,20 @@ class PlannerCore:
             self._no_cand = 0
             return self._emit(ExploreState.EXPLORING, ev.waiting, ev, 0)
         notes: list[str] = []
-        ev = self._watch(u, ev, grid, notes)
+        ev = self._watch(u, ev, grid, notes, rem)
         return self._decide(t, x, y, th, ev, notes)
 
-    def _watch(self, u: Update, ev: Evaluation, grid: GridMap | None, notes: list[str]
-               ) -> Evaluation:
+    def _watch(self, u: Update, ev: Evaluation, grid: GridMap | None, notes: list[str],
+               rem: float | None) -> Evaluation:
         """The global progress watchdog: act on an escalation step; in the nearest-frontier
-        step the candidates are the nearest frontier groups (until new information)."""
+        step the candidates are the nearest frontier groups (until new information). rem [m]:
+        the remaining path to the target followed (None without one)."""
         area = 0.0
         if grid is not None:
             area = float(np.count_nonzero(grid.data != -1)) * grid.geom.resolution ** 2
         cur = None if self._target is None else self._target.cand
         step = self._watchdog.observe(u.t, area, ev.reliable, cur is not None, (u.x, u.y), cur,
-                                      self._rem)
+                                      rem)
         if step is not None:
             what = self._watchdog.log[-1].why
             self._replans += 1
