@@ -13,6 +13,7 @@ from topoexplore.common.params import ControllerParams, load_params
 from topoexplore.services.controller.core import (
     MODES,
     ControllerCore,
+    arc_distance,
     clean_path,
     front_distance,
     lookahead_point,
@@ -125,6 +126,58 @@ def test_front_distance_sector_and_lateral_offset():
     s.ranges[90] = 0.0
     s.ranges[91] = np.nan
     assert front_distance(s, P, R) == pytest.approx(8.0)
+
+
+def only(points_xy: list[tuple[float, float]]) -> Scan:
+    """A scan with returns at the given robot-frame points only (no return elsewhere)."""
+    return scan_with(points_xy, math.inf)
+
+
+def _arc_brute(x: float, y: float, kappa: float, rho: float) -> float:
+    """arc_distance for one return, by walking the centre along the arc in 0.1 mm steps."""
+    length = 2 * math.pi / abs(kappa) if kappa else 3.0
+    s = np.arange(0.0, length, 1e-4)
+    cx, cy = ((np.sin(kappa * s) / kappa, (1 - np.cos(kappa * s)) / kappa) if kappa
+              else (s, 0.0 * s))
+    d = np.hypot(x - cx, y - cy)
+    if d[0] < rho:
+        return rho if d[1] < d[0] else math.inf
+    hit = np.nonzero(d < rho)[0]
+    return float(s[hit[0]]) + rho if len(hit) else math.inf
+
+
+def test_arc_distance_is_the_swept_disc_of_the_body():
+    rng = np.random.default_rng(7)
+    for _ in range(400):
+        x, y = rng.uniform(0.0, 1.0), rng.uniform(-0.8, 0.8)
+        kappa = 0.0 if rng.random() < 0.2 else rng.uniform(-4.0, 4.0)
+        s = only([(x, y)])
+        k = int(np.nonzero(np.isfinite(s.ranges))[0][0])
+        a = s.angle_min + k * s.angle_increment  # the beam's own point
+        px, py = s.ranges[k] * math.cos(a), s.ranges[k] * math.sin(a)
+        got, want = arc_distance(s, kappa, R), _arc_brute(px, py, kappa, R)
+        assert (math.isinf(got) and math.isinf(want)) or got == pytest.approx(want, abs=2e-3)
+    # straight ahead it is the range, as front_distance measures it
+    assert arc_distance(only([(0.45, 0.0)]), 0.0, R) == pytest.approx(0.45)
+    assert arc_distance(only([]), 1.0, R) == math.inf
+    assert arc_distance(None, 1.0, R) == math.inf
+
+
+def test_turning_into_a_return_beside_the_body_stops():
+    """A held-back cluttered floor: turning right at 0.2 m/s past a return 0.19 m to the right
+    of the body's front, at 74 deg (outside the front sector): the straight corridor sees
+    nothing, the arc the command drives meets it at once."""
+    wall = [(0.044, -0.191), (0.04, -0.203), (0.08, -0.23), (0.12, -0.27), (0.2, -0.37)]
+    scan = only(wall)
+    assert front_distance(scan, P, R) == math.inf  # 8 m: nothing
+    bend = np.array([[0.0, 0.0], [0.3, -0.05], [0.4, -0.4]])  # the path bends to the right
+    core = ControllerCore(P)
+    v, w, mode = step(core, 0.0, (0.0, 0.0, 0.0), bend, 1, False, scan)
+    assert mode == "blocked" and v == 0.0 and w < 0.0  # turns on the spot (a circle: safe)
+    # turning left, away from it, after the body has passed it, is not in the way
+    assert arc_distance(only([(-0.01, -0.2)]), 2.0, R) == math.inf
+    # straight on past a wall 0.21 m to the side: the body clears it (a door's jamb)
+    assert arc_distance(only([(0.3, 0.21), (0.6, 0.21)]), 0.0, R) == math.inf
 
 
 def test_obstacle_scale():

@@ -3,9 +3,10 @@
 DESIGN.md §4 "Controller": pure pursuit on the planned path with v <= v_max (paper §4: the
 Pioneer 2DX moved at most 200 mm/s), rotate in place when the heading error is large, slow down
 near obstacles, hard stop when the front sector of the latest scan is closer than a safety
-distance, stop on an empty plan. The hard stop looks at the body's own path (|y| <= radius);
-returns within robot.body_margin beside it only slow the robot to slow_min_scale (a door as
-wide as the body plus twice the margin is passable). Additionally: progress along the path is
+distance, stop on an empty plan. The hard stop looks at the body's own path: the straight
+corridor ahead (|y| <= radius) and the arc the command drives (the disc of the body swept
+along it, arc_distance); returns within robot.body_margin beside that path only slow the robot
+to slow_min_scale (a door as wide as the body plus twice the margin is passable). Additionally: progress along the path is
 tracked so the lookahead point never goes back, and a stuck robot backs up and turns toward
 the path.
 
@@ -38,6 +39,7 @@ __all__ = [
     "lookahead_point",
     "pure_pursuit",
     "front_distance",
+    "arc_distance",
     "rear_blocked",
     "obstacle_scale",
     "ControllerCore",
@@ -173,6 +175,58 @@ def front_distance(scan: Scan | None, params: ControllerParams, half_width: floa
     a = np.arctan2(np.sin(a), np.cos(a))
     m = (np.abs(a) <= params.front_half_angle) & (np.abs(y) <= half_width)
     return float(np.min(r[m])) if np.any(m) else math.inf
+
+
+def arc_distance(scan: Scan | None, kappa: float, half_width: float) -> float:
+    """Where the body meets the nearest return if it drives on along the arc of curvature
+    kappa [1/m] (the command's w / v; 0 straight): the travel [m] until a disc of half_width
+    [m] round the centre first touches a return, plus half_width, so that a return straight
+    ahead at range r gives r, as front_distance does. inf if the arc meets none.
+
+    front_distance looks along a straight corridor and within the front sector; a robot
+    turning past a corner sweeps returns beside that corridor, and one beside its front
+    (outside the sector) is in the way as soon as it moves (a held-back cluttered floor:
+    turning right at 0.2 m/s into a return 0.19 m beside the body, seen at 74 deg). A return
+    the disc already overlaps (a ragged wall it brushes) counts (travel 0) only while the arc
+    leads nearer to it.
+
+    Geometry (closed form): the centre moves on the circle of radius |1/kappa| round
+    (0, 1/kappa); a return at distance D from that point is touched over the arc angles where
+    the law of cosines gives a centre-to-return distance below half_width.
+    """
+    if scan is None:
+        return math.inf
+    _, _, px, py = _scan_xy(scan)
+    rho = float(half_width)
+    if px.size == 0 or rho <= 0.0:
+        return math.inf
+    if abs(kappa) < 1e-6:  # straight on: the corridor |y| < rho ahead of the centre
+        m = (px > 0.0) & (np.abs(py) < rho)
+        if not np.any(m):
+            return math.inf
+        ell = px[m] - np.sqrt(rho * rho - py[m] ** 2)
+        return float(np.min(np.maximum(ell, 0.0))) + rho
+    big_r = 1.0 / kappa  # [m] signed turning radius; the centre of the turn is (0, big_r)
+    qx, qy = px, py - big_r
+    dist = np.hypot(qx, qy)  # [m] return to the centre of the turn
+    ar = abs(big_r)
+    m = np.abs(dist - ar) < rho  # the body's annulus holds the return
+    if not np.any(m):
+        return math.inf
+    qx, qy, dist = qx[m], qy[m], dist[m]
+    psi = np.arctan2(qy, qx)
+    # angle travelled round the turn to the return's own bearing, in [0, 2 pi)
+    delta = np.mod(psi + math.pi / 2, 2 * math.pi) if kappa > 0 else np.mod(
+        math.pi / 2 - psi, 2 * math.pi)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cphi = (ar * ar + dist * dist - rho * rho) / (2.0 * ar * dist)
+    phi = np.arccos(np.clip(np.nan_to_num(cphi, nan=-1.0), -1.0, 1.0))  # contact half-angle
+    ell = ar * (delta - phi)  # [m] travel to the first contact
+    inside = (delta - phi <= 0.0) | (delta + phi >= 2 * math.pi)  # touched already ...
+    ahead = (delta > 1e-9) & (delta < math.pi)  # ... and the arc leads nearer to it
+    ell = np.where(inside, np.where(ahead, 0.0, np.inf), ell)
+    best = float(np.min(ell))
+    return best + rho if math.isfinite(best) else math.inf
 
 
 def rear_blocked(scan: Scan | None, params: ControllerParams, half_width: float) -> bool:
@@ -340,9 +394,13 @@ class ControllerCore:
         self._rotating = False
         return None
 
-    def _pursue(self, t: float, pose: Pose, alpha: float, kappa: float) -> Command:
-        """Pure pursuit at v_max, slowed near obstacles ahead, stopped by the safety distance."""
+    def _pursue(self, t: float, pose: Pose, alpha: float, kappa: float,
+                scan: Scan | None) -> Command:
+        """Pure pursuit at v_max, slowed near obstacles ahead, stopped by the safety distance;
+        ahead is the straight corridor and the arc the command drives (arc_distance)."""
         p = self.params
+        self.front = min(self.front, arc_distance(scan, kappa, self.radius))
+        self.front_margin = min(self.front_margin, arc_distance(scan, kappa, self.half_width))
         scale = obstacle_scale(self.front, p)
         if scale <= 0.0:
             return self._out(0.0, self._turn_w(alpha), "blocked", True, t, pose)
@@ -398,7 +456,7 @@ class ControllerCore:
         cmd = self._recover(t, pose, alpha, scan)
         if cmd is None:
             cmd = self._rotate(t, pose, alpha)
-        return cmd if cmd is not None else self._pursue(t, pose, alpha, kappa)
+        return cmd if cmd is not None else self._pursue(t, pose, alpha, kappa, scan)
 
     def snapshot(self) -> dict:
         """JSON-able controller state."""
