@@ -549,3 +549,27 @@ def test_learned_blockages_are_occupied_discs_in_the_map_view():
     for bx, by, br in discs:
         want |= (xs - bx) ** 2 + (ys - by) ** 2 <= br * br
     assert want.sum() > 10 and np.array_equal(view.classes == OCCUPIED, want)
+
+
+@pytest.mark.parametrize("narrow", [False, True])
+def test_the_way_out_of_a_doorway_keeps_to_its_middle(narrow):
+    """The robot stands in a 0.5 m doorway (five free cells, 0.3 m deep), one cell off its
+    middle, where its body fits (clearance = fit) but not the margin. The way out runs along
+    the door's middle, where the controller's corridor fits, not along the jamb beside it:
+    held-back house-s5-18x14-n2 said "done" at coverage 0.92 after the controller stopped for
+    the jamb of a path one cell off the middle, and the learned blockage closed the door."""
+    g, geom = room(40, 40)
+    g[19:22, :] = 100
+    g[19:22, 18:23] = 0  # the doorway: columns 18..22, its middle column 20 (x = 2.05 m)
+    view = MapView(GridMap(g, geom), Occupancy())
+    cfg = Config(PlannerParams(), ROBOT.radius, 0.9, ROBOT.body_margin)
+    fit = cfg.fit(RES)
+    x, y = geom.cell_to_world(21, 19)  # the robot: in the doorway, beside its middle
+    assert fit - 1e-6 <= view.clearance[21, 19] < cfg.need
+    search = view.search(float(x), float(y), cfg.need, fit=fit, soft_radius=2 * cfg.need,
+                         soft_penalty=2.0, narrow_penalty=4.0 if narrow else None)
+    path = search.path_to(5, 19)  # a goal below the wall, straight down from the robot
+    assert len(path)
+    rows, cols = geom.world_to_cell(path[:, 0], path[:, 1])
+    in_door = (rows >= 19) & (rows <= 20)  # the door's rows after the robot's own (21)
+    assert np.all(cols[in_door] == 20), np.c_[rows, cols].tolist()

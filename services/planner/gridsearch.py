@@ -40,6 +40,9 @@ from topoexplore.common.grid import GridGeometry, distance_transform
 SQRT2 = math.sqrt(2.0)
 LOOK_RADIUS = 1.0  # [m] unknown cells this close to a frontier goal set the heading to face
 ESCAPE_RADIUS = 1.0  # [m] how far the search looks for traversable cells the robot can get to
+TIGHT_PENALTY = 1.0  # a cell below the clearance the search asks for costs up to this many
+#   lengths more, the tighter it is (down to the body's fit): a path through a gap, or out of
+#   a tight spot, keeps to the middle, where the controller's corridor fits
 
 
 class GridSearchError(ValueError):
@@ -66,7 +69,8 @@ class Escape:
     through cells where its body fits, at most ESCAPE_RADIUS away."""
 
     seeds: np.ndarray  # int64 flat indices of the passable cells reached
-    cost: np.ndarray  # float64 [m] path length robot cell -> each seed
+    cost: np.ndarray  # float64 [m] cost of the way robot cell -> each seed (its length
+    #   times the search's per-cell multiplier; the plain length without one)
     parent: dict[int, int]  # flat index -> the previous cell on the way (-1: the robot's cell)
     robot: int  # flat index of the robot's cell (-1: outside the grid)
 
@@ -249,8 +253,9 @@ def grid_search(free: np.ndarray, passable: np.ndarray, clearance: np.ndarray,
     there is room; with soft_penalty = 0 the cost is the plain path length. `passable` may
     hold cells with less clearance than robot_radius (down to the robot's body, `fit`: a
     narrow passage it can still drive through, as a costmap's lethal limit is the inscribed
-    radius); those cost (1 + soft_penalty + narrow_penalty) times their length, so the search
-    takes them only where there is no wide way worth the detour.
+    radius); those cost (1 + soft_penalty + narrow_penalty) times their length, and up to
+    TIGHT_PENALTY more the tighter they are (:func:`cost_multiplier`), so the search takes them
+    only where there is no wide way worth the detour, and then along the middle.
 
     The search starts from where the robot really is (:func:`escape`): its own cell if that
     is passable, else every passable cell it can get to within ESCAPE_RADIUS through free
@@ -267,8 +272,10 @@ def grid_search(free: np.ndarray, passable: np.ndarray, clearance: np.ndarray,
     """
     h, w = passable.shape
     row, col = (int(v) for v in geom.world_to_cell(x, y))
-    esc = escape(free, passable, clearance, row, col, robot_radius if fit is None else fit,
-                 geom.resolution)
+    fit = robot_radius if fit is None else fit
+    mult = cost_multiplier(clearance, robot_radius, fit, soft_radius, soft_penalty,
+                           narrow_penalty)
+    esc = escape(free, passable, clearance, row, col, fit, geom.resolution, mult=mult)
     dist = np.full((h, w), np.inf)
     parent = np.full(h * w, -1, dtype=np.int64)
     start = None
@@ -278,24 +285,52 @@ def grid_search(free: np.ndarray, passable: np.ndarray, clearance: np.ndarray,
     if start is not None and reach_only:
         dist = np.where(_reached(passable, esc.seeds), 0.0, np.inf)
     elif start is not None:
-        mult = np.ones((h, w), dtype=np.float64)
-        if soft_penalty > 0 and soft_radius > robot_radius:
-            frac = (soft_radius - clearance) / (soft_radius - robot_radius)
-            mult += soft_penalty * np.clip(frac, 0.0, 1.0)
-        if narrow_penalty > 0:
-            mult += np.where(clearance + 1e-6 < robot_radius, narrow_penalty, 0.0)
         d, parent = _dijkstra8(passable, mult, esc.seeds, esc.cost, float(geom.resolution))
         dist = d.reshape(h, w)
     return GridSearch(geom, passable, clearance, start, dist, parent, esc)
+
+
+def cost_multiplier(clearance: np.ndarray, robot_radius: float, fit: float,
+                    soft_radius: float = 0.0, soft_penalty: float = 0.0,
+                    narrow_penalty: float = 0.0) -> np.ndarray:
+    """Per-cell factor (>= 1) on the length of a step, from its clearance [m].
+
+    - clearance from soft_radius down to robot_radius (the clearance the search asks for):
+      1 rising linearly to 1 + soft_penalty;
+    - below robot_radius (a narrow passage the body fits, or the way out of a tight spot):
+      1 + soft_penalty + narrow_penalty, plus up to TIGHT_PENALTY the nearer the clearance is
+      to fit [m] (the body's own). Without that last term every cell under the margin cost the
+      same, and the way out of a doorway the robot stood in ran along the door's jamb, at fit,
+      instead of its middle: the controller then stopped for the jamb, its learned blockage
+      closed the door, and the planner said "done" with the house half seen (held-back
+      house-s5-18x14-n2, coverage 0.92).
+    """
+    mult = np.ones(clearance.shape, dtype=np.float64)
+    if soft_penalty > 0 and soft_radius > robot_radius:
+        frac = (soft_radius - clearance) / (soft_radius - robot_radius)
+        mult += soft_penalty * np.clip(frac, 0.0, 1.0)
+    tight = clearance + 1e-6 < robot_radius
+    if np.any(tight):
+        extra = narrow_penalty
+        if robot_radius > fit:
+            depth = (robot_radius - np.maximum(clearance, fit)) / (robot_radius - fit)
+            extra = extra + TIGHT_PENALTY * np.clip(depth, 0.0, 1.0)
+        else:
+            extra = extra + TIGHT_PENALTY
+        mult = np.where(tight, mult + extra, mult)
+    return mult
 
 
 _STEPS = ((-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (-1, 1), (1, -1), (1, 1))
 
 
 def escape(free: np.ndarray, passable: np.ndarray, clearance: np.ndarray, row: int, col: int,
-           fit: float, res: float, radius: float | None = None) -> Escape:
+           fit: float, res: float, radius: float | None = None,
+           mult: np.ndarray | None = None) -> Escape:
     """The passable cells the robot at cell (row, col) can get to within `radius` [m]
-    (ESCAPE_RADIUS), with the length of the way (8-neighbour steps, no corner cutting).
+    (ESCAPE_RADIUS) of way, with the cost of the way (8-neighbour steps, no corner cutting;
+    each step's length times the mean `mult` of its two cells, as the search that goes on
+    from the seeds prices it (:func:`cost_multiplier`); the plain length without `mult`).
 
     Its own cell counts whatever it is (it stands there); a passable own cell is the only
     seed, at cost 0. Otherwise the way goes through free cells with clearance >= fit [m]
@@ -310,7 +345,7 @@ def escape(free: np.ndarray, passable: np.ndarray, clearance: np.ndarray, row: i
         return Escape(np.array([robot], np.int64), np.zeros(1), {}, robot)
     n = max(1, int(math.ceil((ESCAPE_RADIUS if radius is None else radius) / res)))
     for ok in (free & (clearance + 1e-6 >= fit), free):
-        seeds, cost, parent = _escape_search(ok, passable, row, col, n * res, res)
+        seeds, cost, parent = _escape_search(ok, passable, row, col, n * res, res, mult)
         if seeds:
             return Escape(np.array(seeds, np.int64), np.array(cost), parent, robot)
     near = _nearest_in_sight(passable, clearance > 0, row, col, n)
@@ -337,19 +372,21 @@ def _nearest_in_sight(mask: np.ndarray, clear: np.ndarray, row: int, col: int, r
 
 
 def _escape_search(ok: np.ndarray, passable: np.ndarray, row: int, col: int, limit: float,
-                   res: float) -> tuple[list[int], list[float], dict[int, int]]:
-    """Dijkstra from (row, col) through `ok` cells up to `limit` [m]; stops at passable cells
-    (the seeds, with their costs); parent maps each visited flat index to the previous one
-    (-1: the start)."""
+                   res: float, mult: np.ndarray | None = None
+                   ) -> tuple[list[int], list[float], dict[int, int]]:
+    """Dijkstra from (row, col) through `ok` cells, by cost (length times the mean `mult` of a
+    step's cells; length alone without it), over ways up to `limit` [m] long; stops at
+    passable cells (the seeds, with their costs); parent maps each visited flat index to the
+    previous one (-1: the start)."""
     h, w = passable.shape
     cost: dict[tuple[int, int], float] = {(row, col): 0.0}
     parent: dict[int, int] = {}
-    heap = [(0.0, row, col)]
+    heap = [(0.0, 0.0, row, col)]  # (cost, length [m], row, col)
     seeds: list[int] = []
     costs: list[float] = []
     while heap:
-        d, r, c = heapq.heappop(heap)
-        if d > cost.get((r, c), math.inf) or d > limit + 1e-9:
+        d, ln, r, c = heapq.heappop(heap)
+        if d > cost.get((r, c), math.inf) or ln > limit + 1e-9:
             continue
         if (r, c) != (row, col) and passable[r, c]:
             seeds.append(r * w + c)
@@ -361,11 +398,13 @@ def _escape_search(ok: np.ndarray, passable: np.ndarray, row: int, col: int, lim
                 continue
             if dr and dc and not (_fits(ok, r, cc) and _fits(ok, rr, c)):
                 continue
-            nd = d + (res * SQRT2 if dr and dc else res)
+            step = res * SQRT2 if dr and dc else res
+            f = 1.0 if mult is None else 0.5 * (float(mult[r, c]) + float(mult[rr, cc]))
+            nd = d + step * f
             if nd < cost.get((rr, cc), math.inf):
                 cost[(rr, cc)] = nd
                 parent[rr * w + cc] = r * w + c if (r, c) != (row, col) else -1
-                heapq.heappush(heap, (nd, rr, cc))
+                heapq.heappush(heap, (nd, ln + step, rr, cc))
     return seeds, costs, parent
 
 
