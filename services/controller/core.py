@@ -5,10 +5,10 @@ Pioneer 2DX moved at most 200 mm/s), rotate in place when the heading error is l
 near obstacles, hard stop when the front sector of the latest scan is closer than a safety
 distance, stop on an empty plan. The hard stop looks at the body's own path: the straight
 corridor ahead (|y| <= radius) and the arc the command drives (the disc of the body swept
-along it, arc_distance); returns within robot.body_margin beside that path only slow the robot
-to slow_min_scale (a door as wide as the body plus twice the margin is passable). Additionally: progress along the path is
-tracked so the lookahead point never goes back, and a stuck robot backs up and turns toward
-the path.
+along it, arc_distance); returns within robot.body_margin beside that path only slow the
+robot to slow_min_scale (a door as wide as the body plus twice the margin is passable).
+Additionally: progress along the path is tracked so the lookahead point never goes back, and a
+stuck robot backs up and turns toward the path.
 
 Modes: "idle" (no path), "done" (exploration over), "arrived" (end of path reached), "rotate"
 (turning in place), "track" (pure pursuit), "slow" (pure pursuit, slowed by an obstacle ahead),
