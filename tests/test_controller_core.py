@@ -169,7 +169,7 @@ def test_turning_into_a_return_beside_the_body_stops():
     nothing, the arc the command drives meets it at once."""
     wall = [(0.044, -0.191), (0.04, -0.203), (0.08, -0.23), (0.12, -0.27), (0.2, -0.37)]
     scan = only(wall)
-    assert front_distance(scan, P, R) == math.inf  # 8 m: nothing
+    assert front_distance(scan, P, R) == math.inf  # outside the sector: not looked at
     bend = np.array([[0.0, 0.0], [0.3, -0.05], [0.4, -0.4]])  # the path bends to the right
     core = ControllerCore(P)
     v, w, mode = step(core, 0.0, (0.0, 0.0, 0.0), bend, 1, False, scan)

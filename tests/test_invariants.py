@@ -32,6 +32,11 @@ from topoexplore.services.planner import graph as gr
 from topoexplore.services.planner.core import PlannerCore
 from topoexplore.services.planner.mapview import MapView
 from topoexplore.services.planner.strategies.base import Config
+from topoexplore.services.planner.strategies.frontier import (
+    NARROW_PENALTY,
+    SOFT_PENALTY,
+    SOFT_RADIUS_FACTOR,
+)
 from topoexplore.services.planner.watchdog import LEVELS, Watchdog
 
 RES = 0.1
@@ -566,8 +571,9 @@ def test_the_way_out_of_a_doorway_keeps_to_its_middle(narrow):
     fit = cfg.fit(RES)
     x, y = geom.cell_to_world(21, 19)  # the robot: in the doorway, beside its middle
     assert fit - 1e-6 <= view.clearance[21, 19] < cfg.need
-    search = view.search(float(x), float(y), cfg.need, fit=fit, soft_radius=2 * cfg.need,
-                         soft_penalty=2.0, narrow_penalty=4.0 if narrow else None)
+    search = view.search(float(x), float(y), cfg.need, fit=fit,
+                         soft_radius=SOFT_RADIUS_FACTOR * cfg.need, soft_penalty=SOFT_PENALTY,
+                         narrow_penalty=NARROW_PENALTY if narrow else None)  # as frontier's
     path = search.path_to(5, 19)  # a goal below the wall, straight down from the robot
     assert len(path)
     rows, cols = geom.world_to_cell(path[:, 0], path[:, 1])
