@@ -309,16 +309,10 @@ def cost_multiplier(clearance: np.ndarray, robot_radius: float, fit: float,
     if soft_penalty > 0 and soft_radius > robot_radius:
         frac = (soft_radius - clearance) / (soft_radius - robot_radius)
         mult += soft_penalty * np.clip(frac, 0.0, 1.0)
+    span = robot_radius - fit  # [m] the narrow band: from the body's fit up to the margin
+    depth = np.clip((robot_radius - clearance) / span, 0.0, 1.0) if span > 0 else 1.0
     tight = clearance + 1e-6 < robot_radius
-    if np.any(tight):
-        extra = narrow_penalty
-        if robot_radius > fit:
-            depth = (robot_radius - np.maximum(clearance, fit)) / (robot_radius - fit)
-            extra = extra + TIGHT_PENALTY * np.clip(depth, 0.0, 1.0)
-        else:
-            extra = extra + TIGHT_PENALTY
-        mult = np.where(tight, mult + extra, mult)
-    return mult
+    return np.where(tight, mult + narrow_penalty + TIGHT_PENALTY * depth, mult)
 
 
 _STEPS = ((-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (-1, 1), (1, -1), (1, 1))
