@@ -276,7 +276,7 @@ def occupancy_to_pixels(grid_int8: np.ndarray, p_free: float = 0.35,
     return np.ascontiguousarray(img[::-1])
 
 
-def _atomic_write(path: Path, data: bytes) -> None:
+def atomic_write(path: Path, data: bytes) -> None:
     """Write via a temporary file in the same directory + rename (readers never see half)."""
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
@@ -329,8 +329,8 @@ def write_map_server(yaml_path: str | os.PathLike, grid_int8: np.ndarray, geom: 
     text = yaml.safe_dump(meta, sort_keys=False, default_flow_style=None)
     try:
         ypath.parent.mkdir(parents=True, exist_ok=True)
-        _atomic_write(pgm, header + img.tobytes())
-        _atomic_write(ypath, text.encode("utf-8"))
+        atomic_write(pgm, header + img.tobytes())
+        atomic_write(ypath, text.encode("utf-8"))
     except OSError as exc:
         raise MapIOError(f"cannot write map {ypath}: {exc}") from None
     return ypath, pgm
@@ -351,7 +351,7 @@ def write_png(path: str | os.PathLike, image: np.ndarray) -> Path:
         raise MapIOError(f"cannot encode PNG for {p}")
     try:
         p.parent.mkdir(parents=True, exist_ok=True)
-        _atomic_write(p, buf.tobytes())
+        atomic_write(p, buf.tobytes())
     except OSError as exc:
         raise MapIOError(f"cannot write {p}: {exc}") from None
     return p

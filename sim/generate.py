@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 
 from topoexplore.common.grid import GridGeometry, distance_transform
-from topoexplore.common.mapio import MapIOError, write_map_server
+from topoexplore.common.mapio import MapIOError, atomic_write, write_map_server
 from topoexplore.sim.world import (
     ROBOT_RADIUS,
     START_CLEARANCE,
@@ -1768,7 +1768,7 @@ def write_generated(gen: Generated, out_dir: str | Path, slam_noise: int | None 
             sm = slam_map(gen, slam_noise)
             yaml_path, _pgm = write_map_server(out / f"{name}.yaml", sm.grid, sm.geom)
             text = _map_toml(gen, sm, name, yaml_path.name)
-        path.write_text(text, encoding="utf-8")
+        atomic_write(path, text.encode("utf-8"))  # a bench reading it meanwhile sees old or new
     except MapIOError as exc:
         raise GenerateError(str(exc)) from None
     except OSError as exc:
