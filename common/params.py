@@ -306,6 +306,8 @@ class PlannerParams(_P):
     # completion rules count this near by path are candidates too (cost: path length), so
     # that a corner is not left for a long trip back later; 0: off (the default: not yet
     # measured on the held-back half, docs/design.md "Experimental, off by default")
+    grid_paths: bool = False  # reliability / all-end-nodes: drive to the chosen end node
+    # on a grid path (as the frontier strategy's) instead of along the skeleton's edges
     stop_when_mapped: bool = True  # reliability: done once no frontier is left by the
     # completion rules, even with end nodes below p_reliable (a departure; docs/design.md)
     open_radius: NonNeg = 1.0  # [m] ... except the end nodes with min_frontier_size of

@@ -579,3 +579,29 @@ def test_the_way_out_of_a_doorway_keeps_to_its_middle(narrow):
     rows, cols = geom.world_to_cell(path[:, 0], path[:, 1])
     in_door = (rows >= 19) & (rows <= 20)  # the door's rows after the robot's own (21)
     assert np.all(cols[in_door] == 20), np.c_[rows, cols].tolist()
+
+
+# --- the way to an end node ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("grid_paths", [False, True])
+def test_grid_paths_drive_to_the_end_node_the_short_way(grid_paths):
+    """A skeleton that detours (an edge bowing 1.5 m up into an open room) leads to the open
+    end node 4 m away, beside unexplored space; with grid_paths the robot drives the grid's
+    way there, the skeleton's without."""
+    g, geom = room(60, 40)
+    g[1:-1, 55:59] = -1
+    bow = [[1.0, 2.0], [3.0, 3.5], [5.0, 2.0]]
+    tp = Graph.from_edges([Node(1, "end", 1.0, 2.0), Node(2, "end", 5.0, 2.0)],
+                          [(1, 2, bow, 5.0, 0.5)])
+    core = PlannerCore(params(grid_paths=grid_paths))
+    for k in range(2):
+        out = core.update(0.4 * k, (1.0, 2.0, 0.0), tp, rel({1: 0.95, 2: 0.5}), GridMap(g, geom))
+    assert out.state == "exploring" and out.route.target_id == 2, out.status.reason
+    w = out.route.waypoints
+    assert math.hypot(*(w[-1] - [5.0, 2.0])) < 0.2
+    length = float(np.sum(np.hypot(*np.diff(w, axis=0).T)))
+    if grid_paths:
+        assert length < 4.3 and w[:, 1].max() < 2.3
+    else:
+        assert length > 4.9 and w[:, 1].max() > 3.3

@@ -121,7 +121,7 @@ def _evaluate(cfg: Config, u: Update, min_size: float | None, pocket_area: float
     ev.done = done
     ev.unreachable = unreachable
     ev.status_of = lambda c: "was cleared (no frontier group there any more)"
-    ev.path_ok = _path_fits(view, search, cfg.radius)
+    ev.path_ok = path_fits(view, search.clearance, cfg.radius)
     return ev
 
 
@@ -134,9 +134,10 @@ def _candidate(g: gs.FrontierGroup, search: gs.GridSearch, res: float, scale: fl
                      face=g.look_xy)
 
 
-def _path_fits(view: MapView, search: gs.GridSearch, radius: float):
-    """path_ok of a frontier path: every waypoint on the grid, on no occupied cell and with
-    at least half the robot radius of clearance."""
+def path_fits(view: MapView, clearance: np.ndarray, radius: float):
+    """path_ok of a grid path (a frontier's, or an end node's with grid_paths): every
+    waypoint on the grid, on no occupied cell and with at least half the robot radius of
+    clearance [m] (the search's clearance map)."""
     geom = view.geom
 
     def path_ok(wps: np.ndarray) -> bool:
@@ -146,7 +147,7 @@ def _path_fits(view: MapView, search: gs.GridSearch, radius: float):
         inside = geom.inside(rows, cols)
         if not np.all(inside):
             return False
-        bad = view.occupied[rows, cols] | (search.clearance[rows, cols] < 0.5 * radius)
+        bad = view.occupied[rows, cols] | (clearance[rows, cols] < 0.5 * radius)
         return not bool(np.any(bad))
 
     return path_ok

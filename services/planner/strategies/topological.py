@@ -34,7 +34,12 @@ from topoexplore.services.planner.strategies.base import (
     id_list,
 )
 from topoexplore.services.planner.strategies.completion import Completion
-from topoexplore.services.planner.strategies.frontier import NARROW_PENALTY
+from topoexplore.services.planner.strategies.frontier import (
+    NARROW_PENALTY,
+    SOFT_PENALTY,
+    SOFT_RADIUS_FACTOR,
+    path_fits,
+)
 
 P_UNSEEN = 0.5  # P of an end node the reliability message does not list yet (paper: initial P)
 ENTRY_WINDOW = 4.0  # [m] the way onto the skeleton is checked for the body's fit this far
@@ -225,7 +230,30 @@ class Topological:
         if s.u.view is not None:
             view = s.u.view
             ev.path_clear = lambda wps: not gr.crosses(view.occupied, view.geom, wps)
+            if self.cfg.params.grid_paths:
+                self._grid_paths(s, ev)
         return ev
+
+    def _grid_paths(self, s: Scene, ev: Evaluation) -> None:
+        """grid_paths: the way to each end node on the grid, as a frontier strategy's, where
+        the grid search reaches the skeleton path's last point; the skeleton path elsewhere.
+        The search runs only when a path is made."""
+        view, cfg = s.u.view, self.cfg
+        u, made = s.u, []
+
+        def search() -> gs.GridSearch:
+            if not made:
+                hard = cfg.need
+                made.append(view.search(u.x, u.y, hard, fit=cfg.fit(view.geom.resolution),
+                                        soft_radius=SOFT_RADIUS_FACTOR * hard,
+                                        soft_penalty=SOFT_PENALTY))
+            return made[0]
+
+        for c in ev.cands:
+            if not c.partial:
+                c.path = _grid_or(c.path, search, view.geom)
+        on_skeleton, fits = ev.path_ok, path_fits(view, view.clearance, cfg.radius)
+        ev.path_ok = lambda wps: on_skeleton(wps) or fits(wps)
 
     def _candidate(self, s: Scene, i: int) -> Candidate | None:
         """Open end node i as a candidate; None if it is unreachable."""
@@ -347,3 +375,21 @@ def _joined(ev: Evaluation, near: Evaluation, on_frontier: bool) -> Evaluation:
     src = near if on_frontier else ev
     return replace(ev, cands=ev.cands + near.cands, path_ok=src.path_ok,
                                path_clear=src.path_clear, status_of=src.status_of)
+
+
+def _grid_or(path: Callable[[], np.ndarray], search: Callable[[], gs.GridSearch], geom
+             ) -> Callable[[], np.ndarray]:
+    """The grid path (of search()) to path()'s last point where the search reaches it, else
+    path()."""
+
+    def grid_path() -> np.ndarray:
+        pts = path()
+        sr = search()
+        r, c = geom.world_to_cell(float(pts[-1, 0]), float(pts[-1, 1]))
+        if sr.start is not None and geom.inside(r, c) and math.isfinite(sr.dist[int(r), int(c)]):
+            g = sr.path_to(int(r), int(c))
+            if len(g):
+                return g
+        return pts
+
+    return grid_path
