@@ -59,9 +59,12 @@ def grid(g, geom):
 def params(**kw):
     """Planner params; done is reported at once (done_confirm=1) and the reliability strategy
     does not stop on a complete map (stop_when_mapped: the hand-made grids here are complete
-    maps) unless a test says otherwise."""
+    maps) unless a test says otherwise; paths run along the skeleton (grid_paths off: these
+    tests are about the topological path itself, which grid_paths keeps where the grid
+    search does not reach, and which the paper's variant drives)."""
     return msgspec.structs.replace(PlannerParams(), **{"done_confirm": 1,
-                                                       "stop_when_mapped": False, **kw})
+                                                       "stop_when_mapped": False,
+                                                       "grid_paths": False, **kw})
 
 
 def wps(out: Plan) -> list[tuple[float, float]]:

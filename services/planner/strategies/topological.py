@@ -2,7 +2,9 @@
 
 Candidates are the *open* end nodes (the strategy says which are open) reachable along edges
 wide enough for the robot; cost = path length over the topological graph from the robot's
-entry point on the skeleton. The path runs robot -> entry point -> edge polylines -> target.
+entry point on the skeleton. The path runs robot -> entry point -> edge polylines -> target;
+with ``grid_paths`` (the default, docs/design.md) the robot drives the grid search's path to
+that path's last point instead, where the search reaches it.
 
 Approach through a narrow passage (``approach_narrow``): an open end node reachable only over
 an edge too narrow for the robot is a candidate whose path stops at the first narrow point,
