@@ -605,3 +605,22 @@ def test_grid_paths_drive_to_the_end_node_the_short_way(grid_paths):
         assert length < 4.3 and w[:, 1].max() < 2.3
     else:
         assert length > 4.9 and w[:, 1].max() > 3.3
+
+
+def test_an_end_node_resolved_into_the_completion_phase_is_worded_as_an_end_node():
+    """The last end node becomes reliable and the completion phase takes a frontier group:
+    the status says why the end node went ("became reliable"), not a frontier group's
+    "cleared"."""
+    g, geom = room(60, 40)
+    g[1:-1, 50] = 100
+    g[10:30, 50] = 0  # a wide opening at x = 5 m into unknown space
+    g[1:-1, 51:59] = -1
+    tp = Graph.from_edges([Node(1, "end", 1.0, 2.0), Node(2, "end", 3.0, 2.0)],
+                          [(1, 2, [[1.0, 2.0], [3.0, 2.0]], 2.0, 0.8)])
+    core = PlannerCore(params())
+    out = core.update(0.0, (1.0, 2.0, 0.0), tp, rel({1: 0.95, 2: 0.5}), GridMap(g, geom))
+    assert out.route.target_id == 2, out.status.reason
+    out = core.update(0.4, (1.0, 2.0, 0.0), tp, rel({1: 0.95, 2: 0.95}), GridMap(g, geom))
+    assert out.route.target_id == -1 and "completion" in out.status.reason, out.status.reason
+    assert "end node 2 (P=0.50) became reliable (P=0.95)" in out.status.reason
+    assert "cleared" not in out.status.reason

@@ -57,9 +57,13 @@ class Completion:
             self._ev, self._t = fe, u.t
         if fe.failed is not None:
             return dataclasses.replace(ev, failed=fe.failed)
-        # this update's end node counts and summary, whether the search is new or kept
+        # this update's end node counts and summary, whether the search is new or kept; an
+        # end node followed until now is worded by the end nodes' evaluation (it vanished or
+        # was resolved: not "cleared", which is a frontier group's word)
+        groups, nodes = fe.status_of, ev.status_of
         return dataclasses.replace(fe, end_nodes=ev.end_nodes, reliable=ev.reliable,
-                                   done=f"{ev.done}; {fe.done}")
+                                   done=f"{ev.done}; {fe.done}",
+                                   status_of=lambda c: nodes(c) if c.id >= 0 else groups(c))
 
     def nearby(self, u: Update, radius: float) -> Evaluation | None:
         """The frontier groups the completion rules count whose path is at most radius [m]
