@@ -84,11 +84,7 @@ def _evaluate(cfg: Config, u: Update, min_size: float | None, pocket_area: float
     min_size = p.min_frontier_size if min_size is None else min_size
     floor = min(min_size, p.min_frontier_size) if near > 0 else min_size
     ev = Evaluation()
-    hard = cfg.need
-    search = view.search(u.x, u.y, hard, fit=cfg.fit(view.geom.resolution), soft_radius=SOFT_RADIUS_FACTOR * hard,
-                         soft_penalty=SOFT_PENALTY,
-                         narrow_penalty=NARROW_PENALTY if narrow else None,
-                         reach_only=reach_only)
+    search = robot_search(cfg, u, narrow, reach_only)
     if search.start is None:
         ev.failed = "the robot is not near known free space (no start cell for the search)"
         ev.done = ev.failed
@@ -123,6 +119,18 @@ def _evaluate(cfg: Config, u: Update, min_size: float | None, pocket_area: float
     ev.status_of = lambda c: "was cleared (no frontier group there any more)"
     ev.path_ok = path_fits(view, search.clearance, cfg.radius)
     return ev
+
+
+def robot_search(cfg: Config, u: Update, narrow: bool = False, reach_only: bool = False
+                 ) -> gs.GridSearch:
+    """The grid search from the robot on u.view that frontier paths (and, with grid_paths,
+    the topological strategies' paths to their end nodes) are made with: cells with clearance
+    >= radius + margin (cfg.need), longer near walls (the soft penalty); narrow: through
+    narrow passages too, at NARROW_PENALTY."""
+    view, hard = u.view, cfg.need
+    return view.search(u.x, u.y, hard, fit=cfg.fit(view.geom.resolution),
+                       soft_radius=SOFT_RADIUS_FACTOR * hard, soft_penalty=SOFT_PENALTY,
+                       narrow_penalty=NARROW_PENALTY if narrow else None, reach_only=reach_only)
 
 
 def _candidate(g: gs.FrontierGroup, search: gs.GridSearch, res: float, scale: float

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from topoexplore.common.grid import cells_for, near_frontier
+from topoexplore.common.grid import GridGeometry, cells_for, near_frontier
 from topoexplore.services.planner import graph as gr
 from topoexplore.services.planner import gridsearch as gs
 from topoexplore.services.planner.strategies.base import (
@@ -38,9 +38,8 @@ from topoexplore.services.planner.strategies.base import (
 from topoexplore.services.planner.strategies.completion import Completion
 from topoexplore.services.planner.strategies.frontier import (
     NARROW_PENALTY,
-    SOFT_PENALTY,
-    SOFT_RADIUS_FACTOR,
     path_fits,
+    robot_search,
 )
 
 P_UNSEEN = 0.5  # P of an end node the reliability message does not list yet (paper: initial P)
@@ -240,15 +239,11 @@ class Topological:
         """grid_paths: the way to each end node on the grid, as a frontier strategy's, where
         the grid search reaches the skeleton path's last point; the skeleton path elsewhere.
         The search runs only when a path is made."""
-        view, cfg = s.u.view, self.cfg
-        u, made = s.u, []
+        view, cfg, made = s.u.view, self.cfg, []
 
         def search() -> gs.GridSearch:
             if not made:
-                hard = cfg.need
-                made.append(view.search(u.x, u.y, hard, fit=cfg.fit(view.geom.resolution),
-                                        soft_radius=SOFT_RADIUS_FACTOR * hard,
-                                        soft_penalty=SOFT_PENALTY))
+                made.append(robot_search(cfg, s.u))
             return made[0]
 
         for c in ev.cands:
@@ -379,8 +374,8 @@ def _joined(ev: Evaluation, near: Evaluation, on_frontier: bool) -> Evaluation:
                                path_clear=src.path_clear, status_of=src.status_of)
 
 
-def _grid_or(path: Callable[[], np.ndarray], search: Callable[[], gs.GridSearch], geom
-             ) -> Callable[[], np.ndarray]:
+def _grid_or(path: Callable[[], np.ndarray], search: Callable[[], gs.GridSearch],
+             geom: GridGeometry) -> Callable[[], np.ndarray]:
     """The grid path (of search()) to path()'s last point where the search reaches it, else
     path()."""
 
