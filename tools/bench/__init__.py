@@ -4,22 +4,24 @@
     topoexplore bench explore [--worlds ...] [--strategies ...] [--seeds N] [--out DIR]
     topoexplore bench inproc [--worlds ...] [--strategies ...] [--seeds N] [--set k=v ...]
     topoexplore bench robust [--half tune|held|real|all] [--strategies ...] [--quick]
+    topoexplore bench oracle [--worlds ...] [--corpus DIR] [--from-results SRC ...]
 
 ``stages`` (:mod:`.stages`, :mod:`.bus`) times every core and the bus; ``explore``
 (:mod:`.explore`) runs the strategy comparison suite with the real processes; ``inproc``
-(:mod:`.inproc`) runs the same cores in one process for parameter sweeps.
+(:mod:`.inproc`) runs the same cores in one process for parameter sweeps; ``oracle``
+(:mod:`.oracle`) divides their paths by a short tour planned on the true map.
 """
 
 from __future__ import annotations
 
 import sys
 
-_USAGE = "usage: topoexplore bench {stages,explore,inproc,robust} [options]  (-h for help)"
+_USAGE = "usage: topoexplore bench {stages,explore,inproc,robust,oracle} [options]  (-h for help)"
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or argv[0] not in ("stages", "explore", "inproc", "robust"):
+    if not argv or argv[0] not in ("stages", "explore", "inproc", "robust", "oracle"):
         print(_USAGE, file=sys.stderr)
         return 2
     if argv[0] == "stages":
@@ -30,6 +32,10 @@ def main(argv: list[str] | None = None) -> int:
         from topoexplore.tools.bench import inproc
 
         return inproc.main(argv[1:])
+    if argv[0] == "oracle":
+        from topoexplore.tools.bench import oracle
+
+        return oracle.main(argv[1:])
     if argv[0] == "robust":
         from topoexplore.tools.bench import robust
 

@@ -1,0 +1,398 @@
+"""A short tour of viewpoints on the true map: how short an exploration path could be.
+
+The reference the strategies' paths are divided by (``topoexplore bench oracle``). It knows
+the map before it starts, so no strategy can match it; it is not a strategy. Pure: truth in,
+figures out.
+
+1. **Viewpoints**: the reachable robot centre positions (:func:`world.truth_robot_positions`)
+   on a lattice, and the start; the whole plan is made on lattices of 0.1, 0.2, 0.3 and 0.5 m
+   (each at most MAX_CANDIDATES points) and the shortest tour kept.
+2. **What a viewpoint sees**: the cells of the coverage set (:func:`world.truth_mappable`)
+   within ``laser_range`` [m] in Bresenham line of sight through free cells, all round: the
+   robot turns in place at no path cost, so its 180 deg laser sees every bearing.
+3. **Greedy set cover** (lazy gains): the start's view first, then the viewpoint that sees
+   most of what is still unseen, until ``fraction`` of the coverage set is seen. Greedy is
+   within a factor ln(n) + 1 of the fewest viewpoints in the worst case, and usually within a
+   few of it.
+4. **Open tour** from the start through the chosen viewpoints: shortest paths between them
+   over the reachable positions (8-connected, octile lengths: up to 8 % over the Euclidean
+   length of a straight stretch at an angle), order by nearest neighbour, then 2-opt and
+   or-opt moves until none shortens it (:func:`open_tour`; against every order on 200 small
+   instances in ``tests/test_oracle.py``: 196 optimal, the worst 7 % longer).
+5. **Seeing on the way** (:class:`_Plan`): the robot also sees from its paths (a sample every
+   lattice step, all round: optimistic). Viewpoints the rest of the tour covers for are
+   dropped (the least useful first); each one left moves to the candidate that alone sees
+   what it alone sees at the least detour ("pull": greedy cover takes the viewpoint that sees
+   most, often deep in a room or a corridor); the rest is toured again, and viewpoints of
+   the cover are added back while the new order sees less than ``fraction``.
+
+No step is optimal, so the tour is a *short* tour, not the shortest: a strategy's path over it
+says how far the strategy is from what knowing the map buys, an upper estimate of the gap to
+the true optimum. Seeing all round from every point of the path is optimistic, and viewpoints
+and lines of sight are cells of 0.1 m, so on a tiny map (lse_arena: a 2.1 m tour) a strategy
+can come out a few per cent under it.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from topoexplore.sim.world import (
+    LASER_RANGE,
+    ROBOT_RADIUS,
+    World,
+    _ray_table,
+    _square_border,
+    rasterize,
+    truth_mappable,
+    truth_robot_positions,
+)
+
+RESOLUTION = 0.1  # [m] the raster of the coverage figure
+SPACINGS = (0.1, 0.2, 0.3, 0.5)  # [m] lattices of candidate viewpoints tried (the shortest
+#   tour is kept: greedy cover is not monotone in the candidates); each made coarser where
+#   it would exceed MAX_CANDIDATES
+FRACTION = 0.99  # of the coverage set the tour sees
+MAX_CANDIDATES = 4000  # the lattice is made coarser beyond this many candidate viewpoints
+_POP = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)  # bits per byte
+
+
+@dataclass(frozen=True)
+class OracleTour:
+    length_m: float  # [m] the open tour from the start
+    points: np.ndarray  # (k, 2) [m] the start, then the viewpoints in tour order
+    seen_fraction: float  # of the coverage set, seen from the tour's viewpoints
+    candidates: int  # candidate viewpoints
+    spacing_m: float  # [m] their lattice
+    greedy_length_m: float  # [m] the nearest-neighbour order's length, before 2-opt / or-opt
+
+
+@njit(cache=True, nogil=True)
+def _views(solid, tidx, vr, vc, rays, r2, nbytes):  # pragma: no cover - compiled
+    """uint8 (len(vr), nbytes): per viewpoint (vr[i], vc[i]) the bits (numpy packbits order)
+    of the target cells (tidx >= 0) it sees: rays from it stop at the first solid cell, the
+    raster's edge or squared distance r2 [cells^2]."""
+    h, w = solid.shape
+    out = np.zeros((vr.shape[0], nbytes), dtype=np.uint8)
+    for v in range(vr.shape[0]):
+        r0 = vr[v]
+        c0 = vc[v]
+        for k in range(rays.shape[0]):
+            for i in range(rays.shape[1]):
+                dr = rays[k, i, 0]
+                dc = rays[k, i, 1]
+                rr = r0 + dr
+                cc = c0 + dc
+                if dr * dr + dc * dc > r2 or rr < 0 or rr >= h or cc < 0 or cc >= w:
+                    break
+                if solid[rr, cc]:
+                    break
+                t = tidx[rr, cc]
+                if t >= 0:
+                    out[v, t >> 3] |= np.uint8(128 >> (t & 7))
+    return out
+
+
+def greedy_cover(views: np.ndarray, total: int, fraction: float, first: int = 0
+                 ) -> tuple[list[int], int]:
+    """Greedy set cover of packed bit rows: row first, then the row with the most unseen bits
+    (lazy re-evaluation) until fraction of total bits are seen or nothing more is. Returns
+    (chosen rows, bits seen)."""
+    seen = views[first].copy()
+    chosen = [first]
+    count = int(_POP[seen].sum(dtype=np.int64))
+    want = math.ceil(fraction * total - 1e-9)
+    gains = np.concatenate([_POP[views[i:i + 256]].sum(axis=1, dtype=np.int64)
+                            for i in range(0, len(views), 256)])
+    heap = [(-int(g), i) for i, g in enumerate(gains) if i != first and g > 0]
+    heapq.heapify(heap)
+    while count < want and heap:
+        _, i = heapq.heappop(heap)
+        g = int(_POP[views[i] & ~seen].sum(dtype=np.int64))
+        if g <= 0:
+            continue
+        if heap and g < -heap[0][0]:
+            heapq.heappush(heap, (-g, i))
+            continue
+        seen |= views[i]
+        count += g
+        chosen.append(i)
+    return chosen, count
+
+
+def open_tour(d: np.ndarray) -> tuple[list[int], float, float]:
+    """A short open tour from node 0 through every node of the distance matrix d (k, k):
+    nearest neighbour, then 2-opt and or-opt (segments of 1 to 3 moved, either way round)
+    until no move shortens it. Returns (order starting with 0, its length, the nearest
+    neighbour order's length). Unreachable pairs (inf) are never chosen while a finite one is
+    left."""
+    k = d.shape[0]
+    if k <= 1:
+        return list(range(k)), 0.0, 0.0
+    left = set(range(1, k))
+    order = [0]
+    while left:
+        row = d[order[-1]]
+        nxt = min(left, key=lambda j: row[j])
+        order.append(nxt)
+        left.discard(nxt)
+    greedy = _length(d, order)
+    improved = True
+    while improved:
+        improved = _two_opt(d, order) | _or_opt(d, order)
+    return order, _length(d, order), greedy
+
+
+def _length(d: np.ndarray, order: list[int]) -> float:
+    return float(sum(d[a, b] for a, b in zip(order[:-1], order[1:], strict=True)))
+
+
+def _two_opt(d: np.ndarray, order: list[int]) -> bool:
+    """Reverse order[i..j] where that shortens the open tour (order[0] stays first)."""
+    n, any_ = len(order), False
+    improved = True
+    while improved:
+        improved = False
+        for i in range(1, n - 1):
+            a, b = order[i - 1], order[i]
+            for j in range(i + 1, n):
+                c = order[j]
+                delta = d[a, c] - d[a, b]
+                if j + 1 < n:
+                    e = order[j + 1]
+                    delta += d[b, e] - d[c, e]
+                if delta < -1e-9:
+                    order[i:j + 1] = order[i:j + 1][::-1]
+                    improved = any_ = True
+                    a, b = order[i - 1], order[i]
+    return any_
+
+
+def _or_opt(d: np.ndarray, order: list[int]) -> bool:
+    """Move a segment of 1 to 3 nodes (either way round) to where it shortens the open tour
+    (order[0] stays first); True if any move was made."""
+    any_ = False
+    for seg in (1, 2, 3):
+        i = 1
+        while i + seg <= len(order):
+            p, s0, s1 = order[i - 1], order[i], order[i + seg - 1]
+            q = order[i + seg] if i + seg < len(order) else None
+            gain = d[p, s0] - (0.0 if q is None else d[p, q] - d[s1, q])
+            rest = order[:i] + order[i + seg:]
+            best, where = 1e-9, None
+            for j in range(1, len(rest) + 1):
+                if j == i:
+                    continue
+                a = rest[j - 1]
+                b = rest[j] if j < len(rest) else None
+                for first, last, rev in ((s0, s1, False), (s1, s0, True)):
+                    add = d[a, first] + (0.0 if b is None else d[last, b] - d[a, b])
+                    if gain - add > best:
+                        best, where = gain - add, (j, rev)
+            if where is not None:
+                j, rev = where
+                piece = order[i:i + seg][::-1] if rev else order[i:i + seg]
+                order[:] = rest[:j] + piece + rest[j:]
+                any_ = True
+            else:
+                i += 1
+    return any_
+
+
+def _grid_graph(pos: np.ndarray) -> tuple[csr_matrix, np.ndarray]:
+    """The 8-connected graph of the True cells of pos (edge lengths 1 and sqrt 2 [cells]) and
+    the node number of each cell (-1 off pos)."""
+    h, w = pos.shape
+    node = np.full((h, w), -1, dtype=np.int64)
+    rr, cc = np.nonzero(pos)
+    node[rr, cc] = np.arange(rr.size)
+    src, dst, wt = [], [], []
+    for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
+        r2, c2 = rr + dr, cc + dc
+        ok = (r2 >= 0) & (r2 < h) & (c2 >= 0) & (c2 < w)
+        ok[ok] &= pos[r2[ok], c2[ok]]
+        src.append(node[rr[ok], cc[ok]])
+        dst.append(node[r2[ok], c2[ok]])
+        wt.append(np.full(int(ok.sum()), math.hypot(dr, dc)))
+    s, t, x = np.concatenate(src), np.concatenate(dst), np.concatenate(wt)
+    g = csr_matrix((np.concatenate([x, x]), (np.concatenate([s, t]), np.concatenate([t, s]))),
+                   shape=(rr.size, rr.size))
+    return g, node
+
+
+def oracle_tour(world: World, laser_range: float = LASER_RANGE, radius: float = ROBOT_RADIUS,
+                fraction: float = FRACTION, spacings: tuple[float, ...] = SPACINGS,
+                resolution: float = RESOLUTION) -> OracleTour:
+    """The short viewpoint tour of world (module docstring): the shortest over the candidate
+    lattices of spacings [m]."""
+    solid, ox, oy = rasterize(world, resolution)
+    pos, _, _ = truth_robot_positions(world, resolution, radius)
+    target, _, _ = truth_mappable(world, resolution, radius, laser_range)
+    start = _start_cell(pos, world, ox, oy, resolution)
+    tidx = np.full(solid.shape, -1, dtype=np.int64)
+    tr, tc = np.nonzero(target)
+    tidx[tr, tc] = np.arange(tr.size)
+    n = max(1, int(math.floor(laser_range / resolution + 1e-6)))
+    rays = _ray_table(_square_border(n))
+    graph, node = _grid_graph(pos)
+    best: OracleTour | None = None
+    steps: list[int] = []
+    for spacing in spacings:
+        step = max(1, round(spacing / resolution))
+        while int(pos[::step, ::step].sum()) > MAX_CANDIDATES:
+            step += 1
+        if step in steps:
+            continue
+        steps.append(step)
+        t = _tour_on_lattice(solid, pos, start, tidx, int(tr.size), rays, n, graph, node, step,
+                             fraction, resolution, ox, oy)
+        if best is None or t.length_m < best.length_m - 1e-9:
+            best = t
+    assert best is not None
+    return best
+
+
+def _tour_on_lattice(solid, pos, start, tidx, total, rays, n, graph, node, step, fraction,
+                     resolution, ox, oy) -> OracleTour:
+    """The tour over the candidates on a lattice of step cells (module docstring, 1-4)."""
+    lattice = np.zeros_like(pos)
+    lattice[::step, ::step] = True
+    lattice &= pos
+    vr, vc = np.nonzero(lattice)
+    vr = np.concatenate([[start[0]], vr]).astype(np.int64)
+    vc = np.concatenate([[start[1]], vc]).astype(np.int64)
+    r2 = float(n * n) + 1e-6
+    views = _views(solid, tidx, vr, vc, rays, r2, (total + 7) // 8)
+    chosen, _ = greedy_cover(views, total, fraction)
+    plan = _Plan(views, node[vr, vc], graph, np.nonzero(pos),
+                 lambda r, c: _views(solid, tidx, r, c, rays, r2, views.shape[1]),
+                 math.ceil(fraction * total - 1e-9), step)
+    order = plan.tour(chosen)[0]
+    order = plan.prune(order)
+    order = plan.pull(order)
+    order, length, greedy, seen = plan.repair(order, chosen)
+    pts = np.stack([ox + (vc[order] + 0.5) * resolution, oy + (vr[order] + 0.5) * resolution],
+                   axis=1)
+    return OracleTour(length * resolution, pts, seen / max(1, total), int(vr.size),
+                      step * resolution, greedy * resolution)
+
+
+class _Plan:
+    """The tour's improvement steps over candidate viewpoints (indices into views; 0 is the
+    start). The robot sees on the way too: all round, as at a viewpoint (optimistic), from a
+    sample every ``step`` cells of each shortest path between consecutive viewpoints.
+    Lengths in cells."""
+
+    def __init__(self, views, cand_node, graph, cells, see, want, step):
+        self.views, self.cand_node, self.graph = views, cand_node, graph
+        self.rows, self.cols = cells
+        self.see, self.want, self.step = see, want, step
+        self._segs: dict[tuple[int, int], np.ndarray] = {}
+
+    def tour(self, cands: list[int]) -> tuple[list[int], float, float]:
+        """open_tour over cands (cands[0] the start): (order, length, greedy length)."""
+        idx = self.cand_node[cands]
+        d = dijkstra(self.graph, directed=False, indices=idx)[:, idx]
+        order, length, greedy = open_tour(d)
+        return [cands[o] for o in order], length, greedy
+
+    def seg(self, a: int, b: int) -> np.ndarray:
+        """Packed bits seen from the shortest path between candidates a and b (cached)."""
+        key = (min(a, b), max(a, b))
+        if key not in self._segs:
+            na, nb = int(self.cand_node[key[0]]), int(self.cand_node[key[1]])
+            _, pred = dijkstra(self.graph, directed=False, indices=na, return_predecessors=True)
+            cells, v = [], nb
+            while v != na and v >= 0:
+                cells.append(v)
+                v = int(pred[v])
+            cells = cells[::-1][self.step - 1::self.step]
+            bits = np.zeros(self.views.shape[1], dtype=np.uint8)
+            if cells:
+                got = self.see(self.rows[cells].astype(np.int64),
+                               self.cols[cells].astype(np.int64))
+                bits = np.bitwise_or.reduce(got, axis=0)
+            self._segs[key] = bits
+        return self._segs[key]
+
+    def seen(self, order: list[int], skip: int | None = None) -> np.ndarray:
+        """Packed bits seen by the tour order, without the viewpoint at position skip (the tour
+        then goes from the one before it straight to the one after)."""
+        pts = [o for i, o in enumerate(order) if i != skip]
+        parts = [self.views[o] for o in pts]
+        parts += [self.seg(a, b) for a, b in zip(pts[:-1], pts[1:], strict=True)]
+        return np.bitwise_or.reduce(np.stack(parts), axis=0)
+
+    def count(self, bits: np.ndarray) -> int:
+        return int(_POP[bits].sum(dtype=np.int64))
+
+    def prune(self, order: list[int]) -> list[int]:
+        """Drop, the least useful first, each viewpoint the rest of the tour covers for."""
+        if self.count(self.seen(order)) < self.want:
+            return order
+        useful = []
+        for p in range(1, len(order)):
+            rest = self.seen(order, skip=p)
+            useful.append((self.count(self.views[order[p]] & ~rest), order[p]))
+        for _, k in sorted(useful):
+            p = order.index(k)
+            if self.count(self.seen(order, skip=p)) >= self.want:
+                order = order[:p] + order[p + 1:]
+        return order
+
+    def pull(self, order: list[int]) -> list[int]:
+        """Move each viewpoint (in tour order) to the candidate that sees all it alone sees
+        (given the rest of the tour without its own paths) and is the cheapest detour between
+        its neighbours: greedy cover takes the viewpoint that sees most, often deep in a room
+        or a corridor, where a nearer one sees enough."""
+        for p in range(1, len(order)):
+            alone = self.views[order[p]] & ~self.seen(order, skip=p)
+            fits = np.concatenate([np.all((self.views[i:i + 256] & alone) == alone, axis=1)
+                                   for i in range(0, len(self.views), 256)])
+            fits[order] = False
+            cand = np.nonzero(fits)[0]
+            if cand.size == 0:
+                continue
+            ends = [order[p - 1]] + ([order[p + 1]] if p + 1 < len(order) else [])
+            d = dijkstra(self.graph, directed=False, indices=self.cand_node[ends])
+            detour = d[:, self.cand_node[cand]].sum(axis=0)
+            now = d[:, self.cand_node[order[p]]].sum()
+            best = int(np.argmin(detour))
+            if detour[best] < now - 1e-9:
+                new = order[:p] + [int(cand[best])] + order[p + 1:]
+                if self.count(self.seen(new)) >= self.want:
+                    order = new
+        return order
+
+    def repair(self, order: list[int], pool: list[int]) -> tuple[list[int], float, float, int]:
+        """Tour order's viewpoints again; while the new order sees less than wanted, add back
+        the candidate of pool that sees most of the rest. Returns (order, length, greedy
+        length, bits seen)."""
+        keep = list(order)
+        while True:
+            order, length, greedy = self.tour(keep)
+            bits = self.seen(order)
+            seen = self.count(bits)
+            extra = [k for k in pool if k not in keep]
+            if seen >= self.want or not extra:
+                return order, length, greedy, seen
+            gain = [self.count(self.views[k] & ~bits) for k in extra]
+            if max(gain) <= 0:
+                return order, length, greedy, seen
+            keep.append(extra[int(np.argmax(gain))])
+
+
+def _start_cell(pos: np.ndarray, world: World, ox: float, oy: float, res: float
+                ) -> tuple[int, int]:
+    """The reachable position nearest to the robot's start."""
+    rr, cc = np.nonzero(pos)
+    x, y = world.robot_pose[0], world.robot_pose[1]
+    k = int(np.argmin(np.hypot(ox + (cc + 0.5) * res - x, oy + (rr + 0.5) * res - y)))
+    return int(rr[k]), int(cc[k])

@@ -1,0 +1,217 @@
+"""``topoexplore bench oracle``: each strategy's path over a short tour that knows the map.
+
+    topoexplore bench oracle [--worlds a,b] [--corpus DIR] [--from-results DIR|FILE ...]
+                             [--jobs 2] [--json OUT]
+
+For each world, :func:`sim.oracle.oracle_tour` plans on the true map a short tour of viewpoints
+that together see 99 % of the cells the coverage figure counts. With ``--from-results`` (the
+``runs.jsonl`` of ``bench robust`` or its directory, or the ``--json`` file of ``bench
+inproc`` / ``bench explore``) every finished run's path is divided by its world's tour, and the
+geometric mean per strategy (and per style) is printed beside the tour lengths. Without
+worlds, the worlds of the results are taken, or else the built-in suite.
+
+World names are looked up as ``DIR/NAME.toml`` in ``--corpus``, then as a shared real map
+(``NAME.yaml``), then as a built-in world or a file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import math
+import sys
+import time
+from collections import defaultdict
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+from topoexplore.tools.bench.explore import BenchArgError, default_worlds, resolve_world
+from topoexplore.tools.paths import shared_maps_dir
+
+
+def world_file(name: str, corpus: Path | None) -> str:
+    """The world argument for a result's world name (module docstring)."""
+    if corpus is not None and (corpus / f"{name}.toml").is_file():
+        return str(corpus / f"{name}.toml")
+    maps = shared_maps_dir()
+    if maps is not None and (maps / f"{name}.yaml").is_file():
+        return str(maps / f"{name}.yaml")
+    return resolve_world(name)[1]
+
+
+@functools.lru_cache(maxsize=64)
+def tour_length(path: str) -> float | None:
+    """[m] the oracle tour of the world file path (cached per process); None if the world
+    cannot be loaded or has no reachable position."""
+    from topoexplore.sim.oracle import oracle_tour
+    from topoexplore.sim.world import WorldError, load_world
+
+    try:
+        return round(oracle_tour(load_world(path)).length_m, 2)
+    except (WorldError, ValueError):
+        return None
+
+
+def one(name: str, path: str) -> dict[str, Any]:
+    """The oracle figures of one world."""
+    from topoexplore.sim.oracle import oracle_tour
+    from topoexplore.sim.world import load_world
+
+    t0 = time.monotonic()
+    o = oracle_tour(load_world(path))
+    return {"world": name, "path": path, "oracle_m": round(o.length_m, 2),
+            "nearest_neighbour_m": round(o.greedy_length_m, 2),
+            "viewpoints": int(len(o.points) - 1), "seen": round(o.seen_fraction, 4),
+            "candidates": o.candidates, "spacing_m": o.spacing_m,
+            "wall_s": round(time.monotonic() - t0, 1)}
+
+
+def load_runs(sources: Sequence[str]) -> list[dict]:
+    """Runs from runs.jsonl files (or their directories) and JSON reports with a "runs"
+    list; later sources replace earlier runs of the same (world, strategy, seed)."""
+    runs: dict[tuple, dict] = {}
+    for src in sources:
+        p = Path(src)
+        if p.is_dir():
+            p = p / "runs.jsonl"
+        try:
+            text = p.read_text()
+        except OSError as exc:
+            raise BenchArgError(f"--from-results: cannot read {p}: {exc.strerror}") from None
+        try:
+            if p.suffix == ".jsonl":
+                rows = [json.loads(line) for line in text.splitlines() if line.strip()]
+            else:
+                rows = json.loads(text)["runs"]
+        except (ValueError, KeyError, TypeError):
+            raise BenchArgError(f"--from-results: {p}: not a runs.jsonl or a report with "
+                                "a 'runs' list") from None
+        for r in rows:
+            if not isinstance(r, dict) or "world" not in r or "strategy" not in r:
+                raise BenchArgError(f"--from-results: {p}: a run without world / strategy")
+            name = Path(str(r.get("world_label") or r["world"])).stem
+            runs[(name, r["strategy"], r.get("seed", 0))] = {**r, "world": name}
+    return list(runs.values())
+
+
+def _finished(r: dict) -> bool:
+    if "outcome" in r:
+        return r["outcome"] == "finished"
+    return bool(r.get("finished")) and float(r.get("coverage", 0.0)) >= 0.95
+
+
+def ratios(oracles: dict[str, dict], runs: Sequence[dict]) -> dict[str, Any]:
+    """Per strategy: geometric mean of path / oracle over the finished runs (and per style,
+    the part of the world name before the first '-'), and the runs left out."""
+    logs: dict[str, list[float]] = defaultdict(list)
+    styles: dict[tuple[str, str], list[float]] = defaultdict(list)
+    left_out: list[str] = []
+    for r in runs:
+        o = oracles.get(r["world"])
+        path = float(r.get("path_length_m", 0.0))
+        if o is None or o["oracle_m"] <= 0 or path <= 0 or not _finished(r):
+            left_out.append(f"{r['world']}/{r['strategy']}")
+            continue
+        x = math.log(path / o["oracle_m"])
+        logs[r["strategy"]].append(x)
+        styles[(r["strategy"], r.get("style") or r["world"].split("-")[0])].append(x)
+    out = {s: {"geomean": math.exp(sum(v) / len(v)), "runs": len(v)} for s, v in logs.items()}
+    for (s, st), v in styles.items():
+        out[s].setdefault("by_style", {})[st] = math.exp(sum(v) / len(v))
+    return {"strategies": out, "left_out": left_out}
+
+
+def suite_ratios(runs: Sequence[dict]) -> dict[str, dict[str, Any]]:
+    """For bench inproc / explore: per strategy, the geometric mean of path / oracle tour over
+    the runs that finished with coverage >= 0.95 and a positive path (their ``world`` is the
+    world argument they ran with); {"tours": {world: tour [m]}} beside."""
+    tours: dict[str, float | None] = {}
+    logs: dict[str, list[float]] = defaultdict(list)
+    for r in runs:
+        path = float(r.get("path_length_m") or 0.0)
+        if not _finished(r) or path <= 0:
+            continue
+        w = str(r["world"])
+        if w not in tours:
+            try:
+                tours[w] = tour_length(resolve_world(w)[1])
+            except BenchArgError:
+                tours[w] = None
+        o = tours[w]
+        if o:
+            logs[r["strategy"]].append(math.log(path / o))
+    out: dict[str, Any] = {s: {"geomean": math.exp(sum(v) / len(v)), "n": len(v)}
+                           for s, v in logs.items()}
+    return {"strategies": out, "tours": tours}
+
+
+def suite_line(o: dict[str, Any]) -> str:
+    """One line for a report: path / oracle tour per strategy."""
+    parts = [f"{s} {v['geomean']:.2f} ({v['n']} runs)" for s, v in o["strategies"].items()]
+    return ("path / oracle tour (a short tour planned on the true map, `topoexplore bench "
+            "oracle`), geometric mean over the runs finished with coverage >= 0.95: "
+            + (", ".join(parts) if parts else "none"))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="topoexplore bench oracle", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--worlds", default=None, help="world names or files (comma separated)")
+    ap.add_argument("--corpus", type=Path, default=None, help="bench robust corpus directory")
+    ap.add_argument("--from-results", nargs="+", default=[], metavar="SRC",
+                    help="runs.jsonl (or its directory) or a bench inproc / explore JSON")
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--json", type=Path, default=None, help="write the figures here")
+    a = ap.parse_args(argv)
+    try:
+        if a.jobs < 1:
+            raise BenchArgError("--jobs must be >= 1")
+        runs = load_runs(a.from_results)
+        if a.worlds:
+            names = [w.strip() for w in a.worlds.split(",") if w.strip()]
+        elif runs:
+            names = sorted({r["world"] for r in runs})
+        else:
+            names = default_worlds()[0]
+        todo = [(Path(n).stem if n.endswith((".toml", ".yaml", ".yml")) else n,
+                 world_file(n, a.corpus)) for n in names]
+    except BenchArgError as exc:
+        print(f"topoexplore bench oracle: {exc}", file=sys.stderr)
+        return 2
+    t0 = time.monotonic()
+    with ProcessPoolExecutor(max_workers=a.jobs) as pool:
+        got = list(pool.map(one, [n for n, _ in todo], [p for _, p in todo]))
+    oracles = {g["world"]: g for g in got}
+    by_world: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
+    for r in runs:
+        if _finished(r) and float(r.get("path_length_m", 0.0)) > 0:
+            by_world[r["world"]][r["strategy"]].append(math.log(float(r["path_length_m"])))
+    strategies = sorted({r["strategy"] for r in runs})
+    print(f"{'world':32s} {'oracle [m]':>10s} {'views':>5s} {'seen':>6s}"
+          + "".join(f" {s[:14]:>14s}" for s in strategies))
+    for g in got:
+        row = by_world.get(g["world"], {})
+        cells = "".join(  # geometric mean over the world's seeds
+            f" {math.exp(sum(row[s]) / len(row[s])) / g['oracle_m']:14.2f}"
+            if row.get(s) and g["oracle_m"] > 0 else f" {'-':>14s}" for s in strategies)
+        print(f"{g['world']:32s} {g['oracle_m']:10.1f} {g['viewpoints']:5d} {g['seen']:6.3f}"
+              + cells)
+    an = ratios(oracles, runs)
+    for s, v in sorted(an["strategies"].items()):
+        styles = ", ".join(f"{k} {x:.2f}" for k, x in sorted(v.get("by_style", {}).items()))
+        print(f"{s}: path / oracle geometric mean {v['geomean']:.3f} over {v['runs']} finished "
+              f"run(s)" + (f" ({styles})" if styles else ""))
+    print(f"{len(got)} world(s) in {time.monotonic() - t0:.0f} s")
+    if a.json is not None:
+        a.json.write_text(json.dumps({"oracles": got, "analysis": an,
+                                      "command": "topoexplore bench oracle " + " ".join(
+                                          argv if argv is not None else sys.argv[1:])},
+                                     indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
