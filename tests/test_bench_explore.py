@@ -302,6 +302,9 @@ def test_smoke_suite_files_and_ratio_arithmetic(tmp_path):
             assert rr["geomean"] is None
     summary = (out / "summary.md").read_text()
     assert "--worlds dead-end,corner" in summary and "## Ratios" in summary
+    assert "path / oracle tour" in summary  # the runs over a tour planned on the true map
+    for w, tour in doc["oracle"]["tours"].items():
+        assert w in worlds and tour is not None and tour >= 0.0
 
 
 def test_bench_stages_times_every_core():

@@ -70,6 +70,20 @@ def test_tables_ratios_and_worst_per_half():
     assert held["ratios"]["reliability/frontier"]["geomean"] is None
 
 
+def test_path_over_the_oracle_tour_counts_finished_runs_only():
+    runs = [dict(run("a", "reliability", path=20.0), oracle_m=10.0),
+            dict(run("b", "reliability", path=40.0), oracle_m=5.0),
+            dict(run("c", "reliability", coverage=0.5, path=1.0), oracle_m=10.0),  # early done
+            dict(run("a", "frontier", path=30.0), oracle_m=10.0),
+            dict(run("b", "frontier", path=30.0), oracle_m=None)]  # no tour for b: left out
+    o = rb.oracle_ratios(runs)
+    assert o["reliability"] == {"geomean": pytest.approx(4.0), "n": 2}
+    assert o["frontier"] == {"geomean": pytest.approx(3.0), "n": 1}
+    assert "reliability **4.00** (2)" in rb.summary(
+        {"created": "x", "command": "c", "jobs": 1, "wall_s": 1.0, "runs": runs,
+         "analysis": rb.analyse(runs, ["reliability", "frontier"])})
+
+
 def test_the_papers_rule_is_compared_but_not_the_yardstick_nor_among_the_worst():
     runs = RUNS + [run("a", "reliability-paper", path=3.0),
                    run("a", "reliability-distance", path=17.0),
@@ -146,8 +160,11 @@ def test_smoke_corpus_every_strategy_writes_results_summary_and_pictures(tmp_pat
     assert sum(t["runs"] for h in tables.values() for t in h["strategies"].values()) == 12
     assert sum(t["finished"] for h in tables.values() for t in h["strategies"].values()) == \
         sum(r["outcome"] == "finished" for r in runs)
+    assert all(r["oracle_m"] > 0 for r in runs)  # one short tour on the true map per world
+    assert len({(r["world"], r["oracle_m"]) for r in runs}) == 3
     md = (out / "summary.md").read_text()
     assert "house-s1-12x10-n2" in md and "Held-back half" in md
+    assert "path / oracle tour" in md
     assert len((out / "runs.jsonl").read_text().splitlines()) == 12
 
 

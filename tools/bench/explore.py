@@ -288,8 +288,10 @@ def derive(run: dict) -> dict:
 
 
 def analyse(runs: Sequence[dict], strategies: Sequence[str]) -> dict[str, Any]:
+    from topoexplore.tools.bench.oracle import suite_ratios
+
     return {"aggregate": aggregate(runs), "ratios": all_ratios(runs, strategies),
-            "coverage_distance": coverage_distance_table(runs)}
+            "coverage_distance": coverage_distance_table(runs), "oracle": suite_ratios(runs)}
 
 
 def _label(r: dict) -> str:
@@ -472,6 +474,10 @@ def _summary_ratios(doc: dict) -> list[str]:
         for w, bw in rr["by_world"].items():
             L.append(f"  - {w}: {_fmt(bw['geomean'], 3)} ({bw['n_included']}/{bw['n_pairs']} "
                      "pairs)")
+    if doc.get("oracle"):
+        from topoexplore.tools.bench.oracle import suite_line
+
+        L.append(f"- {suite_line(doc['oracle'])}.")
     excluded: dict[tuple, list[str]] = {}
     for rr in doc["ratios"].values():
         for p in rr["pairs"]:
@@ -1040,6 +1046,10 @@ def _print_totals(doc: dict, planned: int, out: Path) -> None:
             print(f"  path {rr['numerator']}/{rr['denominator']}: geometric mean "
                   f"{_fmt(rr['geomean'], 3)} over {rr['n_included']} finished pair(s), "
                   f"{rr['n_excluded']} excluded", file=sys.stderr)
+    if doc.get("oracle"):
+        from topoexplore.tools.bench.oracle import suite_line
+
+        print(f"  {suite_line(doc['oracle'])}", file=sys.stderr)
 
 
 def from_results(src: Path, out: Path | None) -> int:

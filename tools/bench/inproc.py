@@ -227,13 +227,17 @@ def main(argv: Sequence[str] | None = None) -> int:
             gm = "-" if rr["geomean"] is None else f"{rr['geomean']:.3f}"
             print(f"path reliability/{den}: geometric mean {gm} over {rr['n_included']} "
                   f"pair(s), {rr['n_excluded']} excluded")
+    from topoexplore.tools.bench.oracle import suite_line, suite_ratios
+
+    oracle = suite_ratios(runs)
+    print(suite_line(oracle))
     low = [f"{r['world_label']}/{r['strategy']}/s{r['seed']} {r['coverage']}" for r in runs
            if r["coverage"] is not None and r["coverage"] < 0.95]
     print(f"coverage < 0.95: {', '.join(low) or 'none'}; "
           f"wall {time.monotonic() - t0:.0f} s for {len(runs)} run(s)")
     if a.json:
-        a.json.write_text(json.dumps({"sets": list(a.set), "runs": runs, "ratios": ratios},
-                                     indent=1))
+        a.json.write_text(json.dumps({"sets": list(a.set), "runs": runs, "ratios": ratios,
+                                      "oracle": oracle}, indent=1))
     return 0 if all(r["state"] != "error" for r in runs) else 1
 
 

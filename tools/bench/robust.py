@@ -54,6 +54,7 @@ from topoexplore.tools.bench.explore import (
     geometric_mean,
     parse_strategies,
 )
+from topoexplore.tools.bench.oracle import tour_length, world_file
 from topoexplore.tools.paths import shared_maps_dir
 
 STYLES = ("office", "house", "warehouse", "cluttered")
@@ -167,6 +168,7 @@ def run_one(item: Item, strategy: str, sets: Sequence[str], pics: Path | None) -
              limit_s=time_limit(item.area), wall_s=round(time.monotonic() - t0, 1),
              targets=track.targets, stagnant_s=track.stagnant_s())
     r["outcome"] = classify(r)
+    r["oracle_m"] = tour_length(item.path)
     if pics is not None and track.last is not None:
         r["picture"] = _picture(item, strategy, r, track, pics)
     return r
@@ -303,6 +305,17 @@ def over_shortest(runs: Sequence[dict], factor: float = 2.0) -> list[dict]:
     return out
 
 
+def oracle_ratios(runs: Sequence[dict]) -> dict[str, dict[str, Any]]:
+    """Per strategy: geometric mean of path / the world's oracle tour (``oracle_m``,
+    :mod:`.oracle`) over its finished runs."""
+    by: dict[str, list[float]] = {}
+    for r in runs:
+        o, p = r.get("oracle_m"), r.get("path_length_m")
+        if r["outcome"] == "finished" and o and p and o > 0 and p > 0:
+            by.setdefault(r["strategy"], []).append(p / o)
+    return {s: {"geomean": geometric_mean(v), "n": len(v)} for s, v in by.items()}
+
+
 _SEVERITY = {"error": 0, "failed": 1, "early-done": 2, "livelock": 3, "timeout": 4,
              "finished": 5}
 
@@ -332,6 +345,7 @@ def analyse(runs: Sequence[dict], strategies: Sequence[str]) -> dict[str, Any]:
         if "reliability" in strategies and "frontier" in strategies:
             h["ratios_by_style"] = {st: path_ratio(rs, "reliability", "frontier", st)
                                     for st in sorted({r["style"] for r in rs})}
+        h["oracle"] = oracle_ratios(rs)
         h["over_2x_shortest"] = over_shortest(rs)
         h["worst"] = [{k: r.get(k) for k in ("world", "strategy", "outcome", "coverage",
                                               "path_length_m", "stop_reason", "picture")}
@@ -369,6 +383,11 @@ def _half_md(name: str, h: dict, link) -> list[str]:
         if key == "reliability/frontier":  # by style right below it
             for st, rs in h.get("ratios_by_style", {}).items():
                 L.append(f"  - {st}: {_f(rs['geomean'])} ({rs['n']} worlds)")
+    if h.get("oracle"):
+        L.append("- path / oracle tour (a short tour planned on the true map, "
+                 "`topoexplore bench oracle`): " + ", ".join(
+                     f"{st} **{_f(o['geomean'], 2)}** ({o['n']})"
+                     for st, o in h["oracle"].items()))
     over = h["over_2x_shortest"]
     L.append(f"- runs over 2 x the shortest path of the three strategies on their world: "
              f"{len(over)}"
@@ -654,7 +673,15 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _report_only(a: argparse.Namespace) -> int:
     """--from-results: merge, analyse and write; nothing runs."""
-    doc = merge(_load_results(a.from_results))
+    loaded = _load_results(a.from_results)
+    for _, d in loaded:  # results made before the oracle: its tour from the corpus
+        for r in d["runs"]:
+            if "oracle_m" not in r:
+                try:
+                    r["oracle_m"] = tour_length(world_file(r["world"], a.corpus))
+                except BenchArgError:  # the world is not at hand: no oracle figure
+                    r["oracle_m"] = None
+    doc = merge(loaded)
     a.out.mkdir(parents=True, exist_ok=True)
     clean = {k: v for k, v in doc.items() if k != "runs"}
     clean["runs"] = [{k: v for k, v in r.items() if k != "_picture"} for r in doc["runs"]]
