@@ -10,10 +10,11 @@ figures out.
 2. **What a viewpoint sees**: the cells of the coverage set (:func:`world.truth_mappable`)
    within ``laser_range`` [m] in Bresenham line of sight through free cells, all round: the
    robot turns in place at no path cost, so its 180 deg laser sees every bearing.
-3. **Greedy set cover** (lazy gains): the start's view first, then the viewpoint that sees
-   most of what is still unseen, until ``fraction`` of the coverage set is seen. Greedy is
-   within a factor ln(n) + 1 of the fewest viewpoints in the worst case, and usually within a
-   few of it.
+3. **Choosing viewpoints**, two ways, each until ``fraction`` of the coverage set is seen:
+   greedy set cover (lazy gains: the start's view first, then the viewpoint that sees most of
+   what is still unseen; within ln(n) + 1 of the fewest viewpoints in the worst case), and
+   one after the other from where the robot is (most unseen cells per cell of path plus an
+   overhead of 5, 20 or 100 cells, what the path sees counted: :meth:`_Plan.sequential`).
 4. **Open tour** from the start through the chosen viewpoints: shortest paths between them
    over the reachable positions (8-connected, octile lengths: up to 8 % over the Euclidean
    length of a straight stretch at an angle), order by nearest neighbour, then 2-opt and
@@ -26,9 +27,12 @@ figures out.
    most, often deep in a room or a corridor); the rest is toured again, and viewpoints of
    the cover are added back while the new order sees less than ``fraction``.
 
-No step is optimal, so the tour is a *short* tour, not the shortest: a strategy's path over it
-says how far the strategy is from what knowing the map buys, an upper estimate of the gap to
-the true optimum. Seeing all round from every point of the path is optimistic, and viewpoints
+Of all these tours (4 lattices x 4 choices), the shortest is kept. No step is optimal, so it
+is a *short* tour, not the shortest: against every set of up to 3 lattice viewpoints in every
+order (:func:`exhaustive_tour`) it is equal on a three-room comb, junction and dead-end
+(``tests/test_oracle.py``), and 1.34 x longer on small-house at a 1 m lattice (31.0 against
+23.2 m). A strategy's path over it says how far the strategy is from what knowing the map
+buys, an upper estimate of the gap to the true optimum. Seeing all round from every point of the path is optimistic, and viewpoints
 and lines of sight are cells of 0.1 m, so on a tiny map (lse_arena: a 2.1 m tour) a strategy
 can come out a few per cent under it.
 """
@@ -61,6 +65,7 @@ SPACINGS = (0.1, 0.2, 0.3, 0.5)  # [m] lattices of candidate viewpoints tried (t
 #   it would exceed MAX_CANDIDATES
 FRACTION = 0.99  # of the coverage set the tour sees
 MAX_CANDIDATES = 4000  # the lattice is made coarser beyond this many candidate viewpoints
+SEQUENTIAL_OVERHEADS = (5.0, 20.0, 100.0)  # [cells] the sequential choices tried (_Plan)
 _POP = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)  # bits per byte
 
 
@@ -231,57 +236,102 @@ def oracle_tour(world: World, laser_range: float = LASER_RANGE, radius: float = 
                 fraction: float = FRACTION, spacings: tuple[float, ...] = SPACINGS,
                 resolution: float = RESOLUTION) -> OracleTour:
     """The short viewpoint tour of world (module docstring): the shortest over the candidate
-    lattices of spacings [m]."""
-    solid, ox, oy = rasterize(world, resolution)
-    pos, _, _ = truth_robot_positions(world, resolution, radius)
-    target, _, _ = truth_mappable(world, resolution, radius, laser_range)
-    start = _start_cell(pos, world, ox, oy, resolution)
-    tidx = np.full(solid.shape, -1, dtype=np.int64)
-    tr, tc = np.nonzero(target)
-    tidx[tr, tc] = np.arange(tr.size)
-    n = max(1, int(math.floor(laser_range / resolution + 1e-6)))
-    rays = _ray_table(_square_border(n))
-    graph, node = _grid_graph(pos)
+    lattices of spacings [m] and the two ways of choosing viewpoints."""
+    ctx = _Context(world, laser_range, radius, resolution)
     best: OracleTour | None = None
     steps: list[int] = []
     for spacing in spacings:
         step = max(1, round(spacing / resolution))
-        while int(pos[::step, ::step].sum()) > MAX_CANDIDATES:
+        while int(ctx.pos[::step, ::step].sum()) > MAX_CANDIDATES:
             step += 1
         if step in steps:
             continue
         steps.append(step)
-        t = _tour_on_lattice(solid, pos, start, tidx, int(tr.size), rays, n, graph, node, step,
-                             fraction, resolution, ox, oy)
-        if best is None or t.length_m < best.length_m - 1e-9:
-            best = t
+        plan, vr, vc = ctx.plan(step, fraction)
+        cover, _ = greedy_cover(plan.views, ctx.total, fraction)
+        firsts = [plan.tour(cover)[0]] + [plan.sequential(o) for o in SEQUENTIAL_OVERHEADS]
+        for first in firsts:
+            order = plan.pull(plan.prune(first))
+            order, length, greedy, seen = plan.repair(order, cover)
+            t = ctx.result(order, vr, vc, length, greedy, seen, step)
+            if best is None or t.length_m < best.length_m - 1e-9:
+                best = t
     assert best is not None
     return best
 
 
-def _tour_on_lattice(solid, pos, start, tidx, total, rays, n, graph, node, step, fraction,
-                     resolution, ox, oy) -> OracleTour:
-    """The tour over the candidates on a lattice of step cells (module docstring, 1-4)."""
-    lattice = np.zeros_like(pos)
-    lattice[::step, ::step] = True
-    lattice &= pos
-    vr, vc = np.nonzero(lattice)
-    vr = np.concatenate([[start[0]], vr]).astype(np.int64)
-    vc = np.concatenate([[start[1]], vc]).astype(np.int64)
-    r2 = float(n * n) + 1e-6
-    views = _views(solid, tidx, vr, vc, rays, r2, (total + 7) // 8)
-    chosen, _ = greedy_cover(views, total, fraction)
-    plan = _Plan(views, node[vr, vc], graph, np.nonzero(pos),
-                 lambda r, c: _views(solid, tidx, r, c, rays, r2, views.shape[1]),
-                 math.ceil(fraction * total - 1e-9), step)
-    order = plan.tour(chosen)[0]
-    order = plan.prune(order)
-    order = plan.pull(order)
-    order, length, greedy, seen = plan.repair(order, chosen)
-    pts = np.stack([ox + (vc[order] + 0.5) * resolution, oy + (vr[order] + 0.5) * resolution],
-                   axis=1)
-    return OracleTour(length * resolution, pts, seen / max(1, total), int(vr.size),
-                      step * resolution, greedy * resolution)
+def exhaustive_tour(world: World, spacing: float, max_viewpoints: int,
+                    laser_range: float = LASER_RANGE, radius: float = ROBOT_RADIUS,
+                    fraction: float = FRACTION, resolution: float = RESOLUTION
+                    ) -> OracleTour | None:
+    """The shortest tour, over every set of at most max_viewpoints candidates of the lattice of
+    spacing [m] in every order, that sees fraction of the coverage set by the same model as
+    :func:`oracle_tour` (paths seen from too); None if no such set covers. The check of the
+    oracle on small worlds (``tests/test_oracle.py``): exponential, small lattices only."""
+    import itertools
+
+    ctx = _Context(world, laser_range, radius, resolution)
+    step = max(1, round(spacing / resolution))
+    plan, vr, vc = ctx.plan(step, fraction)
+    k = len(vr)
+    d = dijkstra(plan.graph, directed=False, indices=plan.cand_node)[:, plan.cand_node]
+    best: tuple[float, list[int]] | None = None
+    for m in range(max_viewpoints + 1):
+        for subset in itertools.combinations(range(1, k), m):
+            for perm in itertools.permutations(subset):
+                order = [0, *perm]
+                length = float(sum(d[a, b] for a, b in zip(order[:-1], order[1:], strict=True)))
+                if best is not None and length >= best[0] - 1e-9:
+                    continue
+                if plan.count(plan.seen(order)) >= plan.want:
+                    best = (length, order)
+    if best is None:
+        return None
+    length, order = best
+    seen = plan.count(plan.seen(order))
+    return ctx.result(order, vr, vc, length, length, seen, step)
+
+
+class _Context:
+    """What every lattice shares: the rasters, the coverage set, the rays and the graph."""
+
+    def __init__(self, world: World, laser_range: float, radius: float, resolution: float):
+        self.res = resolution
+        self.solid, self.ox, self.oy = rasterize(world, resolution)
+        self.pos, _, _ = truth_robot_positions(world, resolution, radius)
+        target, _, _ = truth_mappable(world, resolution, radius, laser_range)
+        self.start = _start_cell(self.pos, world, self.ox, self.oy, resolution)
+        self.tidx = np.full(self.solid.shape, -1, dtype=np.int64)
+        tr, tc = np.nonzero(target)
+        self.tidx[tr, tc] = np.arange(tr.size)
+        self.total = int(tr.size)
+        n = max(1, int(math.floor(laser_range / resolution + 1e-6)))
+        self.rays = _ray_table(_square_border(n))
+        self.r2 = float(n * n) + 1e-6
+        self.graph, self.node = _grid_graph(self.pos)
+
+    def plan(self, step: int, fraction: float) -> tuple[_Plan, np.ndarray, np.ndarray]:
+        """The candidates of the lattice of step cells (the start first) and their plan."""
+        lattice = np.zeros_like(self.pos)
+        lattice[::step, ::step] = True
+        lattice &= self.pos
+        vr, vc = np.nonzero(lattice)
+        vr = np.concatenate([[self.start[0]], vr]).astype(np.int64)
+        vc = np.concatenate([[self.start[1]], vc]).astype(np.int64)
+        nbytes = (self.total + 7) // 8
+        views = _views(self.solid, self.tidx, vr, vc, self.rays, self.r2, nbytes)
+        plan = _Plan(views, self.node[vr, vc], self.graph, np.nonzero(self.pos),
+                     lambda r, c: _views(self.solid, self.tidx, r, c, self.rays, self.r2,
+                                         nbytes),
+                     math.ceil(fraction * self.total - 1e-9), step)
+        return plan, vr, vc
+
+    def result(self, order, vr, vc, length, greedy, seen, step) -> OracleTour:
+        res = self.res
+        pts = np.stack([self.ox + (vc[order] + 0.5) * res, self.oy + (vr[order] + 0.5) * res],
+                       axis=1)
+        return OracleTour(length * res, pts, seen / max(1, self.total), int(vr.size),
+                          step * res, greedy * res)
 
 
 class _Plan:
@@ -332,6 +382,26 @@ class _Plan:
 
     def count(self, bits: np.ndarray) -> int:
         return int(_POP[bits].sum(dtype=np.int64))
+
+    def sequential(self, overhead: float) -> list[int]:
+        """Viewpoints chosen one after the other from where the robot is: the one with the
+        most unseen cells per cell of path to it (plus overhead cells, so that a speck next
+        door does not beat a room; > 0), counting what the path there sees."""
+        order = [0]
+        seen = self.views[0].copy()
+        while self.count(seen) < self.want:
+            d = dijkstra(self.graph, directed=False, indices=self.cand_node[order[-1]])
+            gain = np.concatenate([_POP[self.views[i:i + 256] & ~seen].sum(axis=1,
+                                                                           dtype=np.int64)
+                                   for i in range(0, len(self.views), 256)])
+            dist = d[self.cand_node]
+            score = np.where((gain > 0) & np.isfinite(dist), gain / (dist + overhead), -1.0)
+            k = int(np.argmax(score))
+            if score[k] <= 0:
+                break
+            seen |= self.views[k] | self.seg(order[-1], k)
+            order.append(k)
+        return order
 
     def prune(self, order: list[int]) -> list[int]:
         """Drop, the least useful first, each viewpoint the rest of the tour covers for."""
