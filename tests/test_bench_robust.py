@@ -76,9 +76,9 @@ def test_path_over_the_oracle_tour_counts_finished_runs_only():
             dict(run("c", "reliability", coverage=0.5, path=1.0), oracle_m=10.0),  # early done
             dict(run("a", "frontier", path=30.0), oracle_m=10.0),
             dict(run("b", "frontier", path=30.0), oracle_m=None)]  # no tour for b: left out
-    o = rb.oracle_ratios(runs)
-    assert o["reliability"] == {"geomean": pytest.approx(4.0), "n": 2}
-    assert o["frontier"] == {"geomean": pytest.approx(3.0), "n": 1}
+    o = rb.analyse(runs, ["reliability", "frontier"])["tune"]["oracle"]
+    assert o["reliability"]["geomean"] == pytest.approx(4.0) and o["reliability"]["n"] == 2
+    assert o["frontier"]["geomean"] == pytest.approx(3.0) and o["frontier"]["n"] == 1
     assert "reliability **4.00** (2)" in rb.summary(
         {"created": "x", "command": "c", "jobs": 1, "wall_s": 1.0, "runs": runs,
          "analysis": rb.analyse(runs, ["reliability", "frontier"])})

@@ -122,7 +122,7 @@ def test_bench_oracle_divides_paths_by_the_tour(tmp_path, capsys):
     got = json.loads(out.read_text())
     tour = got["oracles"][0]["oracle_m"]
     fr = got["analysis"]["strategies"]["frontier"]
-    assert fr["runs"] == 1 and fr["geomean"] == pytest.approx(16.48 / tour, rel=1e-3)
+    assert fr["n"] == 1 and fr["geomean"] == pytest.approx(16.48 / tour, rel=1e-3)
     assert "reliability" not in got["analysis"]["strategies"]  # not finished: left out
     assert got["analysis"]["left_out"] == ["junction/reliability"]
     assert "frontier: path / oracle" in capsys.readouterr().out

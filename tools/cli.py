@@ -196,7 +196,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("router", help="run a Zenoh router", add_help=False)
     sub.add_parser("render", help="PNG from a saved run directory or a running stack",
                    add_help=False)
-    sub.add_parser("bench", help="benchmarks: stages | explore | inproc | robust | oracle", add_help=False)
+    sub.add_parser("bench", help="benchmarks: stages | explore | inproc | robust | oracle",
+                   add_help=False)
 
     mp = sub.add_parser("map", help="map tools")
     msub = mp.add_subparsers(dest="map_command", metavar="ACTION")

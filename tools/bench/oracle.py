@@ -23,7 +23,7 @@ import math
 import sys
 import time
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -103,49 +103,42 @@ def _finished(r: dict) -> bool:
     return bool(r.get("finished")) and float(r.get("coverage", 0.0)) >= 0.95
 
 
-def ratios(oracles: dict[str, dict], runs: Sequence[dict]) -> dict[str, Any]:
-    """Per strategy: geometric mean of path / oracle over the finished runs (and per style,
-    the part of the world name before the first '-'), and the runs left out."""
+def ratios(runs: Sequence[dict], tour_of: Callable[[dict], float | None]) -> dict[str, Any]:
+    """Per strategy: geometric mean of path / tour_of(run) [m] over the finished runs (and per
+    style: the run's style, or the part of the world name before the first '-'), and the
+    runs left out (not finished, no tour, no path)."""
     logs: dict[str, list[float]] = defaultdict(list)
     styles: dict[tuple[str, str], list[float]] = defaultdict(list)
     left_out: list[str] = []
     for r in runs:
-        o = oracles.get(r["world"])
-        path = float(r.get("path_length_m", 0.0))
-        if o is None or o["oracle_m"] <= 0 or path <= 0 or not _finished(r):
+        o, path = tour_of(r), float(r.get("path_length_m") or 0.0)
+        if not o or o <= 0 or path <= 0 or not _finished(r):
             left_out.append(f"{r['world']}/{r['strategy']}")
             continue
-        x = math.log(path / o["oracle_m"])
+        x = math.log(path / o)
         logs[r["strategy"]].append(x)
-        styles[(r["strategy"], r.get("style") or r["world"].split("-")[0])].append(x)
-    out = {s: {"geomean": math.exp(sum(v) / len(v)), "runs": len(v)} for s, v in logs.items()}
+        styles[(r["strategy"], r.get("style") or str(r["world"]).split("-")[0])].append(x)
+    out = {s: {"geomean": math.exp(sum(v) / len(v)), "n": len(v)} for s, v in logs.items()}
     for (s, st), v in styles.items():
         out[s].setdefault("by_style", {})[st] = math.exp(sum(v) / len(v))
     return {"strategies": out, "left_out": left_out}
 
 
-def suite_ratios(runs: Sequence[dict]) -> dict[str, dict[str, Any]]:
-    """For bench inproc / explore: per strategy, the geometric mean of path / oracle tour over
-    the runs that finished with coverage >= 0.95 and a positive path (their ``world`` is the
-    world argument they ran with); {"tours": {world: tour [m]}} beside."""
+def suite_ratios(runs: Sequence[dict]) -> dict[str, Any]:
+    """:func:`ratios` for bench inproc / explore, whose runs' ``world`` is the world argument
+    they ran with; {"tours": {world: tour [m] or None}} beside."""
     tours: dict[str, float | None] = {}
-    logs: dict[str, list[float]] = defaultdict(list)
-    for r in runs:
-        path = float(r.get("path_length_m") or 0.0)
-        if not _finished(r) or path <= 0:
-            continue
+
+    def tour_of(r: dict) -> float | None:
         w = str(r["world"])
         if w not in tours:
             try:
                 tours[w] = tour_length(resolve_world(w)[1])
             except BenchArgError:
                 tours[w] = None
-        o = tours[w]
-        if o:
-            logs[r["strategy"]].append(math.log(path / o))
-    out: dict[str, Any] = {s: {"geomean": math.exp(sum(v) / len(v)), "n": len(v)}
-                           for s, v in logs.items()}
-    return {"strategies": out, "tours": tours}
+        return tours[w]
+
+    return {**ratios([r for r in runs if _finished(r)], tour_of), "tours": tours}
 
 
 def suite_line(o: dict[str, Any]) -> str:
@@ -199,10 +192,11 @@ def main(argv: list[str] | None = None) -> int:
             if row.get(s) and g["oracle_m"] > 0 else f" {'-':>14s}" for s in strategies)
         print(f"{g['world']:32s} {g['oracle_m']:10.1f} {g['viewpoints']:5d} {g['seen']:6.3f}"
               + cells)
-    an = ratios(oracles, runs)
+    an = ratios(runs, lambda r: oracles[r["world"]]["oracle_m"] if r["world"] in oracles
+                else None)
     for s, v in sorted(an["strategies"].items()):
         styles = ", ".join(f"{k} {x:.2f}" for k, x in sorted(v.get("by_style", {}).items()))
-        print(f"{s}: path / oracle geometric mean {v['geomean']:.3f} over {v['runs']} finished "
+        print(f"{s}: path / oracle geometric mean {v['geomean']:.3f} over {v['n']} finished "
               f"run(s)" + (f" ({styles})" if styles else ""))
     print(f"{len(got)} world(s) in {time.monotonic() - t0:.0f} s")
     if a.json is not None:

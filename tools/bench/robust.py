@@ -54,7 +54,7 @@ from topoexplore.tools.bench.explore import (
     geometric_mean,
     parse_strategies,
 )
-from topoexplore.tools.bench.oracle import tour_length, world_file
+from topoexplore.tools.bench.oracle import ratios, tour_length, world_file
 from topoexplore.tools.paths import shared_maps_dir
 
 STYLES = ("office", "house", "warehouse", "cluttered")
@@ -305,17 +305,6 @@ def over_shortest(runs: Sequence[dict], factor: float = 2.0) -> list[dict]:
     return out
 
 
-def oracle_ratios(runs: Sequence[dict]) -> dict[str, dict[str, Any]]:
-    """Per strategy: geometric mean of path / the world's oracle tour (``oracle_m``,
-    :mod:`.oracle`) over its finished runs."""
-    by: dict[str, list[float]] = {}
-    for r in runs:
-        o, p = r.get("oracle_m"), r.get("path_length_m")
-        if r["outcome"] == "finished" and o and p and o > 0 and p > 0:
-            by.setdefault(r["strategy"], []).append(p / o)
-    return {s: {"geomean": geometric_mean(v), "n": len(v)} for s, v in by.items()}
-
-
 _SEVERITY = {"error": 0, "failed": 1, "early-done": 2, "livelock": 3, "timeout": 4,
              "finished": 5}
 
@@ -345,7 +334,7 @@ def analyse(runs: Sequence[dict], strategies: Sequence[str]) -> dict[str, Any]:
         if "reliability" in strategies and "frontier" in strategies:
             h["ratios_by_style"] = {st: path_ratio(rs, "reliability", "frontier", st)
                                     for st in sorted({r["style"] for r in rs})}
-        h["oracle"] = oracle_ratios(rs)
+        h["oracle"] = ratios(rs, lambda r: r.get("oracle_m"))["strategies"]
         h["over_2x_shortest"] = over_shortest(rs)
         h["worst"] = [{k: r.get(k) for k in ("world", "strategy", "outcome", "coverage",
                                               "path_length_m", "stop_reason", "picture")}
