@@ -660,16 +660,31 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
+def _fill_oracle(runs: list[dict], corpus: Path, jobs: int) -> None:
+    """Runs made before the oracle get its tour (``oracle_m``) from the world in corpus (or
+    the shared maps), jobs worlds at a time; None where the world is not at hand."""
+    files: dict[str, str | None] = {}
+    for r in runs:
+        if "oracle_m" not in r and r["world"] not in files:
+            try:
+                files[r["world"]] = world_file(r["world"], corpus)
+            except BenchArgError:
+                files[r["world"]] = None
+    todo = sorted(w for w, f in files.items() if f is not None)
+    tours: dict[str, float | None] = dict.fromkeys(files)
+    if todo:
+        with ProcessPoolExecutor(max(1, min(jobs, len(todo)))) as pool:
+            tours.update(zip(todo, pool.map(tour_length, [files[w] for w in todo]),
+                             strict=True))
+    for r in runs:
+        if "oracle_m" not in r:
+            r["oracle_m"] = tours[r["world"]]
+
+
 def _report_only(a: argparse.Namespace) -> int:
     """--from-results: merge, analyse and write; nothing runs."""
     loaded = _load_results(a.from_results)
-    for _, d in loaded:  # results made before the oracle: its tour from the corpus
-        for r in d["runs"]:
-            if "oracle_m" not in r:
-                try:
-                    r["oracle_m"] = tour_length(world_file(r["world"], a.corpus))
-                except BenchArgError:  # the world is not at hand: no oracle figure
-                    r["oracle_m"] = None
+    _fill_oracle([r for _, d in loaded for r in d["runs"]], a.corpus, a.jobs)
     doc = merge(loaded)
     a.out.mkdir(parents=True, exist_ok=True)
     clean = {k: v for k, v in doc.items() if k != "runs"}
