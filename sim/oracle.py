@@ -105,22 +105,34 @@ def _views(solid, tidx, vr, vc, rays, r2, nbytes):  # pragma: no cover - compile
     return out
 
 
-def greedy_cover(views: np.ndarray, total: int, fraction: float, first: int = 0
-                 ) -> tuple[list[int], int]:
-    """Greedy set cover of packed bit rows: row first, then the row with the most unseen bits
-    (lazy re-evaluation) until fraction of total bits are seen or nothing more is. Returns
-    (chosen rows, bits seen)."""
-    seen = views[first].copy()
-    chosen = [first]
-    count = int(_POP[seen].sum(dtype=np.int64))
+def _bits(a: np.ndarray) -> int:
+    """Set bits in a packed bit array."""
+    return int(_POP[a].sum(dtype=np.int64))
+
+
+def _row_bits(rows: np.ndarray, unseen: np.ndarray | None = None) -> np.ndarray:
+    """int64 set bits per packed row (of rows & unseen with unseen), 256 rows at a time (the
+    byte-count temporaries of a whole large lattice would take gigabytes)."""
+    out = []
+    for i in range(0, len(rows), 256):
+        chunk = rows[i:i + 256] if unseen is None else rows[i:i + 256] & unseen
+        out.append(_POP[chunk].sum(axis=1, dtype=np.int64))
+    return np.concatenate(out) if out else np.zeros(0, dtype=np.int64)
+
+
+def greedy_cover(views: np.ndarray, total: int, fraction: float) -> tuple[list[int], int]:
+    """Greedy set cover of packed bit rows: row 0 (the start) first, then the row with the most
+    unseen bits (lazy re-evaluation) until fraction of total bits are seen or nothing more
+    is. Returns (chosen rows, bits seen)."""
+    seen = views[0].copy()
+    chosen = [0]
+    count = _bits(seen)
     want = math.ceil(fraction * total - 1e-9)
-    gains = np.concatenate([_POP[views[i:i + 256]].sum(axis=1, dtype=np.int64)
-                            for i in range(0, len(views), 256)])
-    heap = [(-int(g), i) for i, g in enumerate(gains) if i != first and g > 0]
+    heap = [(-int(g), i) for i, g in enumerate(_row_bits(views)) if i != 0 and g > 0]
     heapq.heapify(heap)
     while count < want and heap:
         _, i = heapq.heappop(heap)
-        g = int(_POP[views[i] & ~seen].sum(dtype=np.int64))
+        g = _bits(views[i] & ~seen)
         if g <= 0:
             continue
         if heap and g < -heap[0][0]:
@@ -381,7 +393,7 @@ class _Plan:
         return np.bitwise_or.reduce(np.stack(parts), axis=0)
 
     def count(self, bits: np.ndarray) -> int:
-        return int(_POP[bits].sum(dtype=np.int64))
+        return _bits(bits)
 
     def sequential(self, overhead: float) -> list[int]:
         """Viewpoints chosen one after the other from where the robot is: the one with the
@@ -391,9 +403,7 @@ class _Plan:
         seen = self.views[0].copy()
         while self.count(seen) < self.want:
             d = dijkstra(self.graph, directed=False, indices=self.cand_node[order[-1]])
-            gain = np.concatenate([_POP[self.views[i:i + 256] & ~seen].sum(axis=1,
-                                                                           dtype=np.int64)
-                                   for i in range(0, len(self.views), 256)])
+            gain = _row_bits(self.views, ~seen)
             dist = d[self.cand_node]
             score = np.where((gain > 0) & np.isfinite(dist), gain / (dist + overhead), -1.0)
             k = int(np.argmax(score))

@@ -43,25 +43,29 @@ def world_file(name: str, corpus: Path | None) -> str:
 
 
 @functools.lru_cache(maxsize=64)
-def tour_length(path: str) -> float | None:
-    """[m] the oracle tour of the world file path (cached per process); None if the world
-    cannot be loaded or has no reachable position."""
+def _tour(path: str):
+    """The oracle tour of the world file path (cached per process)."""
     from topoexplore.sim.oracle import oracle_tour
-    from topoexplore.sim.world import WorldError, load_world
+    from topoexplore.sim.world import load_world
+
+    return oracle_tour(load_world(path))
+
+
+def tour_length(path: str) -> float | None:
+    """[m] the oracle tour of the world file path; None if the world cannot be loaded or has
+    no reachable position."""
+    from topoexplore.sim.world import WorldError
 
     try:
-        return round(oracle_tour(load_world(path)).length_m, 2)
+        return round(_tour(path).length_m, 2)
     except (WorldError, ValueError):
         return None
 
 
 def one(name: str, path: str) -> dict[str, Any]:
     """The oracle figures of one world."""
-    from topoexplore.sim.oracle import oracle_tour
-    from topoexplore.sim.world import load_world
-
     t0 = time.monotonic()
-    o = oracle_tour(load_world(path))
+    o = _tour(path)
     return {"world": name, "path": path, "oracle_m": round(o.length_m, 2),
             "nearest_neighbour_m": round(o.greedy_length_m, 2),
             "viewpoints": int(len(o.points) - 1), "seen": round(o.seen_fraction, 4),
