@@ -5,9 +5,9 @@ numba, pure, no I/O. Both write into caller-owned buffers and return a count, so
 runs them thousands of times (the mapper: one line per beam) allocates once.
 
 Note on numba's cache: a cached caller embeds the code of these kernels, and numba does not
-notice when a function it calls from another file changes. After editing this module, delete
-the ``*.nbi`` / ``*.nbc`` files in the callers' ``__pycache__`` folders (services/mapper,
-services/topology, services/reliability, sim), or they keep running the old kernel.
+notice when a function it calls from another file changes. After editing this module, run
+``topoexplore warmup --clear`` (it deletes the package's cached kernels and compiles them
+again), or the callers keep running the old kernel.
 """
 
 from __future__ import annotations

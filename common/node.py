@@ -23,7 +23,7 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from topoexplore.common import convert
@@ -32,6 +32,7 @@ from topoexplore.common.bus import Bus, BusError, Publisher, init_logging
 from topoexplore.common.domain import Pose
 from topoexplore.common.keys import DEFAULT_ENDPOINT, TOPICS, Keys
 from topoexplore.common.params import ParamError, Params, load_params, params_to_dict
+from topoexplore.common.warm import compile_kernels
 
 log = logging.getLogger("topoexplore")
 
@@ -302,12 +303,15 @@ def _install_signals(node_stop: threading.Event, inbox: Inbox) -> None:
 
 
 def run_service(service: str, build: Callable[[Node], Callable[[], None]],
-                argv: list[str] | None = None, description: str = "") -> int:
+                argv: list[str] | None = None, description: str = "",
+                kernels: Sequence[str] = ()) -> int:
     """Parse the shared command line, open the node, run build(node)() until stopped.
 
     build(node) wires subscriptions/publishers and returns ``step``: one iteration of the
-    worker loop (it should wait on the inbox with a short timeout). Errors in the command line,
-    parameters or bus -> one line on stderr and exit code 2.
+    worker loop (it should wait on the inbox with a short timeout). ``kernels``: modules whose
+    numba kernels the core runs (its ``WARM_MODULES``); they are compiled, or loaded from the
+    on-disk cache, before the node declares itself up, so no input waits on a compiler.
+    Errors in the command line, parameters or bus -> one line on stderr and exit code 2.
     """
     parser = argparse.ArgumentParser(prog=f"topoexplore-{service}", description=description)
     add_bus_args(parser)
@@ -332,6 +336,8 @@ def run_service(service: str, build: Callable[[Node], Callable[[], None]],
     _install_signals(node.stop, node.inbox)
     try:
         step = build(node)
+        if kernels:
+            log.info("%s: %s", service, compile_kernels(kernels).line())
         gc.collect()
         gc.freeze()  # start-up objects out of the collector: shorter GC pauses per update
         node.ready()

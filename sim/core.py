@@ -18,6 +18,9 @@ from topoexplore.sim.world import World
 
 __all__ = ["SimError", "SimCore", "box_vertices", "beam_angles"]
 
+# modules whose WARM kernels the simulator runs (common.warm)
+WARM_MODULES = ("topoexplore.sim.world",)
+
 WALL_TYPE = 1  # pymunk collision types
 ROBOT_TYPE = 2
 ROBOT_CATEGORY = 0b10  # pymunk shape-filter category of the robot (the laser ignores it)

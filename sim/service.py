@@ -19,7 +19,7 @@ import numpy as np
 from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.node import Node, run_service
-from topoexplore.sim.core import SimCore
+from topoexplore.sim.core import WARM_MODULES, SimCore
 from topoexplore.sim.world import WorldError, load_world
 
 log = logging.getLogger("topoexplore.sim")
@@ -178,7 +178,8 @@ class SimService:
 
 def main(argv: list[str] | None = None) -> int:
     return run_service("sim", lambda node: SimService(node).step, argv,
-                       "pymunk differential-drive robot with a 181-beam laser")
+                       "pymunk differential-drive robot with a 181-beam laser",
+                       kernels=WARM_MODULES)
 
 
 if __name__ == "__main__":

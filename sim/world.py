@@ -841,3 +841,16 @@ def pick_start_pose(world: World, resolution: float = PICK_RESOLUTION) -> tuple[
     x = ox + (col + 0.5) * resolution
     y = oy + (row + 0.5) * resolution
     return (round(x, 6), round(y, 6), 0.0)
+
+
+# Entry kernels and the argument types the simulator and the truth masks call them with
+# (common.warm; the oracle's kernels compile in the bench process).
+WARM = {
+    "_ray_table": ("(int64[:, ::1],)",),
+    "_sees_goal": (
+        "(boolean[:, ::1], boolean[:, ::1], boolean[:, ::1], int64[:, :, ::1], float64)",),
+    "_rays_through": ("(int64[:, :, ::1],)",),
+    "_rays_to": (
+        "(boolean[:, ::1], boolean[:, ::1], int64[:], int64[:], int64[:, :, ::1], int64[::1],"
+        " int64[::1], float64)",),
+}

@@ -54,6 +54,13 @@ def test_explores_world_to_the_end(world):
     out = Path(r["_out"])
     for name in ("report.json", "final.png", "map.pgm", "map.yaml", "topology.json"):
         assert (out / name).stat().st_size > 0, name
+    # the supervisor warmed the kernels first; each service had its kernels before it was up
+    assert r["warmup_s"] > 0 and r["first_motion_s"] > r["startup_s"] > 0, r
+    logs = (out / "logs.txt").read_text()
+    assert "[warmup] " in logs
+    for svc in ("mapper", "topology", "reliability", "planner", "sim"):
+        kernels = logs.index(f"[{svc}] INFO topoexplore: {svc}: ")
+        assert kernels < logs.index(f"[{svc}] INFO topoexplore: {svc} ready on"), svc
 
 
 def test_same_seed_gives_same_report():

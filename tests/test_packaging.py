@@ -188,3 +188,31 @@ def test_wheel_brings_up_a_launch_profile(installed):
             up.wait(timeout=10)
         up.stdout.close()
     assert up.returncode == 0
+
+
+def test_systemd_units_start_what_exists():
+    """The unit templates name importable modules and real subcommands: each robot-profile
+    service for ``topoexplore@.service``, and ``topoexplore warmup`` / ``router`` / ``up``."""
+    import importlib.util
+
+    from topoexplore.tools.cli import _FORWARD, build_parser
+    from topoexplore.tools.launch.core import load_profile
+    from topoexplore.tools.launch.supervisor import profile_path
+
+    names = [s.name for s in load_profile(profile_path("robot")).processes]
+    subcommands = set(_FORWARD) | set(build_parser()._subparsers._group_actions[0].choices)
+    for unit in sorted((REPO / "deploy" / "systemd").glob("*.service")):
+        for line in unit.read_text().splitlines():
+            if not line.startswith(("ExecStart=", "ExecStartPre=")):
+                continue
+            argv = line.split("=", 1)[1].split()
+            if "-m" in argv:
+                module = argv[argv.index("-m") + 1]
+                for name in names if "%i" in module else [""]:
+                    mod = module.replace("%i", name)
+                    # the installed package, not a folder that happens to be the cwd
+                    assert mod.startswith("topoexplore."), (unit.name, mod)
+                    assert importlib.util.find_spec(mod) is not None, (unit.name, mod)
+            else:
+                assert argv[0].endswith("/topoexplore"), (unit.name, line)
+                assert argv[1] in subcommands, (unit.name, line)

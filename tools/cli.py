@@ -8,6 +8,7 @@
     topoexplore render   make a PNG from a saved run directory or a running stack
     topoexplore bench    benchmarks: stages | explore | inproc
     topoexplore router   run a Zenoh router
+    topoexplore warmup   compile the numba kernels once, before the services start
 
 Every error in the command line, a file or a parameter prints one line and exits non-zero.
 """
@@ -126,8 +127,12 @@ def cmd_up(args: argparse.Namespace) -> int:
     sup = Supervisor(profile, keys, params.bus.connect, params_file=args.params,
                      overrides=overrides, zenoh_config=args.zenoh_config)
     stop = threading.Event()
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    def on_signal(*_: object) -> None:
+        stop.set()
+        sup.interrupted.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
     print(f"[supervisor] profile {profile.name}: {', '.join(s.name for s in profile.processes)} "
           f"on {params.bus.connect} ({keys.prefix})", flush=True)
     try:
@@ -194,6 +199,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("keys", help="inspect keys: list | echo KEY | hz KEY | get SERVICE",
                    add_help=False)
     sub.add_parser("router", help="run a Zenoh router", add_help=False)
+    sub.add_parser("warmup", help="compile the numba kernels once (the supervisor does it too)",
+                   add_help=False)
     sub.add_parser("render", help="PNG from a saved run directory or a running stack",
                    add_help=False)
     sub.add_parser("bench", help="benchmarks: stages | explore | inproc | robust | oracle",
@@ -215,6 +222,7 @@ _FORWARD = {
     "router": "topoexplore.tools.router",
     "render": "topoexplore.tools.render",
     "bench": "topoexplore.tools.bench",
+    "warmup": "topoexplore.tools.warm",
 }
 
 

@@ -101,6 +101,7 @@ class Monitor:
     timeline: list[tuple[float, float, float]] = field(default_factory=list)
     coverage_fn: Any = None
     sample_every: float = 0.25  # [m] of travel (and at least every 5 s of sim time)
+    first_motion: float | None = None  # [monotonic s] when the sim first reported travel
 
     def on_status(self, msg: m.ExploreStatus) -> None:
         with self.lock:
@@ -114,6 +115,8 @@ class Monitor:
 
     def on_sim(self, msg: m.SimStatus) -> None:
         with self.lock:
+            if self.first_motion is None and msg.path_length > 0.0:
+                self.first_motion = time.monotonic()
             self.sim = msg
             self.sim_by_seq[msg.header.src_seq] = msg
             if len(self.sim_by_seq) > 200:
@@ -232,7 +235,8 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
                 mon: Monitor, sim: m.SimStatus | None, wall: float, startup: float,
                 coverage: float, coverage_free: float, accuracy: float, restarts: int,
                 bad_messages: int, p_reliable: float, lockstep: bool,
-                planner: dict | None = None) -> dict[str, Any]:
+                planner: dict | None = None, warmup: float | None = None,
+                first_motion: float | None = None) -> dict[str, Any]:
     """The report.json document. ``coverage``: share of the free cells the robot can map that
     the final map knows; ``coverage_free``: share of every free cell connected to the start."""
     rel = mon.rel
@@ -249,6 +253,11 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
         "sim_time_s": round(sim.sim_time, 3) if sim else 0.0,
         "wall_time_s": round(wall, 3),
         "startup_s": round(startup, 3),
+        # [s] of startup spent compiling / loading the numba kernels (topoexplore warmup)
+        "warmup_s": round(warmup, 3) if warmup is not None else None,
+        # [s] from the command's start (parameters checked, truth mask built, stack started)
+        # to the robot's first motion
+        "first_motion_s": round(first_motion, 3) if first_motion is not None else None,
         "path_length_m": round(sim.path_length, 3) if sim else 0.0,
         "coverage": round(coverage, 4),
         "coverage_free": round(coverage_free, 4),
@@ -343,6 +352,7 @@ def write_outputs(out: Path, report: dict, mon: Monitor, truth: Truth, p: Params
 def run(args: argparse.Namespace) -> int:
     """``topoexplore run``: check the input, run the stack until exploration ends, write the
     outputs. Returns the exit code (0 finished, 1 not finished, 2 bad input)."""
+    t_cmd = time.monotonic()
     try:
         setup = check_input(args)
     except InputError as exc:
@@ -351,6 +361,8 @@ def run(args: argparse.Namespace) -> int:
     console = Console.for_args(args)
     session = StackRun(args, setup, truth, console)
     outcome = session.execute()
+    if session.mon.first_motion is not None:
+        outcome.first_motion = session.mon.first_motion - t_cmd
     report = write_results(args, setup, truth, session.mon, outcome)
     console.echo(summary_line(report, setup.out))
     if not outcome.finished:
@@ -493,6 +505,8 @@ class Outcome:
     restarts: int = 0
     bad: int = 0  # bad messages counted by the services
     planner: dict | None = None  # the planner's robustness counters (planner_robustness)
+    warmup: float | None = None  # [s] wall time of the kernel warm-up step (topoexplore warmup)
+    first_motion: float | None = None  # [s] wall time from the command's start to first motion
 
 
 class StackRun:
@@ -521,7 +535,8 @@ class StackRun:
             self.log.write(line + "\n")
             self.log.flush()
         if not self.args.quiet and ("WARNING" in line or "ERROR" in line or "Traceback" in line
-                                    or "[supervisor]" in line and "exited" in line):
+                                    or "[supervisor]" in line and "exited" in line
+                                    or line.startswith("[warmup]") and "compil" in line):
             self.console.echo(line)
 
     def execute(self) -> Outcome:
@@ -549,6 +564,7 @@ class StackRun:
 
     def _on_signal(self, signum: int, frame: Any) -> None:
         self.stop.set()
+        self.sup.interrupted.set()
 
     def _start(self) -> float:
         """Router first (so the monitor sees the run from its first message), the monitor's
@@ -619,6 +635,7 @@ class StackRun:
             if out.finished and st is not None and st.header.src_seq in mon.sim_by_seq:
                 out.sim = mon.sim_by_seq[st.header.src_seq]
         out.restarts = self.sup.restarts
+        out.warmup = self.sup.warm_s
         out.bad = _bad_message_total(self.bus, self.setup.keys) if out.startup else 0
         out.planner = _planner_robustness(self.bus, self.setup.keys) if out.startup else None
 
@@ -642,7 +659,8 @@ def write_results(args: argparse.Namespace, setup: Setup, truth: Truth, mon: Mon
                              coverage=coverage, coverage_free=coverage_free, accuracy=accuracy,
                              restarts=outcome.restarts, bad_messages=outcome.bad,
                              p_reliable=params.reliability.p_reliable, lockstep=args.lockstep,
-                             planner=outcome.planner)
+                             planner=outcome.planner, warmup=outcome.warmup,
+                             first_motion=outcome.first_motion)
         title = (f"{args.world} / {args.strategy} / seed {args.seed}: "
                  f"{'finished' if outcome.finished else 'not finished'}, "
                  f"{report['path_length_m']:.1f} m, {report['sim_time_s']:.0f} s, "

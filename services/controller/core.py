@@ -45,6 +45,7 @@ __all__ = [
     "ControllerCore",
 ]
 
+WARM_MODULES: tuple[str, ...] = ()  # no numba kernels (common.warm)
 MODES = ("idle", "done", "look", "rotate", "track", "slow", "blocked", "recovery", "face",
          "arrived")
 _SAMPLE_STEP = 0.02  # [m] path sampling step of the lookahead search

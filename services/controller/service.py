@@ -14,7 +14,7 @@ from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.domain import Command
 from topoexplore.common.node import Node, OdomBuffer, run_service
-from topoexplore.services.controller.core import ControllerCore
+from topoexplore.services.controller.core import WARM_MODULES, ControllerCore
 
 log = logging.getLogger("topoexplore.controller")
 
@@ -75,7 +75,8 @@ class ControllerService:
 
 def main(argv: list[str] | None = None) -> int:
     return run_service("controller", lambda node: ControllerService(node).step, argv,
-                       "pure pursuit path follower with obstacle safety stop")
+                       "pure pursuit path follower with obstacle safety stop",
+                       kernels=WARM_MODULES)
 
 
 if __name__ == "__main__":

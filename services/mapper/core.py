@@ -238,26 +238,6 @@ def _integrate_kernel(logodds, occ, stamp, scan_id, r0, c0, er, ec, hit,
     return rmin, rmax + 1, cmin, cmax + 1
 
 
-_WARMED = False
-
-
-def _warm_up() -> None:
-    """Compile (or load from numba's cache) the kernel once per process, with the real dtypes."""
-    global _WARMED
-    if _WARMED:
-        return
-    lo = np.zeros((4, 4), np.float32)
-    occ = np.full((4, 4), -1, np.int8)
-    st = np.zeros((4, 4), np.int32)
-    e = np.array([3, 0], np.int64)
-    f = np.zeros(2)
-    _integrate_kernel(lo, occ, st, np.int64(1), np.int64(1), np.int64(1), e, e[::-1].copy(),
-                      np.array([True, False]), -0.4, 0.85, -4.0, 4.0,
-                      np.array([True, False]), np.array([True, False]), f, f, f, f, f, f,
-                      0.0)
-    _WARMED = True
-
-
 def grow_axis(lo: int, hi: int, n: int, margin: int, limit: int) -> tuple[int, int]:
     """Cells to add below index 0 and above index n-1 so that lo..hi fit in an axis of n cells.
 
@@ -305,7 +285,6 @@ class MapperCore:
         self._scan_id = 0
         self.scans = 0  # scans integrated (including ones with no usable beam)
         self.grown = 0  # times the grid grew
-        _warm_up()
 
     # -- state ---------------------------------------------------------------------------------
 
@@ -492,3 +471,14 @@ class MapperCore:
         self._off_c -= add_c0
         self.grown += 1
         return add_r0, add_c0
+
+
+# Entry kernels and the argument types this core calls them with (common.warm).
+WARM = {
+    "_integrate_kernel": (
+        "(float32[:, ::1], int8[:, ::1], int32[:, ::1], int64, int64, int64, int64[::1],"
+        " int64[::1], boolean[::1], float64, float64, float64, float64, boolean[::1],"
+        " boolean[::1], float64[::1], float64[::1], float64[::1], float64[::1], float64[::1],"
+        " float64[::1], float64)",),
+}
+WARM_MODULES = (__name__,)  # modules whose WARM kernels this core runs

@@ -15,7 +15,7 @@ import logging
 from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.node import Node, OdomBuffer, run_service
-from topoexplore.services.mapper.core import MapperCore, ScanError
+from topoexplore.services.mapper.core import WARM_MODULES, MapperCore, ScanError
 
 log = logging.getLogger("topoexplore.mapper")
 
@@ -78,7 +78,8 @@ class MapperService:
 
 def main(argv: list[str] | None = None) -> int:
     return run_service("mapper", lambda node: MapperService(node).step, argv,
-                       "log-odds occupancy grid mapper")
+                       "log-odds occupancy grid mapper",
+                       kernels=WARM_MODULES)
 
 
 if __name__ == "__main__":

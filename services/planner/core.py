@@ -63,6 +63,8 @@ from topoexplore.services.planner.strategies.base import (
 from topoexplore.services.planner.strategies.frontier import nearest_frontier_evaluation
 from topoexplore.services.planner.watchdog import Watchdog
 
+# modules whose WARM kernels this core runs (common.warm)
+WARM_MODULES = ("topoexplore.services.planner.gridsearch",)
 ENTRY_SKIP = 0.05  # [m] an entry point this close to the robot is not a separate waypoint
 MAX_CROSSING_REPLANS = 2  # new paths per target when its path crosses a wall seen later
 NARROWED_TOLERANCE = 0.5  # [cells] a waypoint planned with the clearance the planner needs

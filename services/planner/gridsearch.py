@@ -495,3 +495,9 @@ def _group(k: int, size: int, centroid: tuple[float, float], r: np.ndarray, c: n
         goal_rc, goal_xy, plen, cost, look = None, None, math.inf, math.inf, None
     return FrontierGroup(k, size, centroid, np.stack([wx, wy], axis=1), goal_rc, goal_xy,
                          plen, cost, look)
+
+
+# Entry kernels and the argument types the planner calls them with (common.warm).
+WARM = {
+    "_dijkstra8": ("(boolean[:, ::1], float64[:, ::1], int64[::1], float64[::1], float64)",),
+}

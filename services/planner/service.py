@@ -12,7 +12,7 @@ import time
 from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.node import Node, OdomBuffer, run_service
-from topoexplore.services.planner.core import PlannerCore
+from topoexplore.services.planner.core import WARM_MODULES, PlannerCore
 
 log = logging.getLogger("topoexplore.planner")
 
@@ -88,7 +88,8 @@ class PlannerService:
 
 def main(argv: list[str] | None = None) -> int:
     return run_service("planner", lambda node: PlannerService(node).step, argv,
-                       "exploration planner (reliability | all-end-nodes | frontier)")
+                       "exploration planner (reliability | all-end-nodes | frontier)",
+                       kernels=WARM_MODULES)
 
 
 if __name__ == "__main__":

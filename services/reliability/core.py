@@ -593,3 +593,10 @@ class ReliabilityCore:
             "dropped": self._dropped,
             "nodes": nodes,
         }
+
+
+# Entry kernels and the argument types this core calls them with (common.warm).
+WARM = {
+    "_mark_groups": ("(uint8[:, ::1], int64[:, ::1], int64)",),
+}
+WARM_MODULES = (__name__,)  # modules whose WARM kernels this core runs

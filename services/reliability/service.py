@@ -11,7 +11,7 @@ import logging
 from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.node import Node, OdomBuffer, run_service
-from topoexplore.services.reliability.core import ReliabilityCore
+from topoexplore.services.reliability.core import WARM_MODULES, ReliabilityCore
 
 log = logging.getLogger("topoexplore.reliability")
 
@@ -59,7 +59,8 @@ class ReliabilityService:
 
 def main(argv: list[str] | None = None) -> int:
     return run_service("reliability", lambda node: ReliabilityService(node).step, argv,
-                       "end node position probability (Bayes update, paper eqs. 1-10)")
+                       "end node position probability (Bayes update, paper eqs. 1-10)",
+                       kernels=WARM_MODULES)
 
 
 if __name__ == "__main__":

@@ -47,6 +47,9 @@ from topoexplore.services.topology import skeleton as sk
 
 __all__ = ["TopoResult", "TopologyCore", "associate_ids"]
 
+# modules whose WARM kernels this core runs (common.warm)
+WARM_MODULES = (g.__name__, sk.__name__)
+
 
 @dataclass
 class TopoResult:

@@ -720,3 +720,22 @@ def assemble(ea, eb, off, pix, splits, n_nodes, dt, w):  # pragma: no cover - co
             a = b
             start = stop
     return sa[:k], sb[:k], s0[:k], s1[:k], ln[:k], cl[:k]
+
+
+# Entry kernels and the argument types the topology core calls them with (common.warm).
+WARM = {
+    "find_entry": ("(uint8[:, ::1], uint8[:, ::1], int64, int64, int64)",),
+    "build_graph": ("(uint8[:, ::1], int64, uint8[::1], int32[::1], int64[::1])",),
+    "reset_nodeid": ("(int32[::1], int64[::1])",),
+    "decimate": ("(int64[::1], int64[::1], int64[::1], int64)",),
+    "prune_spurs": (
+        "(uint8[:, ::1], int64[::1], int8[::1], int32[::1], int32[::1], int64[::1], int64[::1],"
+        " int32[::1], float32[:, ::1], float64, float64, float64, int8[:, ::1], uint8[:, ::1],"
+        " float64, int64)",),
+    "split_corners": (
+        "(uint8[:, ::1], int32[::1], int32[::1], int64[::1], int64[::1], int64, float64,"
+        " boolean)",),
+    "assemble": (
+        "(int32[::1], int32[::1], int64[::1], int64[::1], int64[::1], int64, float32[:, ::1],"
+        " int64)",),
+}

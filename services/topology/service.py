@@ -11,7 +11,7 @@ import logging
 from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.node import Node, OdomBuffer, run_service
-from topoexplore.services.topology.core import TopologyCore
+from topoexplore.services.topology.core import WARM_MODULES, TopologyCore
 
 log = logging.getLogger("topoexplore.topology")
 
@@ -56,7 +56,8 @@ class TopologyService:
 
 def main(argv: list[str] | None = None) -> int:
     return run_service("topology", lambda node: TopologyService(node).step, argv,
-                       "thinning-based topological map")
+                       "thinning-based topological map",
+                       kernels=WARM_MODULES)
 
 
 if __name__ == "__main__":

@@ -244,3 +244,11 @@ def skeletonize(mask01: np.ndarray, method: str = "zhang") -> np.ndarray:
     h, w = out.shape
     one_pixel_wide(out, 1, h - 1, 1, w - 1)
     return out
+
+
+# Entry kernels and the argument types the topology core calls them with (common.warm).
+WARM = {
+    "_break_diagonals": ("(uint8[:, ::1],)",),
+    "zhang_suen": ("(uint8[:, ::1],)",),
+    "one_pixel_wide": ("(uint8[:, ::1], int64, int64, int64, int64)",),
+}

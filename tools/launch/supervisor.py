@@ -1,6 +1,9 @@
 """Supervisor: starts the router and the processes of a launch profile, watches them, restarts.
 
 - starts a Zenoh router on the bus endpoint when the profile asks for one;
+- compiles the numba kernels of its module processes once, in one child process, before it
+  starts them (``topoexplore warmup``: on a cold cache six processes would otherwise compile
+  at once; on a warm one it loads them, about 0.5 s);
 - starts every process (module processes get the shared bus and parameter options);
 - waits until each one's liveliness token appears (``<ns>/<robot>/alive/<name>``);
 - forwards their logs, each line prefixed with ``[name]``;
@@ -64,7 +67,8 @@ class Supervisor:
     def __init__(self, profile: Profile, keys: Keys, endpoint: str,
                  params_file: str | None = None, overrides: list[str] | None = None,
                  zenoh_config: str | None = None, sink: Callable[[str], None] | None = None,
-                 policy: RestartPolicy | None = None, lost_grace: float = 12.0):
+                 policy: RestartPolicy | None = None, lost_grace: float = 12.0,
+                 warm: bool = True):
         self.profile = profile
         self.keys = keys
         self.endpoint = endpoint
@@ -74,6 +78,9 @@ class Supervisor:
         self.sink = sink or (lambda line: print(line, flush=True))
         self.policy = policy or RestartPolicy()
         self.lost_grace = lost_grace
+        self.warm = warm
+        self.interrupted = threading.Event()  # set from a signal handler: abandon the warm-up
+        self.warm_s: float | None = None  # [s] wall time of the warm-up step, once run
         self.states = {s.name: ProcState(spec=s) for s in profile.processes}
         self.procs: dict[str, subprocess.Popen] = {}
         self.router: subprocess.Popen | None = None
@@ -111,6 +118,44 @@ class Supervisor:
         assert proc.stdout is not None
         for line in proc.stdout:
             self.sink(f"[{name}] {line.rstrip()}")
+
+    def warm_up(self, timeout: float = 600.0) -> bool:
+        """Compile (or load) the kernels of every module process, in one child process that
+        exits afterwards, its lines forwarded as ``[warmup]``. True when it succeeded; on
+        failure the services still compile their own kernels at start."""
+        from topoexplore.tools.warm import core_of
+
+        cores = [(s.name, c) for s in self.profile.processes if (c := core_of(s.module))]
+        if not self.warm or not cores:
+            return True
+        t0 = time.monotonic()
+        cmd = [sys.executable, "-u", "-m", "topoexplore.tools.warm",
+               "--cores", ",".join(f"{n}={c}" for n, c in cores)]
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                stdin=subprocess.DEVNULL, env=env, start_new_session=True,
+                                preexec_fn=_pdeathsig, text=True, errors="replace", bufsize=1)
+        t = threading.Thread(target=self._forward_warm, args=(proc,), daemon=True)
+        t.start()
+        deadline = t0 + timeout
+        while proc.poll() is None:
+            if self.interrupted.is_set() or time.monotonic() > deadline:
+                self._kill(proc, signal.SIGKILL)
+                break
+            time.sleep(0.05)
+        code = proc.wait()
+        t.join(timeout=1.0)
+        self.warm_s = time.monotonic() - t0
+        if code != 0:
+            self.sink(f"[supervisor] warm-up failed (exit {code}); the services compile "
+                      f"their kernels themselves")
+        return code == 0
+
+    def _forward_warm(self, proc: subprocess.Popen) -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            line = line.rstrip()
+            self.sink(line if line.startswith("[warmup]") else f"[warmup] {line}")
 
     def start_router(self) -> None:
         """Start the router process (idempotent)."""
@@ -165,8 +210,12 @@ class Supervisor:
 
     # -- lifecycle ------------------------------------------------------------------------
     def start(self, ready_timeout: float | None = None) -> bool:
-        """Start router + every process; wait for their tokens. True when all are up."""
+        """Start router, warm the kernels, start every process; wait for their tokens. True
+        when all are up."""
         self.start_router()
+        self.warm_up()
+        if self.interrupted.is_set():
+            return False
         self.bus = Bus.client(self.endpoint, name="supervisor", config_file=self.zenoh_config,
                               wait_for_router=True)
         self.bus.watch_liveliness(self.keys.alive_all(), self._on_token)

@@ -1,0 +1,169 @@
+"""Kernel warm-up (common/warm.py, tools/warm.py): every kernel a run needs is listed, compiled
+once, counted right; ``topoexplore warmup`` and the supervisor's warm-up step."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import types
+
+import pytest
+from numba.core.registry import CPUDispatcher
+
+from tests.conftest import REPO
+from topoexplore.common.warm import WarmError, compile_kernels, kernel_table
+from topoexplore.tools.warm import clear_cache, core_of, profile_cores, warm_modules
+
+SIM_CORES = ["topoexplore.services.mapper.core", "topoexplore.services.topology.core",
+             "topoexplore.services.reliability.core", "topoexplore.services.planner.core",
+             "topoexplore.services.controller.core", "topoexplore.sim.core"]
+
+
+def _all_kernel_modules() -> list[str]:
+    return list(dict.fromkeys(m for c in SIM_CORES for m in warm_modules(c)))
+
+
+def _signatures() -> dict[str, set[str]]:
+    """Compiled signatures of every numba kernel of the package loaded in this process."""
+    out: dict[str, set[str]] = {}
+    for name, mod in list(sys.modules.items()):
+        if not name.startswith("topoexplore.") or mod is None:
+            continue
+        for k, v in vars(mod).items():
+            if isinstance(v, CPUDispatcher) and v.__module__ == name:
+                out[f"{name}.{k}"] = {str(s) for s in v.signatures}
+    return out
+
+
+def test_the_sim_profile_maps_to_every_core():
+    cores = dict(profile_cores("sim"))
+    assert sorted(cores.values()) == sorted(SIM_CORES)
+    assert core_of("topoexplore.services.topology.service") == "topoexplore.services.topology.core"
+    assert core_of("no_such_package.service") is None and core_of("") is None
+
+
+def test_every_listed_kernel_is_a_kernel_with_valid_signatures():
+    mods = _all_kernel_modules()
+    assert "topoexplore.services.topology.graph" in mods
+    for mname in mods:
+        table = kernel_table(mname)
+        assert table, mname
+        for name, disp, sigs in table:
+            assert isinstance(disp, CPUDispatcher), (mname, name)
+            assert all(s.startswith("(") for s in sigs), (mname, name)
+
+
+def test_an_exploration_compiles_nothing_beyond_the_lists():
+    """After the warm-up, runs of every strategy (including a SLAM-like map world) add no
+    signature to any kernel: what a service compiles before it is up is all it needs."""
+    from topoexplore.tools.bench import inproc
+
+    compile_kernels(_all_kernel_modules())
+    before = _signatures()
+    for world, strategy, limit in [("paper-room", "reliability", 60.0),
+                                   ("junction", "frontier", 40.0),
+                                   ("small-house", "all-end-nodes", 20.0)]:
+        inproc.run(world, strategy=strategy, max_sim_time=limit)
+    after = _signatures()
+    new = {k: v - before.get(k, set()) for k, v in after.items() if v - before.get(k, set())}
+    assert not new, f"compiled during the run, missing from a WARM list: {new}"
+
+
+def test_a_second_warm_up_in_the_same_process_costs_nothing():
+    mods = _all_kernel_modules()
+    compile_kernels(mods)
+    res = compile_kernels(mods)
+    assert res.compiled == 0 and res.loaded == 0
+    assert res.present == sum(len(s) for m in mods for _, _, s in kernel_table(m))
+    assert "loaded from the cache" in res.line()
+    assert compile_kernels([]).line() == "no numba kernels"
+
+
+def _fake_module(name: str, **attrs) -> types.ModuleType:
+    mod = types.ModuleType(name)
+    mod.__dict__.update(attrs)
+    sys.modules[name] = mod
+    return mod
+
+
+@pytest.mark.parametrize("attrs, text", [
+    ({}, "no WARM dict"),
+    ({"WARM": {"f": ("(int64,)",)}, "f": 3}, "not a numba kernel"),
+    ({"WARM": {"g": ("(int64,)",)}}, "not a numba kernel"),
+    ({"WARM": {"f": "(int64,)"}, "f": None}, "not a numba kernel"),
+])
+def test_a_bad_warm_list_is_named(attrs, text):
+    name = "topoexplore_test_fake_warm"
+    _fake_module(name, **attrs)
+    try:
+        with pytest.raises(WarmError, match=text):
+            compile_kernels([name])
+    finally:
+        sys.modules.pop(name, None)
+
+
+KERNEL_SRC = textwrap.dedent("""
+    from numba import njit
+
+    @njit(cache=True)
+    def twice(a):
+        return 2 * a
+
+    WARM = {"twice": ("(int64,)", "(float64,)")}
+""")
+
+
+def _warm_in_new_process(tmp_path) -> dict:
+    code = ("import json, sys; sys.path.insert(0, sys.argv[1]); "
+            "from topoexplore.common.warm import compile_kernels; "
+            "r = compile_kernels(['warmkernels']); "
+            "print(json.dumps({'loaded': r.loaded, 'compiled': r.compiled, 'line': r.line()}))")
+    r = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True,
+                       text=True, timeout=120, cwd=REPO, env=dict(os.environ))
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout)
+
+
+def test_compiled_once_then_loaded_from_the_disk_cache_then_cleared(tmp_path):
+    (tmp_path / "warmkernels.py").write_text(KERNEL_SRC)
+    first = _warm_in_new_process(tmp_path)
+    assert (first["compiled"], first["loaded"]) == (2, 0), first
+    assert "compiled" in first["line"] and str(tmp_path) in first["line"]
+    second = _warm_in_new_process(tmp_path)
+    assert (second["compiled"], second["loaded"]) == (0, 2), second
+    sys.path.insert(0, str(tmp_path))
+    try:
+        assert clear_cache(["warmkernels"], package=False) >= 2
+    finally:
+        sys.path.remove(str(tmp_path))
+        sys.modules.pop("warmkernels", None)
+    assert not list((tmp_path / "__pycache__").glob("warmkernels.*.nb*"))
+    third = _warm_in_new_process(tmp_path)
+    assert (third["compiled"], third["loaded"]) == (2, 0), third
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "topoexplore.tools.cli", *args], cwd=REPO,
+                          capture_output=True, text=True, timeout=300, env=dict(os.environ))
+
+
+def test_warmup_command_reports_every_core():
+    r = _cli("warmup", "--profile", "sim", "--jobs", "2")
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    for name in ("mapper", "topology", "reliability", "planner", "sim"):
+        assert any(ln.startswith(f"[warmup] {name}: ") for ln in lines), r.stdout
+    assert not any(ln.startswith("[warmup] controller:") for ln in lines)  # no kernels
+    assert lines[-1].startswith("[warmup] ") and " in " in lines[-1]
+
+
+@pytest.mark.parametrize("args", [["--profile", "/nonexistent.toml"], ["--jobs", "0"],
+                                  ["--cores", "nonsense"], ["--bogus"]])
+def test_warmup_bad_arguments_one_line(args):
+    r = _cli("warmup", *args)
+    assert r.returncode == 2
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
