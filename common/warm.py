@@ -21,6 +21,7 @@ import importlib
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 __all__ = ["WarmError", "WarmResult", "compile_kernels", "kernel_table"]
 
@@ -39,6 +40,9 @@ class WarmResult:
     seconds: float = 0.0  # [s] wall
     cache_dirs: list[str] = field(default_factory=list)
     per_module: dict[str, tuple[int, int, float]] = field(default_factory=dict)
+    # the kernel modules' source files and numba's cache files for them, after the warm-up
+    # (what tools/warm.py's stamp watches)
+    files: list[str] = field(default_factory=list)
 
     @property
     def signatures(self) -> int:
@@ -60,6 +64,18 @@ def _types(sig: str) -> tuple:
 
     args, _ret = sigutils.normalize_signature(sig)
     return tuple(args)
+
+
+def _files(module_name: str) -> list[str]:
+    """A kernel module's source file and numba's cache files (index and code) of its kernels."""
+    mod = importlib.import_module(module_name)
+    src = Path(mod.__file__)
+    out = [str(src)]
+    dirs = {Path(d.stats.cache_path) for _, d, _ in kernel_table(module_name)
+            if d.stats.cache_path}
+    for d in sorted(dirs):
+        out += sorted(str(f) for f in d.glob(f"{src.stem}.*.nb[ic]"))
+    return out
 
 
 def kernel_table(module_name: str) -> list[tuple[str, object, tuple[str, ...]]]:
@@ -106,6 +122,7 @@ def compile_kernels(module_names: Iterable[str]) -> WarmResult:
             path = disp.stats.cache_path
             if path and path not in res.cache_dirs and compiled:
                 res.cache_dirs.append(path)
+        res.files.extend(_files(mname))
         dt = time.monotonic() - t0
         res.loaded += loaded
         res.compiled += compiled

@@ -167,3 +167,35 @@ def test_warmup_bad_arguments_one_line(args):
     assert r.returncode == 2
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
+
+
+def test_the_stamp_holds_while_nothing_changes(tmp_path, monkeypatch):
+    from topoexplore.common.warm import WarmResult
+    from topoexplore.tools import warm
+
+    stamp = tmp_path / "cache" / "warmup-stamp.json"
+    monkeypatch.setattr(warm, "stamp_paths", lambda: [tmp_path / "ro" / "x" / "s.json", stamp])
+    (tmp_path / "ro").write_text("a file, so no folder can be made under it")
+    src, nbi = tmp_path / "k.py", tmp_path / "k.f-1.py311.nbi"
+    src.write_text("kernel source")
+    nbi.write_text("index")
+    cores = [("topology", "topoexplore.services.topology.core")]
+    results = {"topology": WarmResult(loaded=1, files=[str(src), str(nbi)])}
+    assert warm.write_stamp(cores, results) == stamp
+    assert warm.stamp_valid(cores) and warm.stamp_valid([])
+    assert not warm.stamp_valid([*cores, ("planner", "topoexplore.services.planner.core")])
+    env = warm._environment()
+    monkeypatch.setattr(warm, "_environment", lambda: {**env, "numba": "0.0"})
+    assert not warm.stamp_valid(cores)  # another numba: its cache does not hold
+    monkeypatch.setattr(warm, "_environment", lambda: env)
+    nbi.write_text("index, rewritten by numba for a new signature")
+    assert not warm.stamp_valid(cores)
+    warm.write_stamp(cores, results)
+    assert warm.stamp_valid(cores)
+    nbi.unlink()  # someone deleted __pycache__
+    assert not warm.stamp_valid(cores)
+    warm.write_stamp(cores, {"topology": WarmResult(loaded=1, files=[str(src)])})
+    stamp.write_text("{not json")
+    assert not warm.stamp_valid(cores)
+    warm.remove_stamp()
+    assert not stamp.exists()

@@ -6,8 +6,8 @@ On a fresh install (or after an update of the code or of numba) every kernel has
 compiled once; numba keeps the result on disk (``__pycache__`` beside the source, or
 ``NUMBA_CACHE_DIR``). Without this step the services of a profile would compile at their
 first start, six processes at once on two cores, each for its own kernels. The supervisor
-(``topoexplore run`` and ``up``) runs this step before it starts the services; on a warm cache
-it only loads (about 0.5 s). ``--clear`` deletes the cached kernels of topoexplore first
+(``topoexplore run`` and ``up``) runs this step before it starts the services, unless the
+stamp the last warm-up left says that nothing has changed since (``stamp_valid``). ``--clear`` deletes the cached kernels of topoexplore first
 (needed after editing ``common/kernels.py``: numba does not see that a cached caller's callee
 changed).
 
@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import importlib.util
+import json
 import multiprocessing
 import multiprocessing.context
 import os
@@ -32,7 +33,8 @@ from pathlib import Path
 
 from topoexplore.common.warm import WarmError, WarmResult, compile_kernels, kernel_table
 
-__all__ = ["core_of", "warm_modules", "warm_cores", "clear_cache", "main"]
+__all__ = ["core_of", "warm_modules", "warm_cores", "clear_cache", "write_stamp", "stamp_valid",
+           "main"]
 
 NOTICE_AFTER = 0.5  # [s] a core that takes longer than this is compiling: say so
 
@@ -60,9 +62,10 @@ def _warm_core(core: str) -> WarmResult:
 
 
 def _pool_context() -> multiprocessing.context.BaseContext:
-    # fork is cheap and safe here: the warm-up process has imported neither numba nor any core
-    # when the pool starts (each worker imports its own); elsewhere spawn
-    return multiprocessing.get_context("fork" if sys.platform == "linux" else "spawn")
+    # fork is cheap, and safe while this process has not imported numba (each worker imports
+    # its own); otherwise, and off Linux, spawn
+    fork = sys.platform == "linux" and "numba" not in sys.modules
+    return multiprocessing.get_context("fork" if fork else "spawn")
 
 
 def warm_cores(cores: Sequence[tuple[str, str]], echo: Callable[[str], None],
@@ -150,6 +153,93 @@ def profile_cores(profile_name: str) -> list[tuple[str, str]]:
     return cores
 
 
+# --- the stamp: skip the warm-up child when nothing changed since the last one ---------------
+
+
+STAMP_NAME = "warmup-stamp.json"
+
+
+def stamp_paths() -> list[Path]:
+    """Where the stamp may live: beside this package's bytecode, else the user's cache."""
+    import topoexplore.tools
+
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return [Path(topoexplore.tools.__path__[0]) / "__pycache__" / STAMP_NAME,
+            Path(base) / "topoexplore" / STAMP_NAME]
+
+
+def _environment() -> dict[str, str]:
+    """What numba's cache depends on beyond the files: versions, interpreter, cache dir."""
+    import platform
+    from importlib.metadata import PackageNotFoundError, version
+
+    def ver(pkg: str) -> str:
+        try:
+            return version(pkg)
+        except PackageNotFoundError:
+            return ""
+
+    return {"numba": ver("numba"), "llvmlite": ver("llvmlite"), "python": sys.version,
+            "executable": sys.executable, "machine": platform.machine(),
+            "NUMBA_CACHE_DIR": os.environ.get("NUMBA_CACHE_DIR", "")}
+
+
+def _stat(path: str) -> list[int] | None:
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return [st.st_mtime_ns, st.st_size]
+
+
+def write_stamp(cores: Sequence[tuple[str, str]], results: dict[str, WarmResult]) -> Path | None:
+    """After a warm-up: the cores, the environment, and the stat of every kernel source and
+    cache file, in the first stamp location that takes it. None when none does."""
+    files = sorted({f for r in results.values() for f in r.files})
+    doc = {"version": 1, "environment": _environment(), "cores": [list(c) for c in cores],
+           "files": {f: _stat(f) for f in files}}
+    for path in stamp_paths():
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".{os.getpid()}.tmp")
+            tmp.write_text(json.dumps(doc))
+            tmp.replace(path)
+            return path
+        except OSError:
+            continue
+    return None
+
+
+def stamp_valid(cores: Sequence[tuple[str, str]]) -> bool:
+    """True when a stamp covers these cores, in this environment, and no kernel source or
+    cache file it lists has changed or gone since: the services will load every kernel."""
+    want = [list(c) for c in cores]
+    env = None
+    for path in stamp_paths():
+        try:
+            doc = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        if not isinstance(doc, dict) or doc.get("version") != 1:
+            continue
+        files = doc.get("files")
+        if not isinstance(files, dict) or not files or not all(c in doc.get("cores", [])
+                                                                   for c in want):
+            continue
+        env = env or _environment()
+        if doc.get("environment") == env and all(_stat(f) == st for f, st in files.items()):
+            return True
+    return False
+
+
+def remove_stamp() -> None:
+    for path in stamp_paths():
+        try:
+            path.unlink(missing_ok=True)
+        except OSError:
+            pass
+
+
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str):  # type: ignore[override]
         raise WarmError(message)
@@ -181,14 +271,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                 raise WarmError(f"--cores wants NAME=MODULE pairs, got {args.cores!r}")
         else:
             cores = profile_cores(args.profile)
+        if args.jobs is not None and args.jobs < 1:
+            raise WarmError(f"--jobs must be >= 1, got {args.jobs}")
         if args.clear:
+            remove_stamp()
             n = clear_cache(_kernel_modules(c for _, c in cores))
             print(f"[warmup] removed {n} cached kernel file(s)", flush=True)
         t0 = time.monotonic()
-        if args.jobs is not None and args.jobs < 1:
-            raise WarmError(f"--jobs must be >= 1, got {args.jobs}")
         results = warm_cores(cores, lambda line: print(f"[warmup] {line}", flush=True),
                              jobs=args.jobs)
+        write_stamp(cores, results)
     except (WarmError, ProfileError, ImportError) as exc:
         print(f"topoexplore warmup: {exc}", file=sys.stderr)
         return 2

@@ -3,7 +3,7 @@
 - starts a Zenoh router on the bus endpoint when the profile asks for one;
 - compiles the numba kernels of its module processes once, in one child process, before it
   starts them (``topoexplore warmup``: on a cold cache six processes would otherwise compile
-  at once; on a warm one it loads them, about 0.5 s);
+  at once; skipped while the last warm-up's stamp holds);
 - starts every process (module processes get the shared bus and parameter options);
 - waits until each one's liveliness token appears (``<ns>/<robot>/alive/<name>``);
 - forwards their logs, each line prefixed with ``[name]``;
@@ -123,12 +123,16 @@ class Supervisor:
         """Compile (or load) the kernels of every module process, in one child process that
         exits afterwards, its lines forwarded as ``[warmup]``. True when it succeeded; on
         failure the services still compile their own kernels at start."""
-        from topoexplore.tools.warm import core_of
+        from topoexplore.tools.warm import core_of, stamp_valid
 
         cores = [(s.name, c) for s in self.profile.processes if (c := core_of(s.module))]
         if not self.warm or not cores:
             return True
         t0 = time.monotonic()
+        if stamp_valid(cores):  # nothing changed since the last warm-up: the services load
+            self.warm_s = time.monotonic() - t0
+            self.sink("[warmup] kernels cached at the last warm-up, nothing changed since")
+            return True
         cmd = [sys.executable, "-u", "-m", "topoexplore.tools.warm",
                "--cores", ",".join(f"{n}={c}" for n, c in cores)]
         env = dict(os.environ, PYTHONUNBUFFERED="1")
