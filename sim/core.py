@@ -18,8 +18,9 @@ from topoexplore.sim.world import World
 
 __all__ = ["SimError", "SimCore", "box_vertices", "beam_angles"]
 
-# modules whose WARM kernels the simulator runs (common.warm)
-WARM_MODULES = ("topoexplore.sim.world",)
+# modules whose WARM kernels the simulator runs (common.warm): none; sim.world's kernels make
+# the truth masks, which the tools compute (run, bench), not the simulator
+WARM_MODULES: tuple[str, ...] = ()
 
 WALL_TYPE = 1  # pymunk collision types
 ROBOT_TYPE = 2

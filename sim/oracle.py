@@ -48,12 +48,11 @@ from numba import njit
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
+from topoexplore.sim.rays import ray_table, square_border
 from topoexplore.sim.world import (
     LASER_RANGE,
     ROBOT_RADIUS,
     World,
-    _ray_table,
-    _square_border,
     rasterize,
     truth_mappable,
     truth_robot_positions,
@@ -318,7 +317,7 @@ class _Context:
         self.tidx[tr, tc] = np.arange(tr.size)
         self.total = int(tr.size)
         n = max(1, int(math.floor(laser_range / resolution + 1e-6)))
-        self.rays = _ray_table(_square_border(n))
+        self.rays = ray_table(square_border(n))
         self.r2 = float(n * n) + 1e-6
         self.graph, self.node = _grid_graph(self.pos)
 

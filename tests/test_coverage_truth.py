@@ -14,6 +14,7 @@ from topoexplore.common import messages as m
 from topoexplore.common.domain import GridMap
 from topoexplore.common.grid import GridGeometry
 from topoexplore.common.params import LaserParams, RobotParams, load_params
+from topoexplore.sim import rays as rk
 from topoexplore.sim import world as W
 from topoexplore.sim.world import (
     WorldError,
@@ -136,7 +137,7 @@ def test_bad_arguments():
 
 @pytest.mark.parametrize("n", [1, 7, 80])
 def test_rays_pass_every_cell_of_the_square(n):
-    rays = W._ray_table(W._square_border(n))
+    rays = rk.ray_table(rk.square_border(n))
     assert rays.shape == (8 * n, n + 1, 2)
     seen = np.zeros((2 * n + 1, 2 * n + 1), bool)
     seen[rays[:, :, 0] + n, rays[:, :, 1] + n] = True
@@ -151,7 +152,7 @@ def _brute_force(w, laser_range: float) -> np.ndarray:
     pos, _, _ = truth_robot_positions(w, RES)
     disc = W._dilate(pos, W.disc_kernel(0.2, RES), outside=0) & comp
     n = int(laser_range / RES + 1e-6)
-    rays = W._ray_table(W._square_border(n))
+    rays = rk.ray_table(rk.square_border(n))
     h, wd = solid.shape
     out = disc.copy()
     for src, forward in ((np.argwhere(pos), True), (np.argwhere(comp & ~disc), False)):

@@ -22,8 +22,12 @@ SIM_CORES = ["topoexplore.services.mapper.core", "topoexplore.services.topology.
              "topoexplore.services.controller.core", "topoexplore.sim.core"]
 
 
+TOOL_KERNELS = ["topoexplore.sim.rays"]  # the truth masks of run and bench (not the sim's)
+
+
 def _all_kernel_modules() -> list[str]:
-    return list(dict.fromkeys(m for c in SIM_CORES for m in warm_modules(c)))
+    return list(dict.fromkeys([*(m for c in SIM_CORES for m in warm_modules(c)),
+                               *TOOL_KERNELS]))
 
 
 def _signatures() -> dict[str, set[str]]:
@@ -63,10 +67,12 @@ def test_an_exploration_compiles_nothing_beyond_the_lists():
 
     compile_kernels(_all_kernel_modules())
     before = _signatures()
-    for world, strategy, limit in [("paper-room", "reliability", 60.0),
-                                   ("junction", "frontier", 40.0),
-                                   ("small-house", "all-end-nodes", 20.0)]:
-        inproc.run(world, strategy=strategy, max_sim_time=limit)
+    for world, strategy, limit, sets in [
+            ("paper-room", "reliability", 60.0, ()),
+            ("junction", "frontier", 40.0, ()),
+            ("small-house", "all-end-nodes", 20.0, ()),
+            ("dead-end", "reliability", 30.0, ("reliability.frontier_group=0.5",))]:
+        inproc.run(world, strategy=strategy, max_sim_time=limit, sets=sets)
     after = _signatures()
     new = {k: v - before.get(k, set()) for k, v in after.items() if v - before.get(k, set())}
     assert not new, f"compiled during the run, missing from a WARM list: {new}"
@@ -154,9 +160,10 @@ def test_warmup_command_reports_every_core():
     r = _cli("warmup", "--profile", "sim", "--jobs", "2")
     assert r.returncode == 0, r.stderr
     lines = r.stdout.splitlines()
-    for name in ("mapper", "topology", "reliability", "planner", "sim"):
+    for name in ("mapper", "topology", "reliability", "planner"):
         assert any(ln.startswith(f"[warmup] {name}: ") for ln in lines), r.stdout
-    assert not any(ln.startswith("[warmup] controller:") for ln in lines)  # no kernels
+    for name in ("controller", "sim"):  # no kernels
+        assert not any(ln.startswith(f"[warmup] {name}:") for ln in lines), r.stdout
     assert lines[-1].startswith("[warmup] ") and " in " in lines[-1]
 
 
@@ -199,3 +206,25 @@ def test_the_stamp_holds_while_nothing_changes(tmp_path, monkeypatch):
     assert not warm.stamp_valid(cores)
     warm.remove_stamp()
     assert not stamp.exists()
+
+
+def test_a_service_loads_only_the_kernels_its_parameters_run():
+    from topoexplore.common.params import load_params
+    from topoexplore.services.reliability import service as rel
+
+    assert rel._kernels(load_params(None, [])) == ()
+    on = load_params(None, ["reliability.frontier_group=0.5"])
+    assert rel._kernels(on) == ("topoexplore.services.reliability.groups",)
+    assert warm_modules("topoexplore.sim.core") == ()  # the truth masks are the tools' job
+
+
+def test_services_that_run_no_kernel_do_not_import_numba():
+    """numba alone costs a process about 60 MB resident: the simulator, the controller and
+    reliability (frontier-group test off) do without it."""
+    code = ("import sys; import topoexplore.sim.service, topoexplore.services.controller.service,"
+            " topoexplore.services.reliability.service; "
+            "print(sorted(m for m in ('numba', 'llvmlite') if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=120, cwd=REPO, env=dict(os.environ))
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "[]", r.stdout

@@ -236,7 +236,8 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
                 coverage: float, coverage_free: float, accuracy: float, restarts: int,
                 bad_messages: int, p_reliable: float, lockstep: bool,
                 planner: dict | None = None, warmup: float | None = None,
-                first_motion: float | None = None) -> dict[str, Any]:
+                first_motion: float | None = None,
+                memory: dict | None = None) -> dict[str, Any]:
     """The report.json document. ``coverage``: share of the free cells the robot can map that
     the final map knows; ``coverage_free``: share of every free cell connected to the start."""
     rel = mon.rel
@@ -274,6 +275,8 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
         "watchdog_stops": sim.watchdog_stops if sim else 0,
         "scans": sim.header.src_seq + 1 if sim else 0,
         "planner": planner,  # watchdog escalations and their log, learned obstacles
+        # per process at the end of the run: resident now and its high-water mark [MB]
+        "memory_mb": memory,
     }
 
 
@@ -507,6 +510,7 @@ class Outcome:
     planner: dict | None = None  # the planner's robustness counters (planner_robustness)
     warmup: float | None = None  # [s] wall time of the kernel warm-up step (topoexplore warmup)
     first_motion: float | None = None  # [s] wall time from the command's start to first motion
+    memory: dict | None = None  # resident memory per process [MB] (Supervisor.memory)
 
 
 class StackRun:
@@ -636,6 +640,7 @@ class StackRun:
                 out.sim = mon.sim_by_seq[st.header.src_seq]
         out.restarts = self.sup.restarts
         out.warmup = self.sup.warm_s
+        out.memory = self.sup.memory() or None
         out.bad = _bad_message_total(self.bus, self.setup.keys) if out.startup else 0
         out.planner = _planner_robustness(self.bus, self.setup.keys) if out.startup else None
 
@@ -660,7 +665,7 @@ def write_results(args: argparse.Namespace, setup: Setup, truth: Truth, mon: Mon
                              restarts=outcome.restarts, bad_messages=outcome.bad,
                              p_reliable=params.reliability.p_reliable, lockstep=args.lockstep,
                              planner=outcome.planner, warmup=outcome.warmup,
-                             first_motion=outcome.first_motion)
+                             first_motion=outcome.first_motion, memory=outcome.memory)
         title = (f"{args.world} / {args.strategy} / seed {args.seed}: "
                  f"{'finished' if outcome.finished else 'not finished'}, "
                  f"{report['path_length_m']:.1f} m, {report['sim_time_s']:.0f} s, "

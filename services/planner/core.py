@@ -137,7 +137,8 @@ class PlannerCore:
         #   path: _narrowed judges what is ahead, the watchdog how near the target is
         self._narrowed_now = tg is not None and self._narrowed(tg)
         u = Update(t, x, y, th, graph, beliefs, self._view,
-                   None if self._target is None else self._target.cand, self._blacklist.covers,
+                   None if self._target is None else self._target.cand.detached(),
+                   self._blacklist.covers,
                    fresh=self._narrowed_now)
         ev = self.strategy.evaluate(u)
         if ev.waiting is not None:

@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from numba import njit
 from scipy.spatial import cKDTree
 
 from topoexplore.common.domain import Belief, Graph, GridMap, Pose
@@ -38,7 +37,6 @@ from topoexplore.common.grid import (
     near_frontier,
     open_unknown,
 )
-from topoexplore.common.kernels import flood_fill
 from topoexplore.common.params import LaserParams, ReliabilityParams
 
 __all__ = [
@@ -257,23 +255,10 @@ def frontier_cells(grid: np.ndarray, p_free: float = 0.35, min_cells: int = 1,
     cells = nz.reshape(-1, 2)[:, ::-1].astype(np.int64)  # (row, col)
     if min_cells <= 1:
         return cells
-    _mark_groups(front, cells, min_cells)
+    from topoexplore.services.reliability.groups import mark_groups  # numba, only here
+
+    mark_groups(front, cells, min_cells)
     return cells[front[cells[:, 0], cells[:, 1]] == 3]
-
-
-@njit(cache=True)
-def _mark_groups(front, cells, min_cells):  # pragma: no cover - compiled
-    """In place on ``front`` (uint8, 1 = frontier): cells of 8-connected groups of at least
-    min_cells become 3, the others 2. Visits only the listed frontier cells: they are few,
-    and labelling the whole grid costs ~100 x more at 1000 x 1000."""
-    w = front.shape[1]
-    members = np.empty(cells.shape[0], np.int64)  # a group holds listed cells only
-    for k in range(cells.shape[0]):
-        m = flood_fill(front, cells[k, 0], cells[k, 1], 1, 2, members)
-        if m >= min_cells:
-            for i in range(m):
-                q = members[i]
-                front[q // w, q - (q // w) * w] = 3
 
 
 def leaf_chains(end_ids, edges: list[tuple[int, int]]) -> dict[int, list[int]]:
@@ -595,8 +580,5 @@ class ReliabilityCore:
         }
 
 
-# Entry kernels and the argument types this core calls them with (common.warm).
-WARM = {
-    "_mark_groups": ("(uint8[:, ::1], int64[:, ::1], int64)",),
-}
-WARM_MODULES = (__name__,)  # modules whose WARM kernels this core runs
+# modules whose WARM kernels this core runs (common.warm): the frontier-group test's only
+WARM_MODULES = ("topoexplore.services.reliability.groups",)

@@ -11,6 +11,7 @@ import logging
 from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.node import Node, OdomBuffer, run_service
+from topoexplore.common.params import Params
 from topoexplore.services.reliability.core import WARM_MODULES, ReliabilityCore
 
 log = logging.getLogger("topoexplore.reliability")
@@ -60,7 +61,13 @@ class ReliabilityService:
 def main(argv: list[str] | None = None) -> int:
     return run_service("reliability", lambda node: ReliabilityService(node).step, argv,
                        "end node position probability (Bayes update, paper eqs. 1-10)",
-                       kernels=WARM_MODULES)
+                       kernels=_kernels)
+
+
+def _kernels(params: Params) -> tuple[str, ...]:
+    """The core's one kernel runs only in the frontier-group test (reliability.frontier_group
+    > 0, off by default)."""
+    return WARM_MODULES if params.reliability.frontier_group > 0 else ()
 
 
 if __name__ == "__main__":

@@ -45,6 +45,23 @@ def _pdeathsig() -> None:  # runs in the child between fork and exec
         pass
 
 
+def proc_memory(pid: int) -> dict[str, float] | None:
+    """{"rss_mb", "peak_mb"} of a process from /proc/<pid>/status (VmRSS, VmHWM); None when
+    unreadable (gone, not Linux)."""
+    try:
+        text = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return None
+    kb = {}
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        if key in ("VmRSS", "VmHWM"):
+            kb[key] = float(value.split()[0])
+    if len(kb) < 2:
+        return None
+    return {"rss_mb": round(kb["VmRSS"] / 1024, 1), "peak_mb": round(kb["VmHWM"] / 1024, 1)}
+
+
 def profile_dir() -> Path:
     """The built-in launch profiles (``deploy/profiles`` in a checkout, package data once
     installed)."""
@@ -311,6 +328,7 @@ class Supervisor:
             t.join(timeout=1.0)
 
     def table(self) -> dict:
+        mem = self.memory()
         with self._lock:
             return {
                 "service": "supervisor",
@@ -318,10 +336,24 @@ class Supervisor:
                 "endpoint": self.endpoint,
                 "processes": {
                     n: {"pid": s.pid, "alive": s.alive, "restarts": s.restarts,
-                        "last_exit": s.last_exit, "given_up": s.given_up}
+                        "last_exit": s.last_exit, "given_up": s.given_up,
+                        "memory_mb": mem.get(n)}
                     for n, s in self.states.items()
                 },
             }
+
+    def memory(self) -> dict[str, dict[str, float]]:
+        """Resident memory of each running child (and the router): ``rss_mb`` now and
+        ``peak_mb`` (the kernel's high-water mark, VmHWM) [MB]. Linux only; {} elsewhere."""
+        with self._lock:
+            procs = dict(self.procs)
+        if self.router is not None:
+            procs["router"] = self.router
+        out: dict[str, dict[str, float]] = {}
+        for name, proc in procs.items():
+            if proc.poll() is None and (m := proc_memory(proc.pid)) is not None:
+                out[name] = m
+        return out
 
     @property
     def restarts(self) -> int:

@@ -9,7 +9,7 @@ to give it up, the same way for every strategy.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -65,6 +65,18 @@ class Candidate:
     partial: bool = False  # the path stops at a narrow passage before the target
     face: tuple[float, float] | None = None  # [m] point to face at the end of the path
     narrow: bool = False  # the path goes through a narrow passage (the frontier fallback)
+
+    def detached(self) -> Candidate:
+        """This candidate without its lazy path: what an :class:`Update` carries as the target
+        followed so far. The path closure holds the search of the update that made it, with
+        its map view and its Update, whose target holds the update before, and so on: kept
+        in the next Update, every map view since the robot last had no target stayed alive
+        (hundreds of MB in the planner on a 600-update office run)."""
+        return replace(self, path=_path_not_kept)
+
+
+def _path_not_kept() -> np.ndarray:
+    raise RuntimeError("the target of an earlier update keeps no path (Candidate.detached)")
 
 
 def _no_longer(c: Candidate) -> str:
