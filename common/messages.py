@@ -333,24 +333,43 @@ def _v_topo(m: TopoGraph) -> None:
         ids.add(n.id)
         _finite(m, f"node {n.id} x", n.x)
         _finite(m, f"node {n.id} y", n.y)
-    total = 0
-    for e in m.edges:
+    edges = m.edges
+    for e in edges:
         if e.a not in ids or e.b not in ids:
             _fail(m, f"edge {e.a}-{e.b} refers to an unknown node")
-        total += len(e.points)
-        if total > MAX_POINTS:
-            _fail(m, "too many polyline points")
-        for p in e.points:
-            if len(p) != 2:
-                _fail(m, f"edge {e.a}-{e.b} has a point with {len(p)} coordinates")
-        if e.points:
-            pts = np.asarray(e.points, dtype=np.float64)
-            if not np.all(np.isfinite(pts)) or np.any(np.abs(pts) > MAX_COORD):
-                _fail(m, f"edge {e.a}-{e.b} has a non-finite or absurd point")
-        _finite(m, f"edge {e.a}-{e.b} length", e.length, 0.0, MAX_COORD)
-        _finite(m, f"edge {e.a}-{e.b} clearance", e.clearance, 0.0, MAX_COORD)
+    counts = [len(e.points) for e in edges]
+    if sum(counts) > MAX_POINTS:
+        _fail(m, "too many polyline points")
+    _v_polylines(m, edges, counts)
+    for name in ("length", "clearance"):  # one vectorised check per field
+        v = np.fromiter((getattr(e, name) for e in edges), np.float64, len(edges))
+        bad = ~(np.isfinite(v) & (v >= 0.0) & (v <= MAX_COORD))
+        if bad.any():
+            e = edges[int(np.argmax(bad))]
+            _finite(m, f"edge {e.a}-{e.b} {name}", getattr(e, name), 0.0, MAX_COORD)
     if len(m.gone) > MAX_NODES:
         _fail(m, "too many gone ids")
+
+
+def _v_polylines(m: TopoGraph, edges: list[TopoEdge], counts: list[int]) -> None:
+    """Every polyline point [x, y], finite and sane: one array for all edges (a topo message
+    is decoded by three services on every map update; per-point loops cost 0.25 ms each)."""
+    if not sum(counts):
+        return
+    try:
+        pts = np.array([p for e in edges for p in e.points], dtype=np.float64)
+        ok_shape = pts.ndim == 2 and pts.shape[1] == 2
+    except ValueError:  # ragged: some point has another length
+        ok_shape = False
+    if not ok_shape:
+        for e in edges:
+            for p in e.points:
+                if len(p) != 2:
+                    _fail(m, f"edge {e.a}-{e.b} has a point with {len(p)} coordinates")
+    bad = ~np.isfinite(pts).all(axis=1) | (np.abs(pts) > MAX_COORD).any(axis=1)
+    if bad.any():
+        k = int(np.searchsorted(np.cumsum(counts), int(np.argmax(bad)), side="right"))
+        _fail(m, f"edge {edges[k].a}-{edges[k].b} has a non-finite or absurd point")
 
 
 def _v_rel(m: Reliability) -> None:

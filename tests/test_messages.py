@@ -104,6 +104,16 @@ BAD = [
         m.TopoNode(id=1, kind="end", x=0, y=0)] * 2, edges=[])), m.TopoGraph),
     ("3d point", m.encode(_mut(S["TopoGraph"], edges=[m.TopoEdge(
         a=1, b=2, points=[[0.0, 0.0, 1.0]], length=1.0, clearance=0.1)])), m.TopoGraph),
+    ("ragged points", m.encode(_mut(S["TopoGraph"], edges=[m.TopoEdge(
+        a=1, b=2, points=[[0.0, 0.0], [1.0]], length=1.0, clearance=0.1)])), m.TopoGraph),
+    ("nan point", m.encode(_mut(S["TopoGraph"], edges=[m.TopoEdge(
+        a=1, b=2, points=[[0.0, 0.0], [NAN, 1.0]], length=1.0, clearance=0.1)])), m.TopoGraph),
+    ("absurd point", m.encode(_mut(S["TopoGraph"], edges=[m.TopoEdge(
+        a=1, b=2, points=[[0.0, 1e12]], length=1.0, clearance=0.1)])), m.TopoGraph),
+    ("negative edge length", m.encode(_mut(S["TopoGraph"], edges=[m.TopoEdge(
+        a=1, b=2, points=[], length=-1.0, clearance=0.1)])), m.TopoGraph),
+    ("nan clearance", m.encode(_mut(S["TopoGraph"], edges=[m.TopoEdge(
+        a=1, b=2, points=[], length=1.0, clearance=NAN)])), m.TopoGraph),
     ("p above 1", m.encode(_mut(S["Reliability"], nodes=[msgspec.structs.replace(
         S["Reliability"].nodes[0], p=1.5)])), m.Reliability),
     ("nan waypoint", m.encode(_mut(S["Path"], waypoints=[[0.0, NAN]])), m.Path),
@@ -119,3 +129,14 @@ def test_validation_rejects_with_one_error_type(name, raw, t):
         m.decode(raw, t)
     text = str(exc.value)
     assert "\n" not in text and t.__name__ in text
+
+
+def test_a_bad_polyline_names_its_edge():
+    good = m.TopoEdge(a=1, b=2, points=[[0.0, 0.0], [1.0, 0.0]], length=1.0, clearance=0.4)
+    for points, text in [([[0.0, 0.0], [NAN, 1.0]], "edge 2-1 has a non-finite"),
+                         ([[0.0, 0.0], [1.0]], "edge 2-1 has a point with 1 coordinates"),
+                         ([[0.0, 0.0, 0.0]], "edge 2-1 has a point with 3 coordinates")]:
+        bad = m.TopoEdge(a=2, b=1, points=points, length=1.0, clearance=0.4)
+        raw = m.encode(_mut(S["TopoGraph"], edges=[good, bad, good]))
+        with pytest.raises(m.MessageError, match=text):
+            m.decode(raw, m.TopoGraph)
