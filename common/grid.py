@@ -229,8 +229,11 @@ def open_unknown(grid: np.ndarray, pocket_cells: int = 0, p_free: float = 0.35,
 
     A pocket is an 8-connected unknown component that does not touch the grid border (the
     mapper keeps a margin of unknown around everything it has seen, so real unexplored space
-    always does) and has fewer than pocket_cells cells: the inside of an obstacle glimpsed
-    through a notch (lse_arena's stair-step block), which no viewpoint can ever reveal.
+    always does) and has fewer than pocket_cells cells: meant for the inside of an obstacle
+    glimpsed through a notch, which no viewpoint can ever reveal. Size alone does not tell such
+    a pocket from a shadow that a viewpoint would reveal: lse_arena's stair-step wedge is the
+    shadow of a wall corner in a 2.0 x 0.7 m bay that is free in the map, enclosed by the walls
+    and its own shadow line (docs/design.md, "Enclosed pockets").
     pocket_cells <= 0 keeps every unknown cell.
     """
     g = np.asarray(grid)
