@@ -75,3 +75,14 @@ def test_no_restart_when_stopping_or_disabled():
     st2.on_start(0.0, 2)
     st2.on_exit(1.0, 0, pol, stopping=False)
     assert st2.next_start is None
+
+
+def test_process_memory_and_cpu_from_proc():
+    import os
+
+    from topoexplore.tools.launch.supervisor import proc_cpu, proc_memory
+
+    mem, cpu = proc_memory(os.getpid()), proc_cpu(os.getpid())
+    assert mem is not None and 0 < mem["rss_mb"] <= mem["peak_mb"]
+    assert cpu is not None and cpu["user_s"] > 0 and cpu["sys_s"] >= 0
+    assert proc_memory(2**22 + 12345) is None and proc_cpu(2**22 + 12345) is None

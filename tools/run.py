@@ -237,7 +237,7 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
                 bad_messages: int, p_reliable: float, lockstep: bool,
                 planner: dict | None = None, warmup: float | None = None,
                 first_motion: float | None = None,
-                memory: dict | None = None) -> dict[str, Any]:
+                memory: dict | None = None, cpu: dict | None = None) -> dict[str, Any]:
     """The report.json document. ``coverage``: share of the free cells the robot can map that
     the final map knows; ``coverage_free``: share of every free cell connected to the start."""
     rel = mon.rel
@@ -277,6 +277,8 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
         "planner": planner,  # watchdog escalations and their log, learned obstacles
         # per process at the end of the run: resident now and its high-water mark [MB]
         "memory_mb": memory,
+        # per process: CPU time used up to the end of the run (user, system) [s]
+        "cpu_s": cpu,
     }
 
 
@@ -511,6 +513,7 @@ class Outcome:
     warmup: float | None = None  # [s] wall time of the kernel warm-up step (topoexplore warmup)
     first_motion: float | None = None  # [s] wall time from the command's start to first motion
     memory: dict | None = None  # resident memory per process [MB] (Supervisor.memory)
+    cpu: dict | None = None  # CPU seconds per process (Supervisor.cpu)
 
 
 class StackRun:
@@ -641,6 +644,7 @@ class StackRun:
         out.restarts = self.sup.restarts
         out.warmup = self.sup.warm_s
         out.memory = self.sup.memory() or None
+        out.cpu = self.sup.cpu() or None
         out.bad = _bad_message_total(self.bus, self.setup.keys) if out.startup else 0
         out.planner = _planner_robustness(self.bus, self.setup.keys) if out.startup else None
 
@@ -665,7 +669,8 @@ def write_results(args: argparse.Namespace, setup: Setup, truth: Truth, mon: Mon
                              restarts=outcome.restarts, bad_messages=outcome.bad,
                              p_reliable=params.reliability.p_reliable, lockstep=args.lockstep,
                              planner=outcome.planner, warmup=outcome.warmup,
-                             first_motion=outcome.first_motion, memory=outcome.memory)
+                             first_motion=outcome.first_motion, memory=outcome.memory,
+                             cpu=outcome.cpu)
         title = (f"{args.world} / {args.strategy} / seed {args.seed}: "
                  f"{'finished' if outcome.finished else 'not finished'}, "
                  f"{report['path_length_m']:.1f} m, {report['sim_time_s']:.0f} s, "

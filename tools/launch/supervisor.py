@@ -45,6 +45,17 @@ def _pdeathsig() -> None:  # runs in the child between fork and exec
         pass
 
 
+def proc_cpu(pid: int) -> dict[str, float] | None:
+    """{"user_s", "sys_s"}: CPU time a process has used, from /proc/<pid>/stat; None when
+    unreadable (gone, not Linux)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        tick = os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+    return {"user_s": round(int(fields[11]) / tick, 2), "sys_s": round(int(fields[12]) / tick, 2)}
+
+
 def proc_memory(pid: int) -> dict[str, float] | None:
     """{"rss_mb", "peak_mb"} of a process from /proc/<pid>/status (VmRSS, VmHWM); None when
     unreadable (gone, not Linux)."""
@@ -345,14 +356,24 @@ class Supervisor:
     def memory(self) -> dict[str, dict[str, float]]:
         """Resident memory of each running child (and the router): ``rss_mb`` now and
         ``peak_mb`` (the kernel's high-water mark, VmHWM) [MB]. Linux only; {} elsewhere."""
+        return self._per_process(proc_memory)
+
+    def cpu(self) -> dict[str, dict[str, float]]:
+        """CPU time each running child (and the router) has used so far: ``user_s``,
+        ``sys_s``. With the in-process run's wall time it says what the split into processes
+        costs each stage (docs/benchmarks.md). Linux only; {} elsewhere."""
+        return self._per_process(proc_cpu)
+
+    def _per_process(self, read: Callable[[int], dict[str, float] | None]
+                     ) -> dict[str, dict[str, float]]:
         with self._lock:
             procs = dict(self.procs)
         if self.router is not None:
             procs["router"] = self.router
         out: dict[str, dict[str, float]] = {}
         for name, proc in procs.items():
-            if proc.poll() is None and (m := proc_memory(proc.pid)) is not None:
-                out[name] = m
+            if proc.poll() is None and (v := read(proc.pid)) is not None:
+                out[name] = v
         return out
 
     @property
