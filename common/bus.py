@@ -17,6 +17,7 @@ See ../shared/ZENOH_NOTES.md for the measured facts behind these choices.
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
 from collections.abc import Callable
@@ -44,6 +45,20 @@ def _endpoints(value: str | list[str] | None) -> list[str]:
     if isinstance(value, str):
         return [v.strip() for v in value.split(",") if v.strip()]
     return list(value)
+
+
+def check_config_file(path: str) -> None:
+    """A Zenoh config file that exists and parses, else BusError naming it (checked before a
+    stack starts, so that a typo is not reported later as a router that would not start)."""
+    import os
+
+    if not os.path.isfile(path):
+        raise BusError(f"zenoh config file {path}: not found")
+    try:
+        zenoh.Config.from_file(path)
+    except Exception as exc:  # ZError for a bad file; drop the Rust source location
+        text = re.sub(r"\s+at \S+\.rs:\d+\.?$", "", str(exc).strip())
+        raise BusError(f"zenoh config file {path}: {text}") from None
 
 
 def make_config(

@@ -52,6 +52,30 @@ def test_killed_child_comes_back(endpoint, namespace):
     assert sup.router is not None and sup.router.poll() is not None
 
 
+def test_a_process_refusing_its_arguments_is_not_restarted(endpoint, namespace):
+    """Exit 2 before it was up (bad arguments, parameters or files): a restart would fail the
+    same way, so the supervisor gives up at once and start() says so without waiting out the
+    ready timeout; the healthy process stays up."""
+    profile = Profile(name="t", description="", router=True, processes=(
+        ProcSpec(name="controller", module="topoexplore.services.controller.service"),
+        ProcSpec(name="mapper", module="topoexplore.services.mapper.service",
+                 args=("--set", "mapper.resolution=-1")),
+    ))
+    lines: list[str] = []
+    sup = Supervisor(profile, Keys(namespace, "robot1"), endpoint, sink=lines.append,
+                     policy=RestartPolicy(base=0.2, cap=1.0))
+    try:
+        t0 = time.monotonic()
+        assert not sup.start(ready_timeout=60)
+        assert time.monotonic() - t0 < 30, "\n".join(lines)
+        st = sup.states["mapper"]
+        assert st.given_up and st.restarts == 0 and st.last_exit == 2, "\n".join(lines)
+        assert any("before it was up" in ln and "not restarted" in ln for ln in lines)
+        assert wait_for(lambda: (sup.poll() or True) and sup.states["controller"].alive, 30)
+    finally:
+        sup.stop()
+
+
 def test_ctrl_c_leaves_no_process_behind(procs, endpoint, namespace, tmp_path):
     up = procs.python("-m", "topoexplore.tools.cli", "up", "--profile", "mapping", "--connect", endpoint,
                       "--namespace", namespace)

@@ -86,3 +86,23 @@ def test_process_memory_and_cpu_from_proc():
     assert mem is not None and 0 < mem["rss_mb"] <= mem["peak_mb"]
     assert cpu is not None and cpu["user_s"] > 0 and cpu["sys_s"] >= 0
     assert proc_memory(2**22 + 12345) is None and proc_cpu(2**22 + 12345) is None
+
+
+def test_exit_2_before_up_is_not_restarted_other_exits_are():
+    spec = ProcSpec(name="mapper", module="topoexplore.services.mapper.service")
+    policy = RestartPolicy()
+    st = ProcState(spec=spec)
+    st.on_start(0.0, 100)
+    assert "not restarted" in st.on_exit(0.5, 2, policy, stopping=False)
+    assert st.given_up and st.next_start is None and st.restarts == 0
+    for code, was_up in ((1, False), (2, True), (-9, True)):
+        st = ProcState(spec=spec)
+        st.on_start(0.0, 100)
+        st.was_up = was_up
+        assert "restart #1" in st.on_exit(5.0, code, policy, stopping=False)
+        assert not st.given_up and st.next_start is not None
+    st.on_start(6.0, 101)
+    assert not st.was_up  # a new start is judged on its own
+    cmd = ProcState(spec=ProcSpec(name="laser", cmd=("/bin/false",), liveliness=False))
+    cmd.on_start(0.0, 7)
+    assert "restart #1" in cmd.on_exit(0.1, 2, policy, stopping=False)  # foreign: its codes

@@ -102,8 +102,17 @@ def cmd_worlds(args: argparse.Namespace) -> int:
     return 0
 
 
+def _world_error() -> type[Exception]:
+    """sim.world's WorldError when the simulator is installed (a robot install has none)."""
+    try:
+        from topoexplore.sim.world import WorldError
+    except ImportError:
+        return ValueError
+    return WorldError
+
+
 def cmd_up(args: argparse.Namespace) -> int:
-    from topoexplore.common.bus import BusError
+    from topoexplore.common.bus import BusError, check_config_file
     from topoexplore.common.keys import Keys
     from topoexplore.common.node import params_from_args
     from topoexplore.common.params import ParamError
@@ -111,12 +120,18 @@ def cmd_up(args: argparse.Namespace) -> int:
     from topoexplore.tools.launch.core import ProfileError, load_profile
     from topoexplore.tools.launch.supervisor import Supervisor, profile_path
 
+    WorldError = _world_error()
     try:
         profile = load_profile(profile_path(args.profile))
         params = params_from_args(args)
         if any(s.module.startswith("topoexplore.sim.") for s in profile.processes):
             require("pymunk", what=f"the {profile.name!r} profile (it runs the simulator)")
-    except (ProfileError, ParamError, ExtraMissing) as exc:
+            from topoexplore.sim.world import load_world
+
+            load_world(args.world or params.sim.world)  # else the sim would restart forever
+        if args.zenoh_config:
+            check_config_file(args.zenoh_config)
+    except (ProfileError, ParamError, ExtraMissing, WorldError, BusError) as exc:
         return _err(str(exc))
     overrides = list(args.set)
     if args.lockstep:

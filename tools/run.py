@@ -32,7 +32,7 @@ import msgspec
 
 from topoexplore.common import convert
 from topoexplore.common import messages as m
-from topoexplore.common.bus import Bus, BusError
+from topoexplore.common.bus import Bus, BusError, check_config_file
 from topoexplore.common.keys import DEFAULT_ENDPOINT, Keys
 from topoexplore.common.node import add_bus_args, add_param_args, params_from_args
 from topoexplore.common.params import STRATEGY_NAMES, ParamError, Params, strategy_overrides
@@ -414,6 +414,11 @@ def check_input(args: argparse.Namespace) -> Setup:
         load_world(args.world)
     except WorldError as exc:
         raise InputError(str(exc)) from None
+    if args.zenoh_config:
+        try:
+            check_config_file(args.zenoh_config)
+        except BusError as exc:
+            raise InputError(str(exc)) from None
     overrides = run_overrides(args)
     params = _params_with(args, overrides)
     keys = Keys(params.bus.namespace, params.bus.robot)

@@ -111,6 +111,9 @@ def load_profile(path: str | Path) -> Profile:
     return parse_profile(data, str(path))
 
 
+BAD_INPUT_EXIT = 2  # exit code of a topoexplore process refusing its arguments or parameters
+
+
 @dataclass
 class RestartPolicy:
     """Exponential backoff: base * 2^n, capped; a process that ran long enough resets n."""
@@ -135,6 +138,7 @@ class ProcState:
     last_exit: int | None = None
     next_start: float | None = 0.0  # time to (re)start; None = do not start
     given_up: bool = False
+    was_up: bool = False  # its liveliness token appeared since its last start
     history: list[str] = field(default_factory=list)
 
     def on_exit(self, now: float, code: int, policy: RestartPolicy, stopping: bool) -> str:
@@ -151,6 +155,12 @@ class ProcState:
         if not self.spec.restart:
             self.next_start = None
             return f"{self.spec.name} exited ({code}); restart disabled"
+        if code == BAD_INPUT_EXIT and self.spec.module and self.spec.liveliness \
+                and not self.was_up:
+            self.next_start = None  # our processes exit 2 on bad arguments, parameters or
+            self.given_up = True  # files: a restart would fail the same way, forever
+            return (f"{self.spec.name} exited ({code}) before it was up: bad arguments, "
+                    f"parameters or files (see its log line); not restarted")
         if self.restarts >= policy.max_restarts:
             self.next_start = None
             self.given_up = True
@@ -169,3 +179,4 @@ class ProcState:
         self.started_at = now
         self.next_start = None
         self.alive = False
+        self.was_up = False

@@ -8,7 +8,9 @@
 - waits until each one's liveliness token appears (``<ns>/<robot>/alive/<name>``);
 - forwards their logs, each line prefixed with ``[name]``;
 - restarts a process that dies (exponential backoff, restart count), and kills one whose token
-  stayed gone while it still runs (frozen);
+  stayed gone while it still runs (frozen); a module process that exits 2 before it was ever
+  up refused its arguments, parameters or files, and is not restarted (it would fail the same
+  way forever);
 - on stop (Ctrl-C / SIGTERM): SIGTERM to every child's process group, SIGKILL after a grace
   period, router last; children also get SIGTERM from the kernel if the supervisor itself dies
   (PR_SET_PDEATHSIG), so no orphans are left.
@@ -234,6 +236,7 @@ class Supervisor:
                 return
             st.alive = alive
             if alive:
+                st.was_up = True
                 self._lost_since.pop(name, None)
                 self.sink(f"[supervisor] {name} is up (pid {st.pid})")
             elif not self.stopping:
@@ -269,6 +272,10 @@ class Supervisor:
             with self._lock:
                 if all(self.states[s.name].alive for s in specs):
                     return True
+                dead = [s.name for s in specs if self.states[s.name].given_up]
+            if dead:  # it will not come up: no point waiting out the timeout
+                self.sink(f"[supervisor] not up: {', '.join(dead)} gave up")
+                return False
             time.sleep(0.05)
         missing = [s.name for s in specs if not self.states[s.name].alive]
         self.sink(f"[supervisor] not up after {limit:.0f} s: {', '.join(missing)}")
