@@ -76,6 +76,67 @@ def test_a_process_refusing_its_arguments_is_not_restarted(endpoint, namespace):
         sup.stop()
 
 
+def test_a_busy_port_is_refused_and_a_dead_router_comes_back(endpoint, namespace):
+    """Never join someone else's router unasked; a router that dies is restarted (counted)."""
+    import socket
+
+    import pytest
+
+    from topoexplore.common.bus import BusError
+
+    host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
+    profile = Profile(name="t", description="", router=True, processes=(
+        ProcSpec(name="controller", module="topoexplore.services.controller.service"),))
+    lines: list[str] = []
+    with socket.socket() as other:
+        other.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        other.bind((host, int(port)))
+        other.listen()
+        sup = Supervisor(profile, Keys(namespace, "robot1"), endpoint, sink=lines.append)
+        try:
+            with pytest.raises(BusError, match="already in use"):
+                sup.start(ready_timeout=30)
+            assert not sup.procs  # nothing was started against it
+        finally:
+            sup.stop()
+    sup = Supervisor(profile, Keys(namespace, "robot1"), endpoint, sink=lines.append,
+                     policy=RestartPolicy(base=0.2, cap=1.0))
+    try:
+        assert sup.start(ready_timeout=60), "\n".join(lines)
+        os.killpg(sup.router.pid, signal.SIGKILL)
+        assert wait_for(lambda: (sup.poll() or True) and sup.router_restarts == 1, 20)
+        assert wait_for(lambda: sup._port_open(), 20), "\n".join(lines)
+        assert sup.restarts == 1 and sup.table()["router_restarts"] == 1
+        assert any("router exited" in ln and "restart #1" in ln for ln in lines)
+    finally:
+        sup.stop()
+
+
+def test_a_second_stack_under_the_same_name_is_refused(endpoint, namespace):
+    import pytest
+
+    from topoexplore.common.bus import BusError
+
+    one = Profile(name="t", description="", router=True, processes=(
+        ProcSpec(name="controller", module="topoexplore.services.controller.service"),))
+    two = Profile(name="t2", description="", router=False, processes=(
+        ProcSpec(name="mapper", module="topoexplore.services.mapper.service"),))
+    lines: list[str] = []
+    first = Supervisor(one, Keys(namespace, "robot1"), endpoint, sink=lines.append)
+    second = Supervisor(two, Keys(namespace, "robot1"), endpoint, sink=lines.append)
+    other = Supervisor(two, Keys(namespace, "robot2"), endpoint, sink=lines.append)
+    try:
+        assert first.start(ready_timeout=60), "\n".join(lines)
+        with pytest.raises(BusError, match="is taken"):
+            second.start(ready_timeout=30)
+        assert not second.procs
+        assert other.start(ready_timeout=60), "\n".join(lines)  # another robot: fine
+    finally:
+        other.stop()
+        second.stop()
+        first.stop()
+
+
 def test_ctrl_c_leaves_no_process_behind(procs, endpoint, namespace, tmp_path):
     up = procs.python("-m", "topoexplore.tools.cli", "up", "--profile", "mapping", "--connect", endpoint,
                       "--namespace", namespace)

@@ -35,17 +35,28 @@ from topoexplore.common import messages as m
 from topoexplore.common.bus import Bus, BusError, check_config_file
 from topoexplore.common.keys import DEFAULT_ENDPOINT, Keys
 from topoexplore.common.node import add_bus_args, add_param_args, params_from_args
-from topoexplore.common.params import STRATEGY_NAMES, ParamError, Params, strategy_overrides
+from topoexplore.common.params import (
+    STRATEGY_NAMES,
+    ParamError,
+    Params,
+    load_params,
+    strategy_overrides,
+)
 from topoexplore.tools.extras import ExtraMissing, require
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--world", default="paper-room", help="built-in world name or world file")
+    p.add_argument("--world", default=None,
+                   help="built-in world name or world file (default: [sim] world of --params, "
+                   "else paper-room)")
     p.add_argument("--strategy", default="reliability", choices=STRATEGY_NAMES)
     p.add_argument("--lockstep", action="store_true",
                    help="deterministic lockstep simulation (faster than real time)")
-    p.add_argument("--speed", type=float, default=1.0, help="real-time factor (real-time mode)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--speed", type=float, default=None,
+                   help="real-time factor (real-time mode; default: [sim] speed of --params, "
+                   "else 1)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="default: [sim] seed of --params, else 0")
     p.add_argument("--max-sim-time", type=float, default=900.0,
                    help="give up after this much simulated time [s]")
     p.add_argument("--max-wall-time", type=float, default=0.0,
@@ -402,6 +413,7 @@ def check_input(args: argparse.Namespace) -> Setup:
     """Check every argument and parameter before anything starts; InputError otherwise."""
     from topoexplore.sim.world import WorldError, load_world
 
+    _fill_from_params(args)
     try:
         require("pymunk", "tqdm", what="topoexplore run")
     except ExtraMissing as exc:
@@ -419,6 +431,10 @@ def check_input(args: argparse.Namespace) -> Setup:
             check_config_file(args.zenoh_config)
         except BusError as exc:
             raise InputError(str(exc)) from None
+    if args.connect and port_in_use(args.connect.split(",")[0]):
+        raise InputError(f"--connect {args.connect}: the port is in use (another router or "
+                         f"program listens there); run starts its own router, give it a free "
+                         f"port or leave --connect out")
     overrides = run_overrides(args)
     params = _params_with(args, overrides)
     keys = Keys(params.bus.namespace, params.bus.robot)
@@ -430,9 +446,27 @@ def check_input(args: argparse.Namespace) -> Setup:
     return Setup(params, keys, overrides, out)
 
 
+def _fill_from_params(args: argparse.Namespace) -> None:
+    """--world, --seed and --speed not given: the --params file's [sim] values (they used to
+    be overridden by the command line's defaults without a word), else the defaults."""
+    if None not in (args.world, args.seed, args.speed):
+        return
+    try:
+        base = load_params(getattr(args, "params", None), [])
+    except ParamError as exc:
+        raise InputError(str(exc)) from None
+    if args.world is None:
+        args.world = base.sim.world
+    if args.seed is None:
+        args.seed = base.sim.seed
+    if args.speed is None:
+        args.speed = base.sim.speed
+
+
 def run_overrides(args: argparse.Namespace) -> list[str]:
     """The ``--set`` overrides every service gets: world, seed, mode, speed and strategy of the
     run, the user's own ``--set``, and a free router port unless ``--connect`` names one."""
+    _fill_from_params(args)
     overrides = [f"sim.world={json.dumps(args.world)}", f"sim.seed={args.seed}",
                  f"runtime.lockstep={'true' if args.lockstep else 'false'}",
                  f"sim.speed={args.speed}", *strategy_overrides(args.strategy)] + list(args.set)

@@ -110,6 +110,9 @@ class Supervisor:
         self.lost_grace = lost_grace
         self.warm = warm
         self.interrupted = threading.Event()  # set from a signal handler: abandon the warm-up
+        self.router_restarts = 0
+        self._router_consecutive = 0  # backoff steps (RestartPolicy.delay)
+        self._router_due: float | None = None  # when a dead router is started again
         self.warm_s: float | None = None  # [s] wall time of the warm-up step, once run
         self.states = {s.name: ProcState(spec=s) for s in profile.processes}
         self.procs: dict[str, subprocess.Popen] = {}
@@ -195,29 +198,37 @@ class Supervisor:
         """Start the router process (idempotent)."""
         if not self.profile.router or (self.router is not None and self.router.poll() is None):
             return
+        if self._port_open():  # someone else's router (or program): never join it unasked
+            raise BusError(f"{self.endpoint} is already in use (another router or program "
+                           f"listens there): give --connect a free port, or use a profile "
+                           f"without a router to join that one")
         cmd = [sys.executable, "-u", "-m", "topoexplore.tools.router", "--listen", self.endpoint]
         if self.zenoh_config:
             cmd += ["--zenoh-config", self.zenoh_config]
         self.router = self._spawn("router", cmd)
         self._wait_router_port()
 
-    def _wait_router_port(self, timeout: float = 15.0) -> None:
-        """Wait until the router accepts TCP connections; raise BusError if it exits first."""
+    def _port_open(self) -> bool:
+        """Does the endpoint's TCP port accept connections now? (False for non-TCP.)"""
         import socket
 
         proto, _, addr = self.endpoint.split(",")[0].partition("/")
         host, _, port = addr.rpartition(":")
         if proto != "tcp" or not port.isdigit():
-            return
+            return False
+        with socket.socket() as sock:
+            sock.settimeout(0.2)
+            return sock.connect_ex((host if host != "0.0.0.0" else "127.0.0.1", int(port))) == 0
+
+    def _wait_router_port(self, timeout: float = 15.0) -> None:
+        """Wait until the router accepts TCP connections; raise BusError if it exits first."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.router is not None and self.router.poll() is not None:
                 raise BusError(f"the router on {self.endpoint} exited at start "
-                               f"(code {self.router.returncode}; port in use?)")
-            with socket.socket() as sock:
-                sock.settimeout(0.2)
-                if sock.connect_ex((host if host != "0.0.0.0" else "127.0.0.1", int(port))) == 0:
-                    return
+                               f"(code {self.router.returncode}; see its log line)")
+            if self._port_open():
+                return
             time.sleep(0.05)
         raise BusError(f"the router on {self.endpoint} did not open its port in {timeout:g} s")
 
@@ -253,6 +264,11 @@ class Supervisor:
             return False
         self.bus = Bus.client(self.endpoint, name="supervisor", config_file=self.zenoh_config,
                               wait_for_router=True)
+        taken = [k.rsplit("/", 1)[-1] for k in self.bus.alive(self.keys.alive_all())]
+        if taken:  # two stacks under one name would feed each other's map and pose
+            raise BusError(f"{self.keys.prefix} is taken on {self.endpoint}: "
+                           f"{', '.join(taken)} already up (another stack?); use another "
+                           f"--namespace or --robot")
         self.bus.watch_liveliness(self.keys.alive_all(), self._on_token)
         self.bus.declare_token(self.keys.alive("supervisor"))
         self.bus.queryable(self.keys.state("supervisor"), lambda _p: self.table())
@@ -301,8 +317,26 @@ class Supervisor:
                     self._lost_since.pop(name, None)
                     self._kill(self.procs[name], signal.SIGKILL)
             if self.router is not None and self.router.poll() is not None and not self.stopping:
-                self.sink(f"[supervisor] router exited ({self.router.returncode}); restarting")
-                self.start_router()
+                self._restart_router(now)
+
+    def _restart_router(self, now: float) -> None:
+        """A router that died comes back after the same backoff as a process; counted, and
+        given up (BusError) after the policy's restart limit."""
+        if self._router_due is None:
+            code = self.router.returncode if self.router is not None else None
+            if self.router_restarts >= self.policy.max_restarts:
+                raise BusError(f"the router exited ({code}); gave up after "
+                               f"{self.router_restarts} restarts")
+            delay = self.policy.delay(self._router_consecutive)
+            self._router_due = now + delay
+            self.sink(f"[supervisor] router exited ({code}); restart "
+                      f"#{self.router_restarts + 1} in {delay:.1f} s")
+        if now < self._router_due:
+            return
+        self._router_due = None
+        self.router_restarts += 1
+        self._router_consecutive += 1
+        self.start_router()
 
     def run_until(self, stop: threading.Event, period: float = 0.1) -> None:
         while not stop.is_set():
@@ -352,6 +386,7 @@ class Supervisor:
                 "service": "supervisor",
                 "profile": self.profile.name,
                 "endpoint": self.endpoint,
+                "router_restarts": self.router_restarts,
                 "processes": {
                     n: {"pid": s.pid, "alive": s.alive, "restarts": s.restarts,
                         "last_exit": s.last_exit, "given_up": s.given_up,
@@ -385,5 +420,6 @@ class Supervisor:
 
     @property
     def restarts(self) -> int:
+        """Restarts of the processes and of the router."""
         with self._lock:
-            return sum(s.restarts for s in self.states.values())
+            return sum(s.restarts for s in self.states.values()) + self.router_restarts
