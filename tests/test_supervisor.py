@@ -155,3 +155,25 @@ def test_ctrl_c_leaves_no_process_behind(procs, endpoint, namespace, tmp_path):
     assert up.returncode == 0, out
     assert "stopped" in out
     assert wait_for(lambda: not any(pid_alive(p) for p in pids), 10)
+
+
+def test_a_reader_that_goes_away_does_not_hang_up(procs, endpoint, namespace):
+    """`topoexplore up | head -3`: the pipe closes after three lines. up must go on, stop
+    cleanly on SIGTERM and leave no process behind (it used to die printing, skip its stop,
+    and hang on exit with the stack still running)."""
+    up = procs.python("-m", "topoexplore.tools.cli", "up", "--profile", "mapping", "--connect",
+                      endpoint, "--namespace", namespace)
+    keys = Keys(namespace, "robot1")
+    for _ in range(3):
+        assert up.stdout.readline()
+    up.stdout.close()  # the reader went away
+    with Bus.client(endpoint, wait_for_router=True) as bus:
+        want = {keys.alive(s) for s in ("mapper", "topology", "sim", "supervisor")}
+        assert wait_for(lambda: want <= set(bus.alive(keys.alive_all())), 60)
+        from topoexplore.tools.livestate import fetch_state
+
+        pids = [p["pid"] for p in fetch_state(bus, keys, "supervisor")["processes"].values()]
+    up.send_signal(signal.SIGTERM)
+    up.wait(timeout=30)
+    assert up.returncode == 0
+    assert wait_for(lambda: not any(pid_alive(p) for p in pids), 10)

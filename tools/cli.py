@@ -118,7 +118,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     from topoexplore.common.params import ParamError
     from topoexplore.tools.extras import ExtraMissing, require
     from topoexplore.tools.launch.core import ProfileError, load_profile
-    from topoexplore.tools.launch.supervisor import Supervisor, profile_path
+    from topoexplore.tools.launch.supervisor import Supervisor, print_line, profile_path
 
     WorldError = _world_error()
     try:
@@ -148,19 +148,20 @@ def cmd_up(args: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
-    print(f"[supervisor] profile {profile.name}: {', '.join(s.name for s in profile.processes)} "
-          f"on {params.bus.connect} ({keys.prefix})", flush=True)
+    say = print_line  # survives `up | head`: a closed stdout must not skip the stop below
+    say(f"[supervisor] profile {profile.name}: {', '.join(s.name for s in profile.processes)} "
+        f"on {params.bus.connect} ({keys.prefix})")
     try:
         ok = sup.start()
         if ok:
-            print("[supervisor] all processes up; Ctrl-C to stop", flush=True)
+            say("[supervisor] all processes up; Ctrl-C to stop")
         sup.run_until(stop)
     except BusError as exc:
         return _err(str(exc))
     finally:
-        print("[supervisor] stopping", flush=True)
+        say("[supervisor] stopping")
         sup.stop()
-        print(f"[supervisor] stopped ({sup.restarts} restarts)", flush=True)
+        say(f"[supervisor] stopped ({sup.restarts} restarts)")
     return 0
 
 

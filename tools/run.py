@@ -379,7 +379,10 @@ def run(args: argparse.Namespace) -> int:
     outcome = session.execute()
     if session.mon.first_motion is not None:
         outcome.first_motion = session.mon.first_motion - t_cmd
-    report = write_results(args, setup, truth, session.mon, outcome)
+    try:
+        report = write_results(args, setup, truth, session.mon, outcome)
+    except OSError as exc:  # a full disk or a vanished --out: the stack is stopped already
+        return _fail(f"cannot write the results to {setup.out}: {exc}", 1)
     console.echo(summary_line(report, setup.out))
     if not outcome.finished:
         print(f"topoexplore: exploration did not finish: {outcome.reason}", file=sys.stderr)
@@ -566,7 +569,7 @@ class StackRun:
         self.args, self.setup, self.truth, self.console = args, setup, truth, console
         self.mon = Monitor()
         self.mon.coverage_fn = lambda g: truth.coverage(g, setup.params)
-        self.log = (setup.out / "logs.txt").open("w")
+        self.log: Any = (setup.out / "logs.txt").open("w")  # None once a write failed
         self.log_lock = threading.Lock()
         self.sup = Supervisor(load_profile(profile_path("sim")), setup.keys, setup.endpoint,
                               params_file=args.params, overrides=setup.overrides,
@@ -578,8 +581,14 @@ class StackRun:
     def sink(self, line: str) -> None:
         """A log line of the stack: into logs.txt; warnings, errors and exits also shown."""
         with self.log_lock:
-            self.log.write(line + "\n")
-            self.log.flush()
+            if self.log is not None:
+                try:
+                    self.log.write(line + "\n")
+                    self.log.flush()
+                except OSError as exc:  # a full disk: say it once, keep the run (and the
+                    self.log = None  # children's pipes) going
+                    self.console.echo(f"topoexplore: cannot write logs.txt ({exc}); the stack's "
+                                      f"log lines are not kept from here on")
         if not self.args.quiet and ("WARNING" in line or "ERROR" in line or "Traceback" in line
                                     or "[supervisor]" in line and "exited" in line
                                     or line.startswith("[warmup]") and "compil" in line):
@@ -605,7 +614,13 @@ class StackRun:
                 self.bus.close()
             signal.signal(signal.SIGINT, old_int)
             signal.signal(signal.SIGTERM, old_term)
-            self.log.close()
+            with self.log_lock:
+                if self.log is not None:
+                    try:
+                        self.log.close()
+                    except OSError:
+                        pass
+                    self.log = None
         return out
 
     def _on_signal(self, signum: int, frame: Any) -> None:

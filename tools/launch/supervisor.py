@@ -47,6 +47,20 @@ def _pdeathsig() -> None:  # runs in the child between fork and exec
         pass
 
 
+def print_line(line: str) -> None:
+    """print() to stdout that survives a reader that went away (``up | head -3``): the first
+    broken pipe sends stdout to /dev/null, so the process goes on and stops cleanly."""
+    try:
+        print(line, flush=True)
+    except (BrokenPipeError, ValueError):
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+            os.close(devnull)
+        except (OSError, ValueError):
+            pass
+
+
 def proc_cpu(pid: int) -> dict[str, float] | None:
     """{"user_s", "sys_s"}: CPU time a process has used, from /proc/<pid>/stat; None when
     unreadable (gone, not Linux)."""
@@ -105,7 +119,8 @@ class Supervisor:
         self.params_file = params_file
         self.overrides = list(overrides or [])
         self.zenoh_config = zenoh_config
-        self.sink = sink or (lambda line: print(line, flush=True))
+        self.sink = sink or print_line
+        self.sink_errors = 0  # lines a failing sink could not take (the pipes drain anyway)
         self.policy = policy or RestartPolicy()
         self.lost_grace = lost_grace
         self.warm = warm
@@ -150,7 +165,15 @@ class Supervisor:
     def _forward(self, name: str, proc: subprocess.Popen) -> None:
         assert proc.stdout is not None
         for line in proc.stdout:
-            self.sink(f"[{name}] {line.rstrip()}")
+            self._emit(f"[{name}] {line.rstrip()}")
+
+    def _emit(self, line: str) -> None:
+        """A line to the sink. A sink that fails (a closed pipe, a full disk) must not stop the
+        draining of a child's output: a child blocked on a full pipe freezes."""
+        try:
+            self.sink(line)
+        except Exception:
+            self.sink_errors += 1
 
     def warm_up(self, timeout: float = 600.0) -> bool:
         """Compile (or load) the kernels of every module process, in one child process that
@@ -192,7 +215,7 @@ class Supervisor:
         assert proc.stdout is not None
         for line in proc.stdout:
             line = line.rstrip()
-            self.sink(line if line.startswith("[warmup]") else f"[warmup] {line}")
+            self._emit(line if line.startswith("[warmup]") else f"[warmup] {line}")
 
     def start_router(self) -> None:
         """Start the router process (idempotent)."""
