@@ -293,13 +293,51 @@ class Node:
         self.bus.close()
 
 
-def _install_signals(node_stop: threading.Event, inbox: Inbox) -> None:
-    def handler(signum: int, frame: Any) -> None:
-        node_stop.set()
-        inbox.notify()
+def stop_on_signals(*actions: Callable[[], None],
+                    signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> Callable[[], None]:
+    """On SIGINT / SIGTERM run ``actions`` (e.g. ``event.set``) on a helper thread, never in
+    the signal handler. A handler that sets a threading.Event takes the Event's lock; the main
+    thread may hold that very lock when the signal lands (inside ``Event.wait``), or the
+    first handler may hold it when a second signal lands (systemd's SIGTERM, then the
+    supervisor's): a deadlock. Here the C-level handler only writes the signal number to a
+    pipe (``signal.set_wakeup_fd``), and the thread reading it runs the actions.
 
-    signal.signal(signal.SIGINT, handler)
-    signal.signal(signal.SIGTERM, handler)
+    Main thread only. Returns a function that restores the previous handlers."""
+    r, w = os.pipe()
+    os.set_blocking(w, False)
+    old_fd = signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+    old = {sig: signal.signal(sig, _ignore_here) for sig in signals}
+    wanted = set(signals)
+
+    def watch() -> None:
+        while True:
+            try:
+                data = os.read(r, 64)
+            except OSError:
+                return
+            if not data:
+                return
+            if wanted & set(data):
+                for act in actions:
+                    act()
+
+    threading.Thread(target=watch, name="signals", daemon=True).start()
+
+    def restore() -> None:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+        signal.set_wakeup_fd(old_fd)
+        os.close(w)  # the watcher's read returns b"" and it ends
+
+    return restore
+
+
+def _ignore_here(signum: int, frame: Any) -> None:
+    """The Python-level handler: nothing (the wakeup pipe carries the signal)."""
+
+
+def _install_signals(node_stop: threading.Event, inbox: Inbox) -> None:
+    stop_on_signals(node_stop.set, inbox.notify)
 
 
 def run_service(service: str, build: Callable[[Node], Callable[[], None]],

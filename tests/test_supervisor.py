@@ -177,3 +177,28 @@ def test_a_reader_that_goes_away_does_not_hang_up(procs, endpoint, namespace):
     up.wait(timeout=30)
     assert up.returncode == 0
     assert wait_for(lambda: not any(pid_alive(p) for p in pids), 10)
+
+
+def test_back_to_back_signals_stop_the_router_and_a_service(procs, namespace):
+    """systemd sends SIGTERM to the whole unit and the supervisor sends its own: two signals
+    at once. A handler that set an Event could deadlock on the Event's lock (2 of 10 router
+    stops hung); the handlers now only write to a pipe."""
+    from tests.conftest import free_port
+
+    for k in range(6):
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
+        router = procs.router(endpoint)
+        assert "listening" in router.stdout.readline()
+        if k % 2:  # a service too, stopped the same way
+            svc = procs.python("-m", "topoexplore.services.controller.service", "--connect",
+                               endpoint, "--namespace", namespace)
+            with Bus.client(endpoint) as bus:
+                keys = Keys(namespace, "robot1")
+                assert wait_for(lambda: keys.alive("controller") in bus.alive(keys.alive_all()),
+                                30)
+            for sig in (signal.SIGTERM, signal.SIGTERM, signal.SIGINT):
+                svc.send_signal(sig)
+            assert svc.wait(timeout=15) == 0
+        for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGTERM):
+            router.send_signal(sig)
+        assert router.wait(timeout=15) == 0

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
 import threading
 
@@ -114,7 +113,7 @@ def _world_error() -> type[Exception]:
 def cmd_up(args: argparse.Namespace) -> int:
     from topoexplore.common.bus import BusError, check_config_file
     from topoexplore.common.keys import Keys
-    from topoexplore.common.node import params_from_args
+    from topoexplore.common.node import params_from_args, stop_on_signals
     from topoexplore.common.params import ParamError
     from topoexplore.tools.extras import ExtraMissing, require
     from topoexplore.tools.launch.core import ProfileError, load_profile
@@ -142,12 +141,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     sup = Supervisor(profile, keys, params.bus.connect, params_file=args.params,
                      overrides=overrides, zenoh_config=args.zenoh_config)
     stop = threading.Event()
-    def on_signal(*_: object) -> None:
-        stop.set()
-        sup.interrupted.set()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    stop_on_signals(stop.set, sup.interrupted.set)
     say = print_line  # survives `up | head`: a closed stdout must not skip the stop below
     say(f"[supervisor] profile {profile.name}: {', '.join(s.name for s in profile.processes)} "
         f"on {params.bus.connect} ({keys.prefix})")

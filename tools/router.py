@@ -6,12 +6,12 @@
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
 import threading
 
 from topoexplore.common.bus import Bus, BusError, init_logging
 from topoexplore.common.keys import DEFAULT_ENDPOINT
+from topoexplore.common.node import stop_on_signals
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -21,8 +21,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     init_logging()
     stop = threading.Event()
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    stop_on_signals(stop.set)  # no lock in a signal handler: back-to-back signals deadlocked
     try:
         bus = Bus.router(args.listen, config_file=args.zenoh_config)
     except BusError as exc:

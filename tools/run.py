@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import signal
 import socket
 import sys
 import threading
@@ -34,7 +33,12 @@ from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.bus import Bus, BusError, check_config_file
 from topoexplore.common.keys import DEFAULT_ENDPOINT, Keys
-from topoexplore.common.node import add_bus_args, add_param_args, params_from_args
+from topoexplore.common.node import (
+    add_bus_args,
+    add_param_args,
+    params_from_args,
+    stop_on_signals,
+)
 from topoexplore.common.params import (
     STRATEGY_NAMES,
     ParamError,
@@ -596,8 +600,7 @@ class StackRun:
 
     def execute(self) -> Outcome:
         """Start, watch, collect; always stop the stack and restore the signal handlers."""
-        old_int = signal.signal(signal.SIGINT, self._on_signal)
-        old_term = signal.signal(signal.SIGTERM, self._on_signal)
+        restore = stop_on_signals(self.stop.set, self.sup.interrupted.set)
         out = self.outcome
         try:
             t_run = self._start()
@@ -612,8 +615,7 @@ class StackRun:
             self.sup.stop()
             if self.bus is not None:
                 self.bus.close()
-            signal.signal(signal.SIGINT, old_int)
-            signal.signal(signal.SIGTERM, old_term)
+            restore()
             with self.log_lock:
                 if self.log is not None:
                     try:
@@ -622,10 +624,6 @@ class StackRun:
                         pass
                     self.log = None
         return out
-
-    def _on_signal(self, signum: int, frame: Any) -> None:
-        self.stop.set()
-        self.sup.interrupted.set()
 
     def _start(self) -> float:
         """Router first (so the monitor sees the run from its first message), the monitor's
