@@ -86,6 +86,10 @@ def make_config(
             cfg.insert_json5("scouting/multicast/enabled", "false")
         if wait_for_router and mode == "client":
             cfg.insert_json5("connect/timeout_ms", "-1")
+        if mode == "client" and not config_file:
+            # a client connects to named endpoints: it has no reason to answer multicast
+            # scouting on every interface (it did: a Hello to anyone who asks)
+            cfg.insert_json5("scouting/multicast/enabled", "false")
     except BusError:
         raise
     except Exception as exc:  # zenoh raises ZError for bad keys/values/files

@@ -185,6 +185,7 @@ def test_back_to_back_signals_stop_the_router_and_a_service(procs, namespace):
     stops hung); the handlers now only write to a pipe."""
     from tests.conftest import free_port
 
+    keys = Keys(namespace, "robot1")
     for k in range(6):
         endpoint = f"tcp/127.0.0.1:{free_port()}"
         router = procs.router(endpoint)
@@ -193,12 +194,33 @@ def test_back_to_back_signals_stop_the_router_and_a_service(procs, namespace):
             svc = procs.python("-m", "topoexplore.services.controller.service", "--connect",
                                endpoint, "--namespace", namespace)
             with Bus.client(endpoint) as bus:
-                keys = Keys(namespace, "robot1")
                 assert wait_for(lambda: keys.alive("controller") in bus.alive(keys.alive_all()),
-                                30)
+                                30)  # noqa: B023 - called at once, in this iteration
             for sig in (signal.SIGTERM, signal.SIGTERM, signal.SIGINT):
                 svc.send_signal(sig)
             assert svc.wait(timeout=15) == 0
         for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGTERM):
             router.send_signal(sig)
         assert router.wait(timeout=15) == 0
+
+
+def test_clients_do_not_answer_multicast_scouting(endpoint):
+    """A client connects to named endpoints; it used to answer scouting on every interface.
+    Both our default client config and deploy/zenoh/client.json5 keep quiet."""
+    import zenoh
+
+    from tests.conftest import REPO
+    from topoexplore.common.bus import make_config
+
+    with Bus.router(endpoint), Bus.client(endpoint) as ours:
+        quiet = Bus(make_config("client", connect=endpoint,  # the file's settings, our port
+                                config_file=str(REPO / "deploy" / "zenoh" / "client.json5")))
+        try:
+            zids = {str(ours.session.info.zid()), str(quiet.session.info.zid())}
+            hellos: list[str] = []
+            scout = zenoh.scout(lambda h: hellos.append(str(h.zid)), what="peer|router|client")
+            time.sleep(1.5)
+            scout.stop()
+            assert not zids & set(hellos), hellos
+        finally:
+            quiet.close()
