@@ -366,6 +366,7 @@ def _v_polylines(m: TopoGraph, edges: list[TopoEdge], counts: list[int]) -> None
             for p in e.points:
                 if len(p) != 2:
                     _fail(m, f"edge {e.a}-{e.b} has a point with {len(p)} coordinates")
+        _fail(m, "polyline points are not [x, y] pairs")
     bad = ~np.isfinite(pts).all(axis=1) | (np.abs(pts) > MAX_COORD).any(axis=1)
     if bad.any():
         k = int(np.searchsorted(np.cumsum(counts), int(np.argmax(bad)), side="right"))

@@ -314,8 +314,9 @@ def stop_on_signals(*actions: Callable[[], None],
             try:
                 data = os.read(r, 64)
             except OSError:
-                return
-            if not data:
+                data = b""
+            if not data:  # restore() closed the write end
+                os.close(r)
                 return
             if wanted & set(data):
                 for act in actions:

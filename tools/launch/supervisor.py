@@ -124,7 +124,7 @@ class Supervisor:
         self.policy = policy or RestartPolicy()
         self.lost_grace = lost_grace
         self.warm = warm
-        self.interrupted = threading.Event()  # set from a signal handler: abandon the warm-up
+        self.interrupted = threading.Event()  # set on SIGINT/SIGTERM: abandon the warm-up
         self.router_restarts = 0
         self._router_consecutive = 0  # backoff steps (RestartPolicy.delay)
         self._router_due: float | None = None  # when a dead router is started again
@@ -171,7 +171,7 @@ class Supervisor:
         """A line to the sink. A sink that fails (a closed pipe, a full disk) must not stop the
         draining of a child's output: a child blocked on a full pipe freezes."""
         try:
-            self.sink(line)
+            self.sink(line)  # the one call of the sink
         except Exception:
             self.sink_errors += 1
 
@@ -187,7 +187,7 @@ class Supervisor:
         t0 = time.monotonic()
         if stamp_valid(cores):  # nothing changed since the last warm-up: the services load
             self.warm_s = time.monotonic() - t0
-            self.sink("[warmup] kernels cached at the last warm-up, nothing changed since")
+            self._emit("[warmup] kernels cached at the last warm-up, nothing changed since")
             return True
         cmd = [sys.executable, "-u", "-m", "topoexplore.tools.warm",
                "--cores", ",".join(f"{n}={c}" for n, c in cores)]
@@ -207,7 +207,7 @@ class Supervisor:
         t.join(timeout=1.0)
         self.warm_s = time.monotonic() - t0
         if code != 0:
-            self.sink(f"[supervisor] warm-up failed (exit {code}); the services compile "
+            self._emit(f"[supervisor] warm-up failed (exit {code}); the services compile "
                       f"their kernels themselves")
         return code == 0
 
@@ -272,10 +272,10 @@ class Supervisor:
             if alive:
                 st.was_up = True
                 self._lost_since.pop(name, None)
-                self.sink(f"[supervisor] {name} is up (pid {st.pid})")
+                self._emit(f"[supervisor] {name} is up (pid {st.pid})")
             elif not self.stopping:
                 self._lost_since[name] = time.monotonic()
-                self.sink(f"[supervisor] {name}: liveliness token gone")
+                self._emit(f"[supervisor] {name}: liveliness token gone")
 
     # -- lifecycle ------------------------------------------------------------------------
     def start(self, ready_timeout: float | None = None) -> bool:
@@ -313,11 +313,11 @@ class Supervisor:
                     return True
                 dead = [s.name for s in specs if self.states[s.name].given_up]
             if dead:  # it will not come up: no point waiting out the timeout
-                self.sink(f"[supervisor] not up: {', '.join(dead)} gave up")
+                self._emit(f"[supervisor] not up: {', '.join(dead)} gave up")
                 return False
             time.sleep(0.05)
         missing = [s.name for s in specs if not self.states[s.name].alive]
-        self.sink(f"[supervisor] not up after {limit:.0f} s: {', '.join(missing)}")
+        self._emit(f"[supervisor] not up after {limit:.0f} s: {', '.join(missing)}")
         return False
 
     def poll(self) -> None:
@@ -329,13 +329,13 @@ class Supervisor:
                 if proc is not None and st.pid is not None:
                     code = proc.poll()
                     if code is not None:
-                        self.sink(f"[supervisor] {st.on_exit(now, code, self.policy, self.stopping)}")
+                        self._emit(f"[supervisor] {st.on_exit(now, code, self.policy, self.stopping)}")
                 if st.pid is None and st.next_start is not None and now >= st.next_start \
                         and not self.stopping:
                     self.start_process(name, now)
                 lost = self._lost_since.get(name)
                 if lost is not None and st.pid is not None and now - lost > self.lost_grace:
-                    self.sink(f"[supervisor] {name}: token gone for {now - lost:.0f} s while "
+                    self._emit(f"[supervisor] {name}: token gone for {now - lost:.0f} s while "
                               f"running; killing it")
                     self._lost_since.pop(name, None)
                     self._kill(self.procs[name], signal.SIGKILL)
@@ -352,7 +352,7 @@ class Supervisor:
                                f"{self.router_restarts} restarts")
             delay = self.policy.delay(self._router_consecutive)
             self._router_due = now + delay
-            self.sink(f"[supervisor] router exited ({code}); restart "
+            self._emit(f"[supervisor] router exited ({code}); restart "
                       f"#{self.router_restarts + 1} in {delay:.1f} s")
         if now < self._router_due:
             return
