@@ -23,7 +23,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["WarmError", "WarmResult", "compile_kernels", "kernel_table"]
+__all__ = ["WarmError", "WarmResult", "compile_kernels", "kernel_files", "kernel_table"]
 
 
 class WarmError(ValueError):
@@ -66,8 +66,9 @@ def _types(sig: str) -> tuple:
     return tuple(args)
 
 
-def _files(module_name: str) -> list[str]:
-    """A kernel module's source file and numba's cache files (index and code) of its kernels."""
+def kernel_files(module_name: str) -> list[str]:
+    """A kernel module's source file, then numba's cache files (index and code) of its
+    kernels (the warm-up stamp watches them all; ``warmup --clear`` deletes the cache ones)."""
     mod = importlib.import_module(module_name)
     src = Path(mod.__file__)
     out = [str(src)]
@@ -122,7 +123,7 @@ def compile_kernels(module_names: Iterable[str]) -> WarmResult:
             path = disp.stats.cache_path
             if path and path not in res.cache_dirs and compiled:
                 res.cache_dirs.append(path)
-        res.files.extend(_files(mname))
+        res.files.extend(kernel_files(mname))
         dt = time.monotonic() - t0
         res.loaded += loaded
         res.compiled += compiled

@@ -47,6 +47,7 @@ from topoexplore.common.params import (
     strategy_overrides,
 )
 from topoexplore.tools.extras import ExtraMissing, require
+from topoexplore.tools.launch.supervisor import port_open
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -76,16 +77,6 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def port_in_use(endpoint: str) -> bool:
-    try:
-        host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-            s.settimeout(0.2)
-            return s.connect_ex((host, int(port))) == 0
-    except (ValueError, OSError, IndexError):
-        return False
 
 
 @dataclass
@@ -438,7 +429,7 @@ def check_input(args: argparse.Namespace) -> Setup:
             check_config_file(args.zenoh_config)
         except BusError as exc:
             raise InputError(str(exc)) from None
-    if args.connect and port_in_use(args.connect.split(",")[0]):
+    if args.connect and port_open(args.connect):
         raise InputError(f"--connect {args.connect}: the port is in use (another router or "
                          f"program listens there); run starts its own router, give it a free "
                          f"port or leave --connect out")
@@ -479,7 +470,7 @@ def run_overrides(args: argparse.Namespace) -> list[str]:
                  f"sim.speed={args.speed}", *strategy_overrides(args.strategy)] + list(args.set)
     if args.connect is None:
         endpoint = DEFAULT_ENDPOINT
-        if port_in_use(endpoint):
+        if port_open(endpoint):
             endpoint = f"tcp/127.0.0.1:{free_port()}"
         overrides.append(f'bus.connect="{endpoint}"')
     return overrides

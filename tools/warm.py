@@ -31,7 +31,7 @@ from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from pathlib import Path
 
-from topoexplore.common.warm import WarmError, WarmResult, compile_kernels, kernel_table
+from topoexplore.common.warm import WarmError, WarmResult, compile_kernels, kernel_files
 
 __all__ = ["core_of", "warm_modules", "warm_cores", "clear_cache", "write_stamp", "stamp_valid",
            "main"]
@@ -118,22 +118,13 @@ def _package_dirs() -> list[Path]:
 
 def clear_cache(module_names: Iterable[str], package: bool = True) -> int:
     """Delete numba's cached files (index ``.nbi`` and code ``.nbc``) of the kernels in these
-    modules (wherever numba keeps them) and, with ``package``, every one in the package's
+    WARM modules (wherever numba keeps them) and, with ``package``, every one in the package's
     ``__pycache__`` folders (the bench's kernels, ``common.kernels`` compiled into its
     callers). Returns the number of files removed."""
-    files: set[Path] = set()
-    for mname in dict.fromkeys(module_names):
-        mod = importlib.import_module(mname)
-        stem = Path(getattr(mod, "__file__", "") or "").stem
-        dirs = {Path(mod.__file__).parent / "__pycache__"} if stem else set()
-        if hasattr(mod, "WARM"):
-            dirs |= {Path(d.stats.cache_path) for _, d, _ in kernel_table(mname)
-                     if d.stats.cache_path}
-        for d in dirs:
-            files |= set(d.glob(f"{stem}.*.nbi")) | set(d.glob(f"{stem}.*.nbc"))
+    files = {Path(f) for m in dict.fromkeys(module_names) for f in kernel_files(m)[1:]}
     if package:
         for root in _package_dirs():
-            files |= set(root.rglob("__pycache__/*.nbi")) | set(root.rglob("__pycache__/*.nbc"))
+            files |= set(root.rglob("__pycache__/*.nb[ic]"))
     for f in files:
         f.unlink(missing_ok=True)
     return len(files)

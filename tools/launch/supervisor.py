@@ -47,6 +47,23 @@ def _pdeathsig() -> None:  # runs in the child between fork and exec
         pass
 
 
+def port_open(endpoint: str) -> bool:
+    """Does the (first) TCP endpoint's port accept connections now? False for other
+    protocols and unparsable endpoints; 0.0.0.0 is tried on loopback."""
+    import socket
+
+    proto, _, addr = endpoint.split(",")[0].partition("/")
+    host, _, port = addr.rpartition(":")
+    if proto != "tcp" or not port.isdigit():
+        return False
+    with socket.socket() as sock:
+        sock.settimeout(0.2)
+        try:
+            return sock.connect_ex((host if host != "0.0.0.0" else "127.0.0.1", int(port))) == 0
+        except OSError:
+            return False
+
+
 def print_line(line: str) -> None:
     """print() to stdout that survives a reader that went away (``up | head -3``): the first
     broken pipe sends stdout to /dev/null, so the process goes on and stops cleanly."""
@@ -165,7 +182,8 @@ class Supervisor:
     def _forward(self, name: str, proc: subprocess.Popen) -> None:
         assert proc.stdout is not None
         for line in proc.stdout:
-            self._emit(f"[{name}] {line.rstrip()}")
+            text = line.rstrip()  # a child may prefix its lines itself (topoexplore warmup)
+            self._emit(text if text.startswith(f"[{name}]") else f"[{name}] {text}")
 
     def _emit(self, line: str) -> None:
         """A line to the sink. A sink that fails (a closed pipe, a full disk) must not stop the
@@ -189,14 +207,8 @@ class Supervisor:
             self.warm_s = time.monotonic() - t0
             self._emit("[warmup] kernels cached at the last warm-up, nothing changed since")
             return True
-        cmd = [sys.executable, "-u", "-m", "topoexplore.tools.warm",
-               "--cores", ",".join(f"{n}={c}" for n, c in cores)]
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                stdin=subprocess.DEVNULL, env=env, start_new_session=True,
-                                preexec_fn=_pdeathsig, text=True, errors="replace", bufsize=1)
-        t = threading.Thread(target=self._forward_warm, args=(proc,), daemon=True)
-        t.start()
+        proc = self._spawn("warmup", [sys.executable, "-u", "-m", "topoexplore.tools.warm",
+                                      "--cores", ",".join(f"{n}={c}" for n, c in cores)])
         deadline = t0 + timeout
         while proc.poll() is None:
             if self.interrupted.is_set() or time.monotonic() > deadline:
@@ -204,18 +216,12 @@ class Supervisor:
                 break
             time.sleep(0.05)
         code = proc.wait()
-        t.join(timeout=1.0)
+        self._threads[-1].join(timeout=1.0)  # its log lines, forwarded by _spawn
         self.warm_s = time.monotonic() - t0
         if code != 0:
             self._emit(f"[supervisor] warm-up failed (exit {code}); the services compile "
                       f"their kernels themselves")
         return code == 0
-
-    def _forward_warm(self, proc: subprocess.Popen) -> None:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            line = line.rstrip()
-            self._emit(line if line.startswith("[warmup]") else f"[warmup] {line}")
 
     def start_router(self) -> None:
         """Start the router process (idempotent)."""
@@ -232,16 +238,7 @@ class Supervisor:
         self._wait_router_port()
 
     def _port_open(self) -> bool:
-        """Does the endpoint's TCP port accept connections now? (False for non-TCP.)"""
-        import socket
-
-        proto, _, addr = self.endpoint.split(",")[0].partition("/")
-        host, _, port = addr.rpartition(":")
-        if proto != "tcp" or not port.isdigit():
-            return False
-        with socket.socket() as sock:
-            sock.settimeout(0.2)
-            return sock.connect_ex((host if host != "0.0.0.0" else "127.0.0.1", int(port))) == 0
+        return port_open(self.endpoint)
 
     def _wait_router_port(self, timeout: float = 15.0) -> None:
         """Wait until the router accepts TCP connections; raise BusError if it exits first."""
