@@ -38,7 +38,8 @@ class SimService:
             raise SystemExit(f"topoexplore-sim: {exc}") from None
         self.core = SimCore(self.world, p, np.random.default_rng(p.seed), P.robot, P.laser)
         self.steps_per_scan = max(1, round(p.physics_hz / P.laser.scan_hz))
-        self.steps_per_odom = max(1, round(p.physics_hz / p.odom_hz))
+        self.odom_tick = 1  # the next odometry tick (tick 0 goes out with the first scan)
+        self.odom_stamp: float | None = None  # [s] sim time of the last odometry published
         self.pub_scan = node.publisher("scan")
         self.pub_odom = node.publisher("odom")
         self.pub_truth = node.publisher("truth")
@@ -55,7 +56,7 @@ class SimService:
 
     # -- publishing -----------------------------------------------------------------------
     def publish_odom(self) -> None:
-        t = self.core.time
+        t = self.odom_stamp = self.core.time
         self.pub_odom.put(convert.odom_to_msg(self.core.odom(),
                                               self.node.header("odom", t, self.scan_seq)))
         self.pub_truth.put(convert.truth_to_msg(self.core.truth_pose(),
@@ -63,7 +64,8 @@ class SimService:
 
     def publish_scan(self) -> None:
         self.scan_seq += 1
-        self.publish_odom()  # the pose at the scan stamp, before the scan
+        if self.odom_stamp != self.core.time:  # the mapper needs the pose at the scan stamp:
+            self.publish_odom()  # an extra message only when no odometry tick fell on it
         hdr = m.Header(seq=self.scan_seq, stamp=self.core.time, frame="laser",
                        src_seq=self.scan_seq)
         self.pub_scan.put(convert.scan_to_msg(self.core.scan(), hdr))
@@ -92,8 +94,20 @@ class SimService:
             x, y, th = self.core.truth_pose()
             log.warning("collision #%d at x=%.2f y=%.2f heading=%.0f deg, sim time %.1f s",
                         self.core.collisions, x, y, math.degrees(th), self.core.time)
-        if self.step_count % self.steps_per_odom == 0:
+        if self.odom_due():
             self.publish_odom()
+
+    def odom_due(self) -> bool:
+        """Odometry at ``odom_hz`` on average, whatever ``physics_hz``: tick k goes out at the
+        first physics step at or after k / odom_hz (50 Hz physics, 20 Hz odometry: steps 0, 3,
+        5, 8, 10, ...; a rounded step of 2 would give 25 Hz). With the default rates every scan
+        falls on a tick, so the scan needs no odometry of its own."""
+        due = False
+        p = self.p
+        while self.step_count * p.odom_hz >= self.odom_tick * p.physics_hz * (1.0 - 1e-9):
+            self.odom_tick += 1
+            due = True
+        return due
 
     # -- modes ----------------------------------------------------------------------------
     def wait_for_pipeline(self) -> None:

@@ -7,6 +7,7 @@ no mocks). Rate checks use loose bounds: they show the tool measures, not how fa
 
 from __future__ import annotations
 
+import base64
 import json
 import math
 import os
@@ -314,6 +315,7 @@ def test_echo(stack):
     once = stack.tool("echo", "scan", "--once")
     fields = stack.tool("echo", "scan", "--count", "12", "--field", "header.seq,ranges.0")
     js = stack.tool("echo", "odom", "--count", "2", "--json", "--field", "pose")
+    scan_js = stack.tool("echo", "scan", "--once", "--json")
     grid = stack.tool("echo", f"{stack.ns}/robot1/map", "--once", "--timeout", "5")
     wild = stack.tool("echo", f"{stack.ns}/robot1/*", "--count", "3", "--json")
     quiet = stack.tool("echo", "explore/status", "--timeout", "0.5")
@@ -331,6 +333,10 @@ def test_echo(stack):
     assert rc == 0, err
     poses = [json.loads(ln) for ln in out.splitlines()]
     assert len(poses) == 2 and set(poses[0]) == {"x", "y", "theta"}
+    rc, out, err = finish(scan_js)
+    assert rc == 0, err
+    ranges = json.loads(out)["ranges"]  # a real array for scripts, not "<181 floats ...>"
+    assert isinstance(ranges, list) and len(ranges) == 181 and min(ranges) == 1.0
     rc, out, err = finish(grid)
     assert rc == 0, err
     assert "data: <100 bytes: unknown 50, free 30, occupied 20>" in out
@@ -369,7 +375,8 @@ def test_get(stack):
     rc, out, err = finish(key)
     assert rc == 0, err
     d = json.loads(out)
-    assert d["data"]["processed"] == 7 and d["data"]["blob"] == "<1000 bytes>"
+    # --json is for scripts: whole values (bytes as base64), never a "<1000 bytes>" summary
+    assert d["data"]["processed"] == 7 and base64.b64decode(d["data"]["blob"]) == bytes(1000)
     rc, out, err = finish(missing)
     assert rc == 1 and len(err.strip().splitlines()) == 1 and "no reply" in err
 

@@ -44,3 +44,9 @@ def test_sim_process_driven_over_the_bus(procs, endpoint, namespace):
     dist = math.hypot(last.pose.x - first.pose.x, last.pose.y - first.pose.y)
     assert 0.9 < dist < 1.05, dist
     assert scans[25].header.stamp > scans[0].header.stamp
+    # odometry at sim.odom_hz (20 Hz) exactly, whatever physics_hz (50 Hz: not a multiple), and
+    # no extra message at a scan when an odometry tick falls on it (issue 13 item 6: 30 Hz seen)
+    span = [o for o in odoms if scans[0].header.stamp < o.header.stamp <= scans[25].header.stamp]
+    assert len(span) == 100, len(span)  # 5 s x 20 Hz
+    stamps = [o.header.stamp for o in odoms]
+    assert len(stamps) == len(set(stamps))

@@ -215,6 +215,9 @@ def build_parser() -> argparse.ArgumentParser:
                    add_help=False)
     sub.add_parser("bench", help="benchmarks: stages | explore | inproc | robust | oracle",
                    add_help=False)
+    sub.add_parser("record", help="record the bus into an MCAP file (raw + Foxglove channels)",
+                   add_help=False)
+    sub.add_parser("play", help="publish an MCAP recording back onto the bus", add_help=False)
 
     mp = sub.add_parser("map", help="map tools")
     msub = mp.add_subparsers(dest="map_command", metavar="ACTION")
@@ -233,6 +236,8 @@ _FORWARD = {
     "render": "topoexplore.tools.render",
     "bench": "topoexplore.tools.bench",
     "warmup": "topoexplore.tools.warm",
+    "record": "topoexplore.tools.record:main_record",
+    "play": "topoexplore.tools.record:main_play",
 }
 
 
@@ -242,9 +247,10 @@ def main(argv: list[str] | None = None) -> int:
     if argv and argv[0] in _FORWARD:
         import importlib
 
-        mod = importlib.import_module(_FORWARD[argv[0]])
+        modname, _, fn = _FORWARD[argv[0]].partition(":")
+        entry = getattr(importlib.import_module(modname), fn or "main")
         try:
-            return int(mod.main(argv[1:]) or 0)
+            return int(entry(argv[1:]) or 0)
         except KeyboardInterrupt:
             return 130
     ap = build_parser()

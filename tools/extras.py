@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import importlib
 
-EXTRA_OF = {"pymunk": "sim", "tqdm": "sim", "matplotlib": "bench", "skimage": "skimage"}
+EXTRA_OF = {"pymunk": "sim", "tqdm": "sim", "matplotlib": "bench", "skimage": "skimage",
+            "mcap": "record", "foxglove": "record"}
 
 
 class ExtraMissing(RuntimeError):

@@ -748,7 +748,9 @@ def _print_list(base: str, window: float, services: list[dict], states: list[dic
 
 
 def _render(value: Any, args: argparse.Namespace, name: str = "") -> Any:
-    return summarize(value, full=args.full, name=name)
+    """A value as shown: summarized for people, whole with --full and always with --json (a
+    script wants the arrays; bytes become base64, non-finite floats strings)."""
+    return summarize(value, full=args.full or args.json, name=name)
 
 
 def _print_value(key: str, tname: str, size: int, value: Any, fields: list[str],
@@ -954,7 +956,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--field", action="append", default=[],
                     help="dotted field path(s), repeatable or comma separated (header.stamp)")
     sp.add_argument("--full", action="store_true", help="do not summarize large arrays")
-    sp.add_argument("--json", action="store_true", help="one JSON line per message")
+    sp.add_argument("--json", action="store_true",
+                    help="one JSON line per message, whole (arrays as arrays, bytes base64)")
     sp.add_argument("--timeout", type=_positive(float, 0.01, "--timeout"), default=None,
                     help="exit 1 if no message arrives for S seconds")
     sp.add_argument("--queue", type=_positive(int, 1, "--queue"), default=100,

@@ -67,6 +67,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-wall-time", type=float, default=0.0,
                    help="give up after this much wall time [s] (0: no limit)")
     p.add_argument("--out", default="runs/latest", help="output directory")
+    p.add_argument("--record", action="store_true",
+                   help="record every key into OUT/run.mcap (raw + Foxglove channels; "
+                   "topoexplore play / Foxglove read it)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--quiet", "-q", action="store_true", help="print only the final summary")
     add_bus_args(p)
@@ -243,7 +246,8 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
                 bad_messages: int, p_reliable: float, lockstep: bool,
                 planner: dict | None = None, warmup: float | None = None,
                 first_motion: float | None = None,
-                memory: dict | None = None, cpu: dict | None = None) -> dict[str, Any]:
+                memory: dict | None = None, cpu: dict | None = None,
+                recording: dict | None = None) -> dict[str, Any]:
     """The report.json document. ``coverage``: share of the free cells the robot can map that
     the final map knows; ``coverage_free``: share of every free cell connected to the start."""
     rel = mon.rel
@@ -285,7 +289,17 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
         "memory_mb": memory,
         # per process: CPU time used up to the end of the run (user, system) [s]
         "cpu_s": cpu,
+        # with --record: messages per key in run.mcap, lost by header.seq, bad, file size
+        "recording": _recording_summary(recording),
     }
+
+
+def _recording_summary(st: dict | None) -> dict | None:
+    if st is None:
+        return None
+    keep = ("path", "messages", "per_key", "foxglove", "gaps", "restarts", "bad", "errors",
+            "last_error", "bytes", "max_backlog")
+    return {k: st[k] for k in keep if k in st}
 
 
 def _planner_robustness(bus: Bus, keys: Keys) -> dict | None:
@@ -414,6 +428,8 @@ def check_input(args: argparse.Namespace) -> Setup:
     _fill_from_params(args)
     try:
         require("pymunk", "tqdm", what="topoexplore run")
+        if getattr(args, "record", False):
+            require("mcap", "foxglove", what="topoexplore run --record")
     except ExtraMissing as exc:
         raise InputError(str(exc)) from None
     if not (args.speed > 0 and math.isfinite(args.speed)):
@@ -551,6 +567,7 @@ class Outcome:
     first_motion: float | None = None  # [s] wall time from the command's start to first motion
     memory: dict | None = None  # resident memory per process [MB] (Supervisor.memory)
     cpu: dict | None = None  # CPU seconds per process (Supervisor.cpu)
+    recording: dict | None = None  # the recorder's counts (tools.record.Recorder.stats)
 
 
 class StackRun:
@@ -571,6 +588,7 @@ class StackRun:
                               zenoh_config=args.zenoh_config, sink=self.sink)
         self.stop = threading.Event()  # set by SIGINT / SIGTERM
         self.bus: Bus | None = None
+        self.recorder: Any = None  # tools.record.Recorder with --record
         self.outcome = Outcome()
 
     def sink(self, line: str) -> None:
@@ -606,6 +624,8 @@ class StackRun:
             self.sup.stop()
             if self.bus is not None:
                 self.bus.close()
+            if self.recorder is not None:  # after the bus: no sample arrives any more
+                out.recording = self.recorder.close()
             restore()
             with self.log_lock:
                 if self.log is not None:
@@ -636,10 +656,26 @@ class StackRun:
         bus.subscribe(keys.reliability, m.Reliability, lambda msg, k: mon.on_rel(msg))
         bus.subscribe(keys.topo, m.TopoGraph, lambda msg, k: mon.on_topo(msg))
         bus.subscribe(keys.map, m.OccupancyGrid, lambda msg, k: mon.on_map(msg))
+        if args.record:
+            self._record(bus)
         if not self.sup.start():
             self.outcome.reason = "stack did not come up (see logs.txt)"
         self.outcome.startup = time.monotonic() - t0
         return time.monotonic()
+
+    def _record(self, bus: Bus) -> None:
+        """Every key of the robot into OUT/run.mcap, subscribed before any service starts so
+        that the file holds the run from its first message."""
+        from topoexplore.tools.record import Recorder
+
+        p = self.setup.params
+        rec = self.recorder = Recorder(
+            self.setup.out / "run.mcap", self.setup.keys.prefix, laser_offset=p.laser.offset,
+            p_reliable=p.reliability.p_reliable,
+            metadata={"command": "run", "world": str(self.args.world),
+                      "strategy": self.args.strategy, "seed": str(self.args.seed),
+                      "lockstep": str(bool(self.args.lockstep))})
+        bus.subscribe_raw(f"{self.setup.keys.prefix}/**", lambda k, b, _e: rec.put(k, b))
 
     def _watch(self, t_run: float) -> None:
         """Until the run ends: keep the services running, show progress, check the limits."""
@@ -713,7 +749,7 @@ def write_results(args: argparse.Namespace, setup: Setup, truth: Truth, mon: Mon
                              p_reliable=params.reliability.p_reliable, lockstep=args.lockstep,
                              planner=outcome.planner, warmup=outcome.warmup,
                              first_motion=outcome.first_motion, memory=outcome.memory,
-                             cpu=outcome.cpu)
+                             cpu=outcome.cpu, recording=outcome.recording)
         title = (f"{args.world} / {args.strategy} / seed {args.seed}: "
                  f"{'finished' if outcome.finished else 'not finished'}, "
                  f"{report['path_length_m']:.1f} m, {report['sim_time_s']:.0f} s, "

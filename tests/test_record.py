@@ -1,0 +1,256 @@
+"""Recording and playing back (issue 13): the Foxglove conversions (pure), the MCAP recorder on
+scripted samples, and `topoexplore run --record` + `topoexplore play` with real processes."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import msgspec
+import pytest
+
+from tests.conftest import REPO, free_port
+from topoexplore.common import messages as m
+from topoexplore.common.bus import Bus
+from topoexplore.common.keys import Keys
+from topoexplore.tools import fox
+from topoexplore.tools.record import Recorder, header_of, raw_messages, read_summary
+
+pytest.importorskip("mcap")
+pytest.importorskip("foxglove")
+pytest.importorskip("mcap_protobuf")
+
+
+def dec(fmsg):
+    """A Foxglove message decoded as Foxglove would: protobuf, from its own schema."""
+    from mcap.records import Schema
+    from mcap_protobuf.decoder import DecoderFactory
+
+    sc = fmsg.get_schema()
+    schema = Schema(id=1, name=sc.name, encoding=sc.encoding, data=bytes(sc.data))
+    return DecoderFactory().decoder_for("protobuf", schema)(fmsg.encode())
+
+
+def hdr(seq: int, stamp: float, src: int = -1, frame: str = "map") -> m.Header:
+    return m.Header(seq=seq, stamp=stamp, frame=frame, src_seq=src)
+
+
+def grid_msg(seq: int = 0) -> m.OccupancyGrid:
+    data = bytes([0xFF, 0, 100, 50, 0xFF, 0])  # unknown, free, occupied, half, unknown, free
+    return m.OccupancyGrid(header=hdr(seq, 1.0, seq), resolution=0.1, width=3, height=2,
+                           origin=m.Pose2D(x=-1.0, y=-2.0, theta=0.0), data=data)
+
+
+def topo_msg(src: int) -> m.TopoGraph:
+    nodes = [m.TopoNode(id=4, kind="end", x=0.0, y=0.0), m.TopoNode(id=7, kind="branch", x=1, y=0),
+             m.TopoNode(id=9, kind="end", x=2.0, y=0.0)]
+    edges = [m.TopoEdge(a=4, b=7, points=[[0, 0], [1, 0]], length=1.0, clearance=0.5),
+             m.TopoEdge(a=7, b=9, points=[[1, 0], [2, 0]], length=1.0, clearance=0.5)]
+    return m.TopoGraph(header=hdr(src, 0.2 * src, src), nodes=nodes, edges=edges)
+
+
+def rel_msg(src: int) -> m.Reliability:
+    def node(i: int, p: float) -> m.NodeReliability:
+        return m.NodeReliability(id=i, x=0.0, y=0.0, p=p, d=0.5, a=0.5, r_min=1.0,
+                                 alpha_max=0.1, visible=True)
+
+    return m.Reliability(header=hdr(src, 0.2 * src, src), nodes=[node(4, 0.5), node(9, 0.95)])
+
+
+# --- Foxglove conversions (pure) -------------------------------------------------------------
+
+
+def test_grid_colours_and_geometry():
+    g = dec(fox.grid_to_fox(grid_msg()))
+    rgba = g.data
+    assert len(rgba) == 6 * 4 and g.column_count == 3 and g.row_stride == 12
+    assert rgba[0:4] == bytes([128, 128, 128, 255])  # unknown grey
+    assert rgba[4:8] == bytes([255, 255, 255, 255])  # free white
+    assert rgba[8:12] == bytes([0, 0, 0, 255])  # occupied black
+    assert g.pose.position.x == -1.0 and g.pose.position.y == -2.0 and g.frame_id == "map"
+
+
+def test_graph_waits_for_its_reliability_and_labels_id_p():
+    sc = fox.FoxScene(p_reliable=0.9)
+    assert sc.convert("topo", topo_msg(3)) != []  # no reliability seen yet: graph alone
+    sc.convert("reliability", rel_msg(3))
+    assert sc.convert("topo", topo_msg(4)) == []  # waits for reliability 4
+    [(topic, upd)] = sc.convert("reliability", rel_msg(4))
+    assert topic == "/viz/graph"
+    upd = dec(upd)
+    ent = upd.entities[0]
+    assert sorted(t.text for t in ent.texts) == ["4(0.50)", "9(0.95)"]
+    colours = {t.text: (t.color.r, t.color.g) for t in ent.texts}
+    assert colours["4(0.50)"][0] > colours["4(0.50)"][1]  # unreliable: red
+    assert colours["9(0.95)"][1] > colours["9(0.95)"][0]  # reliable: green
+    assert len(ent.spheres) == 3 and len(ent.lines) == 2
+
+
+def test_scan_tf_trail_and_plan():
+    sc = fox.FoxScene(laser_offset=0.15)
+    scan = m.LaserScan(header=hdr(0, 0.2, 0, "laser"), angle_min=-math.pi / 2,
+                       angle_increment=math.pi / 180, range_min=0.02, range_max=8.0,
+                       ranges=[1.0] * 180 + [8.0])
+    out = sc.convert("scan", scan)
+    assert [t for t, _ in out] == ["/tf", "/viz/scan"]  # the static mount once, then the scan
+    assert dec(out[0][1]).transforms[0].translation.x == 0.15
+    s = dec(out[1][1])
+    assert math.isclose(s.end_angle, math.pi / 2) and math.isinf(s.ranges[-1])
+    assert [t for t, _ in sc.convert("scan", scan)] == ["/viz/scan"]
+    trail = []
+    for i in range(11):
+        p = m.Pose(header=hdr(i, 0.1 * i), pose=m.Pose2D(x=0.1 * i, y=0.0, theta=0.0))
+        trail += [u for t, u in sc.convert("truth", p) if t == "/viz/trail"]
+    assert len(trail) == 2  # one entity per 0.5 m
+    path = m.Path(header=hdr(0, 1.0), waypoints=[[0, 0], [1, 1]], target_id=9, target_x=1,
+                  target_y=1)
+    ent = dec(sc.convert("plan", path)[0][1]).entities[0]
+    assert len(ent.lines) == 1 and len(ent.spheres) == 1
+    stop = m.Path(header=hdr(1, 1.2), waypoints=[])
+    ent = dec(sc.convert("plan", stop)[0][1]).entities[0]
+    assert len(ent.lines) == 0 and len(ent.spheres) == 0
+    assert sc.convert("explore/status", object()) == []
+
+
+# --- the recorder on scripted samples ----------------------------------------------------------
+
+
+def test_recorder_file_channels_schemas_counts_and_gaps(tmp_path):
+    keys = Keys("ns", "r1")
+    path = tmp_path / "x.mcap"
+    rec = Recorder(path, keys.prefix, metadata={"world": "w"})
+    for seq in (0, 1, 2, 4):  # seq 3 lost
+        rec.put(keys.topic("map"), m.encode(grid_msg(seq)), 1_000 + seq)
+    rec.put(keys.topic("topo"), m.encode(topo_msg(0)), 2_000)
+    rec.put(keys.topic("reliability"), m.encode(rel_msg(0)), 2_001)
+    rec.put(keys.topic("odom"), b"\x93garbage", 2_002)  # kept raw, counted bad
+    rec.put("ns/r1/custom", b"\x01", 2_003)  # not ours: raw channel without schema
+    st = rec.close()
+    assert st["messages"] == 8 and st["gaps"] == 1 and st["gaps_per_key"] == {"ns/r1/map": 1}
+    assert st["bad"] == {"ns/r1/odom": 1} and st["errors"] == 0
+    su = read_summary(path)
+    ch = su["channels"]
+    assert ch["ns/r1/map"] == {"encoding": "msgpack", "schema": "topoexplore.OccupancyGrid",
+                               "schema_encoding": "jsonschema", "count": 4}
+    assert ch["ns/r1/custom"]["schema"] == "" and ch["ns/r1/odom"]["count"] == 1
+    assert ch["/viz/map"]["encoding"] == "protobuf" and ch["/viz/map"]["count"] == 4
+    assert ch["/viz/graph"]["schema"] == "foxglove.SceneUpdate"
+    assert su["metadata"]["topoexplore"] == {"prefix": "ns/r1", "world": "w"}
+    # the exact bytes, in log-time order, publish time from header.stamp
+    got = list(raw_messages(path, {"ns/r1/map"}))
+    assert [b for _, b, _ in got] == [m.encode(grid_msg(s)) for s in (0, 1, 2, 4)]
+    assert [t for _, _, t in got] == [1000, 1001, 1002, 1004]
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        pubs = [msg.publish_time for _s, c, msg in make_reader(f).iter_messages(
+            topics=["ns/r1/topo"])]
+    assert pubs == [0]  # stamp 0.0 s
+    schema = json.loads(make_reader(open(path, "rb")).get_summary().schemas[1].data)
+    assert "$defs" in schema or "properties" in schema
+
+
+def test_header_of_reads_only_the_header():
+    raw = m.encode(topo_msg(5))
+    assert header_of(raw).seq == 5 and header_of(b"\x01") is None
+    assert header_of(msgspec.msgpack.encode({"x": 1})) is None
+
+
+# --- real processes: run --record, then play -------------------------------------------------
+
+
+def _mcap_seqs(path: Path) -> dict[str, list[int]]:
+    out: dict[str, list[int]] = {}
+    for key, data, _t in raw_messages(path):
+        h = header_of(data)
+        out.setdefault(key, []).append(h.seq if h else -1)
+    return out
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    out = tmp_path_factory.mktemp("rec") / "run"
+    ns = f"rec{os.getpid()}"
+    cmd = [sys.executable, "-m", "topoexplore.tools.cli", "run", "--world", "paper-room",
+           "--lockstep", "--quiet", "--record", "--out", str(out), "--connect",
+           f"tcp/127.0.0.1:{free_port()}", "--namespace", ns, "--max-sim-time", "300"]
+    r = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return out, ns, json.loads((out / "report.json").read_text())
+
+
+def test_run_record_loses_no_message(recorded):
+    out, ns, report = recorded
+    rec = report["recording"]
+    su = read_summary(out / "run.mcap")
+    prefix = f"{ns}/robot1"
+    for topic in ("scan", "odom", "truth", "map", "topo", "reliability", "plan", "cmd_vel",
+                  "explore/status", "sim/status"):
+        assert su["channels"][f"{prefix}/{topic}"]["count"] > 0, topic
+    assert rec["gaps"] == 0 and rec["errors"] == 0 and not rec["bad"]
+    assert rec["per_key"] == {k: c["count"] for k, c in su["channels"].items()
+                              if c["encoding"] == "msgpack"}
+    # every publisher's messages, each exactly once: seq 0..n-1 per key (the publisher counter)
+    for key, seqs in _mcap_seqs(out / "run.mcap").items():
+        assert seqs == list(range(len(seqs))), key
+    scans = su["channels"][f"{prefix}/scan"]["count"]
+    assert scans == report["scans"] or scans >= report["scans"]  # the sim may step on after done
+    odoms = su["channels"][f"{prefix}/odom"]["count"]
+    assert abs(odoms - 4 * scans) <= 4  # 20 Hz odometry, 5 Hz scans
+    for topic in fox.TOPICS:
+        assert su["channels"][topic]["count"] > 0, topic
+    assert su["metadata"]["topoexplore"]["world"] == "paper-room"
+    # the Foxglove channels decode with their embedded schemas (as Foxglove reads them)
+    import re
+
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    last = {}
+    with open(out / "run.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for _s, ch, _msg, dm in reader.iter_decoded_messages(topics=list(fox.TOPICS)):
+            last[ch.topic] = dm
+    labels = [t.text for t in last["/viz/graph"].entities[0].texts]
+    assert labels and all(re.fullmatch(r"\d+\(\d\.\d\d\)", t) for t in labels), labels
+    assert last["/viz/map"].column_count > 0 and len(last["/viz/scan"].ranges) == 181
+
+
+def test_play_publishes_the_recording(recorded, procs, endpoint, namespace):
+    out, ns, _report = recorded
+    procs.router(endpoint)
+    got: list[m.LaserScan] = []
+    odoms = threading.Event()
+    n_scans = read_summary(out / "run.mcap")["channels"][f"{ns}/robot1/scan"]["count"]
+    with Bus.client(endpoint, wait_for_router=True) as bus:
+        keys = Keys(namespace, "robot2")
+        bus.subscribe(keys.scan, m.LaserScan, lambda msg, k: got.append(msg))
+        bus.subscribe(keys.odom, m.Odometry, lambda msg, k: odoms.set())
+        time.sleep(0.3)
+        t0 = time.monotonic()
+        r = subprocess.run([sys.executable, "-m", "topoexplore.tools.cli", "play",
+                            str(out / "run.mcap"), "--keys", "scan", "--rate", "1000",
+                            "--connect", endpoint, "--namespace", namespace, "--robot", "robot2"],
+                           cwd=REPO, capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        deadline = time.monotonic() + 10
+        while len(got) < n_scans and time.monotonic() < deadline:
+            time.sleep(0.05)
+    assert [s.header.seq for s in got] == list(range(n_scans))
+    assert not odoms.is_set()  # --keys scan: nothing else
+    assert f"played {n_scans} messages onto {namespace}/robot2" in r.stdout
+    assert time.monotonic() - t0 < 60
+    # bad input: one line, exit 2
+    bad = subprocess.run([sys.executable, "-m", "topoexplore.tools.cli", "play",
+                          str(out / "report.json")], cwd=REPO, capture_output=True, text=True)
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
+    bad = subprocess.run([sys.executable, "-m", "topoexplore.tools.cli", "play",
+                          str(out / "run.mcap"), "--keys", "nope"], cwd=REPO,
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and "unknown topic" in bad.stderr

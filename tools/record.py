@@ -1,0 +1,466 @@
+"""``topoexplore record`` and ``topoexplore play``: the bus into an MCAP file, and back.
+
+Like ``ros2 bag record`` / ``ros2 bag play``, for our key space.
+
+The file (MCAP, profile ``topoexplore``, zstd chunks) holds:
+
+- **one raw channel per key** (topic = the full key, e.g. ``topoexplore/robot1/scan``) with the
+  exact bytes that crossed the bus; message encoding ``msgpack``; the schema is the message
+  type's JSON Schema (``msgspec.json.schema``; schema name ``topoexplore.<Type>``). Log time is
+  the wall clock [ns since the epoch] when the sample arrived; publish time is the message's
+  ``header.stamp`` (the sim clock in simulation) in ns, or the log time if it has none.
+- **Foxglove channels** beside them (``/viz/map``, ``/viz/scan``, ``/tf``, ``/viz/trail``,
+  ``/viz/graph``, ``/viz/plan``; protobuf, Foxglove's own schemas; :mod:`tools.fox`), so that
+  the file opened in Foxglove shows the run the way the paper's figures do.
+- metadata ``topoexplore``: the key prefix, the command and anything the caller adds.
+
+Counting: the recorder checks each raw key's ``header.seq`` (per publisher, from 0): a jump is
+counted as lost messages (``gaps``); a restarted publisher (seq back to 0) is counted as
+``restarts``. A recording that loses nothing has 0 gaps.
+
+``play`` publishes the raw channels back onto the bus in log-time order with their recorded
+timing (``--rate`` scales it, ``--start`` skips the first seconds, ``--keys`` picks topics, and
+``--namespace``/``--robot`` move them under another prefix so that a live stack is not fed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import queue
+import sys
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import msgspec
+
+from topoexplore.common import messages as m
+from topoexplore.common.bus import Bus, BusError
+from topoexplore.common.keys import DEFAULT_ENDPOINT, TOPICS, Keys, type_for_key
+from topoexplore.common.node import add_bus_args, add_param_args, params_from_args, stop_on_signals
+from topoexplore.common.params import ParamError
+from topoexplore.tools.extras import ExtraMissing, require
+
+PROFILE = "topoexplore"
+MESSAGE_ENCODING = "msgpack"
+SCHEMA_ENCODING = "jsonschema"
+CHUNK_SIZE = 4 * 1024 * 1024  # [bytes] of an MCAP chunk before compression
+
+
+class RecordError(ValueError):
+    """A bad recording or a bad argument (one line)."""
+
+
+class _Stamped(msgspec.Struct):
+    """Only the header of any of our messages (the other fields are skipped undecoded)."""
+
+    header: m.Header
+
+
+_stamped = msgspec.msgpack.Decoder(_Stamped)
+
+
+def header_of(payload: bytes) -> m.Header | None:
+    """The header of a raw message, or None if it has none (or is not ours)."""
+    try:
+        return _stamped.decode(payload).header
+    except (msgspec.DecodeError, msgspec.ValidationError):
+        return None
+
+
+def to_ns(t: float) -> int:
+    """[s] -> [ns], clamped to the unsigned 64-bit range of MCAP times."""
+    if not math.isfinite(t) or t <= 0:
+        return 0
+    return min(int(round(t * 1e9)), 2**64 - 1)
+
+
+def topic_of(key: str, prefix: str) -> str | None:
+    """Our topic name of a full key under ``prefix`` (``scan``, ``explore/status``), else None."""
+    if not key.startswith(prefix + "/"):
+        return None
+    rest = key[len(prefix) + 1:]
+    return rest if rest in TOPICS else None
+
+
+def schema_of(msg_type: type) -> bytes:
+    return json.dumps(msgspec.json.schema(msg_type), sort_keys=True).encode()
+
+
+class Recorder:
+    """Write bus samples into an MCAP file. :meth:`put` may be called from any thread (it only
+    queues); a writer thread encodes and writes, so a slow disk never stalls zenoh's threads.
+    :meth:`close` drains the queue, finishes the file and returns :meth:`stats`."""
+
+    def __init__(self, path: str | Path, prefix: str, *, foxglove: bool = True,
+                 laser_offset: float = 0.0, p_reliable: float = 0.9,
+                 metadata: dict[str, str] | None = None):
+        require("mcap", *(["foxglove"] if foxglove else []), what="recording")
+        from mcap.writer import CompressionType, Writer
+
+        from topoexplore.tools.fox import FoxScene
+
+        self.path = Path(path)
+        self.prefix = prefix
+        self._file = self.path.open("wb")
+        self._w = Writer(self._file, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD)
+        self._w.start(profile=PROFILE, library="topoexplore")
+        self._w.add_metadata("topoexplore", {"prefix": prefix, **(metadata or {})})
+        self._scene = FoxScene(laser_offset, p_reliable) if foxglove else None
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._seq: dict[str, int] = {}  # next expected header.seq per raw key
+        self._q: queue.SimpleQueue[tuple[str, bytes, int] | None] = queue.SimpleQueue()
+        self.counts: Counter[str] = Counter()  # raw messages written per key
+        self.fox_counts: Counter[str] = Counter()
+        self.gaps: Counter[str] = Counter()  # messages missing by header.seq
+        self.restarts: Counter[str] = Counter()
+        self.bad: Counter[str] = Counter()  # raw messages that failed validation (kept raw)
+        self.errors = 0  # conversion failures (logged once each kind)
+        self.last_error = ""
+        self.bytes = 0
+        self.queued = 0
+        self.max_backlog = 0
+        self._written = 0
+        self._closed = False
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._loop, name="mcap-writer", daemon=True)
+        self._thread.start()
+
+    # -- input (any thread) -----------------------------------------------------------------
+    def put(self, key: str, payload: bytes, log_time_ns: int | None = None) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            self.queued += 1
+            self.max_backlog = max(self.max_backlog, self.queued - self._written)
+            self._q.put((key, bytes(payload), time.time_ns() if log_time_ns is None
+                         else log_time_ns))
+
+    def close(self) -> dict[str, Any]:
+        with self._lock:
+            if self._closed:
+                return self.stats()
+            self._closed = True
+            self._q.put(None)
+        self._thread.join()
+        self._w.finish()
+        self._file.close()
+        return self.stats()
+
+    def stats(self) -> dict[str, Any]:
+        return {"path": str(self.path), "messages": sum(self.counts.values()),
+                "per_key": dict(sorted(self.counts.items())),
+                "foxglove": dict(sorted(self.fox_counts.items())),
+                "gaps": sum(self.gaps.values()), "gaps_per_key": dict(self.gaps),
+                "restarts": dict(self.restarts), "bad": dict(self.bad),
+                "errors": self.errors, "last_error": self.last_error, "bytes": self.bytes,
+                "max_backlog": self.max_backlog}
+
+    # -- writer thread ----------------------------------------------------------------------
+    def _loop(self) -> None:
+        while True:
+            item = self._q.get()
+            if item is None:
+                return
+            try:
+                self._write(*item)
+            except Exception as exc:  # noqa: BLE001 - one bad sample must not end the file
+                self.errors += 1
+                self.last_error = f"{item[0]}: {type(exc).__name__}: {exc}"
+            finally:
+                self._written += 1
+
+    def _channel(self, topic: str, encoding: str, schema: tuple[str, str, bytes] | None,
+                 metadata: dict[str, str]) -> int:
+        cid = self._channels.get(topic)
+        if cid is None:
+            sid = 0
+            if schema is not None:
+                name, enc, data = schema
+                sid = self._schemas.get(name) or self._w.register_schema(name, enc, data)
+                self._schemas[name] = sid
+            cid = self._w.register_channel(topic, encoding, sid, metadata)
+            self._channels[topic] = cid
+        return cid
+
+    def _write(self, key: str, payload: bytes, log_ns: int) -> None:
+        msg_type = type_for_key(key)
+        schema = (f"topoexplore.{msg_type.__name__}", SCHEMA_ENCODING,
+                  schema_of(msg_type)) if msg_type is not None else None
+        cid = self._channel(key, MESSAGE_ENCODING, schema, {"zenoh_key": key})
+        hdr = header_of(payload)
+        pub_ns = to_ns(hdr.stamp) if hdr is not None else log_ns
+        seq = hdr.seq if hdr is not None else self.counts[key]
+        self._w.add_message(cid, log_time=log_ns, data=payload, publish_time=pub_ns,
+                            sequence=max(0, min(seq, 2**32 - 1)))
+        self.counts[key] += 1
+        self.bytes += len(payload)
+        if hdr is not None:
+            self._check_seq(key, hdr.seq)
+        topic = topic_of(key, self.prefix)
+        if self._scene is None or msg_type is None or topic is None:
+            return
+        try:
+            msg = m.decode(payload, msg_type)
+        except m.MessageError as exc:
+            self.bad[key] += 1
+            self.last_error = f"{key}: {exc}"
+            return
+        for fox_topic, fmsg in self._scene.convert(topic, msg):
+            sc = fmsg.get_schema()
+            fcid = self._channel(fox_topic, "protobuf", (sc.name, sc.encoding, bytes(sc.data)),
+                                 {})
+            self._w.add_message(fcid, log_time=log_ns, data=fmsg.encode(), publish_time=pub_ns)
+            self.fox_counts[fox_topic] += 1
+
+    def _check_seq(self, key: str, seq: int) -> None:
+        want = self._seq.get(key)
+        if want is None:  # the first message of a key: anything before it was not ours
+            if seq > 0:
+                self.gaps[key] += seq
+        elif seq == 0 and want > 0:
+            self.restarts[key] += 1
+        elif seq > want:
+            self.gaps[key] += seq - want
+        self._seq[key] = seq + 1
+
+
+# --- reading back ---------------------------------------------------------------------------
+
+
+def read_summary(path: str | Path) -> dict[str, Any]:
+    """Channels (topic -> encoding, schema, count) and metadata of an MCAP file."""
+    require("mcap", what="reading a recording")
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as f:
+            reader = make_reader(f)
+            summary = reader.get_summary()
+            meta = {r.name: dict(r.metadata) for r in reader.iter_metadata()}
+    except OSError as exc:
+        raise RecordError(f"cannot read {path}: {exc.strerror or exc}") from None
+    except Exception as exc:  # noqa: BLE001 - the mcap reader's errors have no common base
+        raise RecordError(f"{path} is not a readable MCAP file: {exc}") from None
+    if summary is None or summary.statistics is None:
+        raise RecordError(f"{path} has no summary (was the recording cut off?)")
+    counts = summary.statistics.channel_message_counts
+    chans = {}
+    for cid, ch in summary.channels.items():
+        sc = summary.schemas.get(ch.schema_id)
+        chans[ch.topic] = {"encoding": ch.message_encoding,
+                           "schema": sc.name if sc else "", "schema_encoding":
+                           sc.encoding if sc else "", "count": counts.get(cid, 0)}
+    st = summary.statistics
+    return {"channels": chans, "metadata": meta, "messages": st.message_count,
+            "start_ns": st.message_start_time, "end_ns": st.message_end_time}
+
+
+def raw_messages(path: str | Path, topics: set[str] | None = None, start_ns: int = 0):
+    """(key, payload, log_time_ns) of the raw channels in log-time order."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        for _sc, ch, msg in reader.iter_messages(log_time_order=True, start_time=start_ns or None):
+            if ch.message_encoding != MESSAGE_ENCODING:
+                continue
+            if topics is not None and ch.topic not in topics:
+                continue
+            yield ch.topic, msg.data, msg.log_time
+
+
+# --- command line ---------------------------------------------------------------------------
+
+
+def _bus_keys(args: argparse.Namespace) -> Keys:
+    return Keys(args.namespace or "topoexplore", args.robot or "robot1")
+
+
+def _open(args: argparse.Namespace, name: str) -> Bus:
+    connect = args.connect or (None if args.zenoh_config else DEFAULT_ENDPOINT)
+    return Bus.client(connect, name=name, config_file=args.zenoh_config)
+
+
+def _topics_arg(text: str | None) -> list[str] | None:
+    if not text:
+        return None
+    out = [t.strip() for t in text.split(",") if t.strip()]
+    bad = [t for t in out if t not in TOPICS]
+    if bad:
+        raise RecordError(f"unknown topic(s) {', '.join(bad)}: choose from "
+                          f"{', '.join(TOPICS)}")
+    return out
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    try:
+        topics = _topics_arg(args.keys)
+        P = params_from_args(args)
+    except (RecordError, ParamError, ValueError) as exc:
+        return _err(str(exc))
+    keys = Keys(P.bus.namespace, P.bus.robot)
+    out = Path(args.out)
+    if out.parent and not out.parent.exists():
+        return _err(f"cannot write {out}: folder {out.parent} does not exist")
+    stop = threading.Event()
+    restore = stop_on_signals(stop.set)
+    bus = rec = None
+    try:
+        try:
+            bus = _open(args, "record")
+        except BusError as exc:
+            return _err(str(exc))
+        rec = Recorder(out, keys.prefix, foxglove=not args.no_foxglove,
+                       laser_offset=P.laser.offset, p_reliable=P.reliability.p_reliable,
+                       metadata={"command": " ".join(sys.argv[1:])})
+        for key in ([keys.topic(t) for t in topics] if topics else [f"{keys.prefix}/**"]):
+            bus.subscribe_raw(key, lambda k, p, _e: rec.put(k, p))
+        if not args.quiet:
+            print(f"recording {keys.prefix}/{'{' + ','.join(topics) + '}' if topics else '**'} "
+                  f"into {out} (Ctrl-C to stop)", file=sys.stderr)
+        t_end = time.monotonic() + args.duration if args.duration else math.inf
+        while not stop.is_set() and time.monotonic() < t_end:
+            stop.wait(min(0.2, max(0.0, t_end - time.monotonic())))
+    except ExtraMissing as exc:
+        return _err(str(exc))
+    except OSError as exc:
+        return _err(f"cannot write {out}: {exc.strerror or exc}")
+    finally:
+        if bus is not None:
+            bus.close()
+        restore()
+    st = rec.close()
+    print(f"recorded {st['messages']} messages on {len(st['per_key'])} keys "
+          f"({st['bytes'] / 1e6:.1f} MB raw, {out.stat().st_size / 1e6:.1f} MB file), "
+          f"{st['gaps']} lost by seq, {sum(st['bad'].values())} bad, {st['errors']} errors")
+    if args.stats:
+        Path(args.stats).write_text(json.dumps(st, indent=1))
+    return 0
+
+
+def cmd_play(args: argparse.Namespace) -> int:
+    try:
+        topics = _topics_arg(args.keys)
+        summary = read_summary(args.file)
+    except (RecordError, ExtraMissing) as exc:
+        return _err(str(exc))
+    prefix = summary["metadata"].get("topoexplore", {}).get("prefix", "")
+    raw = {t for t, c in summary["channels"].items() if c["encoding"] == MESSAGE_ENCODING}
+    if not raw or not prefix:
+        return _err(f"{args.file} holds no topoexplore recording (no raw msgpack channels)")
+    target = _bus_keys(args).prefix if (args.namespace or args.robot) else prefix
+    chosen = {t for t in raw if topics is None or topic_of(t, prefix) in topics}
+    if not chosen:
+        return _err(f"none of {', '.join(topics or [])} is in {args.file}")
+    start_ns = summary["start_ns"] + to_ns(args.start)
+    stop = threading.Event()
+    restore = stop_on_signals(stop.set)
+    bus = None
+    sent = 0
+    try:
+        try:
+            bus = _open(args, "play")
+        except BusError as exc:
+            return _err(str(exc))
+        pubs: dict[str, Any] = {}
+        t0 = None
+        for key, data, log_ns in raw_messages(args.file, chosen, start_ns):
+            if stop.is_set():
+                break
+            out_key = target + key[len(prefix):] if key.startswith(prefix + "/") else key
+            if out_key not in pubs:
+                pubs[out_key] = bus.publisher(out_key, reliable=True)
+            if t0 is None:
+                t0 = (time.monotonic(), log_ns)
+            due = t0[0] + (log_ns - t0[1]) / 1e9 / args.rate
+            while not stop.is_set() and (wait := due - time.monotonic()) > 0:
+                stop.wait(min(wait, 0.2))
+            if stop.is_set():
+                break
+            pubs[out_key].put(data)
+            sent += 1
+    finally:
+        if bus is not None:
+            bus.close()
+        restore()
+    print(f"played {sent} messages onto {target}" + (" (interrupted)" if stop.is_set() else ""))
+    return 0
+
+
+def _err(text: str) -> int:
+    print(f"topoexplore: {text.splitlines()[0] if text else 'error'}", file=sys.stderr)
+    return 2
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # type: ignore[override]
+        raise RecordError(message)
+
+
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(v) or v <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0: {text!r}")
+    return v
+
+
+def _non_negative(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(v) or v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0: {text!r}")
+    return v
+
+
+def build_record_parser(prog: str = "topoexplore record") -> argparse.ArgumentParser:
+    p = _Parser(prog=prog, description="record the bus into an MCAP file (raw channels and "
+                "Foxglove channels; see docs/recording.md)")
+    p.add_argument("--out", "-o", required=True, help="the MCAP file to write")
+    p.add_argument("--keys", default=None,
+                   help=f"comma-separated topics (default: every key of the robot): "
+                   f"{', '.join(TOPICS)}")
+    p.add_argument("--duration", type=_positive, default=None, help="stop after S seconds")
+    p.add_argument("--no-foxglove", action="store_true", help="raw channels only")
+    p.add_argument("--stats", default=None, help="write the recorder's counts as JSON here")
+    p.add_argument("--quiet", "-q", action="store_true")
+    add_bus_args(p)
+    add_param_args(p)
+    return p
+
+
+def build_play_parser(prog: str = "topoexplore play") -> argparse.ArgumentParser:
+    p = _Parser(prog=prog, description="publish a recording back onto the bus with its timing")
+    p.add_argument("file", help="an MCAP file written by topoexplore record / run --record")
+    p.add_argument("--rate", type=_positive, default=1.0, help="speed factor (default 1)")
+    p.add_argument("--keys", default=None, help="comma-separated topics (default: all)")
+    p.add_argument("--start", type=_non_negative, default=0.0,
+                   help="skip the first S seconds of the recording")
+    add_bus_args(p)
+    return p
+
+
+def main_record(argv: list[str] | None = None) -> int:
+    try:
+        args = build_record_parser().parse_args(argv)
+    except RecordError as exc:
+        return _err(str(exc))
+    return cmd_record(args)
+
+
+def main_play(argv: list[str] | None = None) -> int:
+    try:
+        args = build_play_parser().parse_args(argv)
+    except RecordError as exc:
+        return _err(str(exc))
+    return cmd_play(args)
