@@ -32,6 +32,18 @@ TOPICS: dict[str, type] = {
 
 SERVICES = ("sim", "mapper", "topology", "reliability", "planner", "controller")
 
+# service -> (topics it subscribes to, topics it publishes): who feeds whom (``replay`` plays
+# the inputs of a chain of services and compares its outputs; tests/test_record.py checks the
+# table against every service module)
+SERVICE_IO: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    "sim": (("cmd_vel",), ("scan", "odom", "truth", "sim/status")),
+    "mapper": (("scan", "odom"), ("map",)),
+    "topology": (("map", "odom"), ("topo",)),
+    "reliability": (("map", "topo", "odom"), ("reliability",)),
+    "planner": (("map", "topo", "reliability", "odom"), ("plan", "explore/status")),
+    "controller": (("plan", "explore/status", "scan", "odom"), ("cmd_vel",)),
+}
+
 _SEGMENT = re.compile(r"^[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*$")
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 import threading
@@ -207,8 +208,6 @@ def test_run_record_loses_no_message(recorded):
         assert su["channels"][topic]["count"] > 0, topic
     assert su["metadata"]["topoexplore"]["world"] == "paper-room"
     # the Foxglove channels decode with their embedded schemas (as Foxglove reads them)
-    import re
-
     from mcap.reader import make_reader
     from mcap_protobuf.decoder import DecoderFactory
 
@@ -254,3 +253,64 @@ def test_play_publishes_the_recording(recorded, procs, endpoint, namespace):
                           str(out / "run.mcap"), "--keys", "nope"], cwd=REPO,
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "unknown topic" in bad.stderr
+
+
+# --- replay: pure parts, then the recorded run through real services --------------------------
+
+
+def test_service_io_table_matches_the_services():
+    """common.keys.SERVICE_IO (what replay feeds and compares) against each service module."""
+    from topoexplore.common.keys import SERVICE_IO
+
+    for svc, (ins, outs) in SERVICE_IO.items():
+        path = REPO / ("sim" if svc == "sim" else f"services/{svc}") / "service.py"
+        src = path.read_text()
+        subs = set(re.findall(r'subscribe\("([a-z_/]+)"', src))
+        if "subscribe_odom(" in src:
+            subs.add("odom")
+        pubs = set(re.findall(r'publisher\("([a-z_/]+)"', src))
+        assert subs == set(ins), (svc, subs)
+        assert pubs == set(outs), (svc, pubs)
+
+
+def test_first_difference_and_expectation():
+    from topoexplore.tools.replay import Expectation, chain_io, first_difference, parse_through
+
+    assert first_difference({"a": [1, {"b": 2}]}, {"a": [1, {"b": 3}]}) == ("a[1].b", 2, 3)
+    assert first_difference({"a": [1]}, {"a": [1, 2]}) == ("a (length)", 1, 2)
+    assert first_difference({"a": 1}, {"a": 1, "c": 0}) == ("c", "<missing>", 0)
+    assert first_difference({"x": math.nan}, {"x": math.nan}) is None
+    ins, outs = chain_io(["topology", "reliability"])
+    assert ins == ["map", "odom"] and outs == ["topo", "reliability"]
+    with pytest.raises(ValueError, match="unknown service"):
+        parse_through("mapper,sim")
+    e = Expectation()
+    e.got("topo", m.encode(topo_msg(1)))  # the replay may be ahead of the reading
+    e.expect("topo", m.encode(topo_msg(1)))
+    assert e.compared == 1 and e.divergence is None and e.caught_up()
+    e.expect("topo", m.encode(topo_msg(2)))
+    assert not e.caught_up() and e.missing() == ("topo", 1, 2)
+    other = topo_msg(2)
+    other.nodes[1].x = 1.5
+    e.got("topo", m.encode(other))
+    d = e.divergence
+    assert d.scan == 2 and d.index == 1 and d.what == "nodes[1].x: recorded 1.0, replayed 1.5"
+
+
+def _replay(path: Path, *extra: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "topoexplore.tools.cli", "replay", str(path),
+                           *extra], cwd=REPO, capture_output=True, text=True, timeout=600)
+
+
+def test_replay_reproduces_the_recorded_outputs(recorded):
+    out, _ns, _report = recorded
+    r = _replay(out / "run.mcap", "--through", "mapper,topology,reliability,planner")
+    assert r.returncode == 0, r.stdout + r.stderr[-2000:]
+    assert "identical" in r.stdout and "map " in r.stdout and "plan " in r.stdout
+    # a changed parameter: the first divergence, named by scan, topic and field
+    r = _replay(out / "run.mcap", "--through", "topology,reliability", "--scans", "150",
+                "--set", "topology.spur_length=0.7")
+    assert r.returncode == 1, r.stdout + r.stderr[-2000:]
+    assert re.search(r"FIRST DIVERGENCE at scan \d+, topo message #\d+: \S+: recorded", r.stdout)
+    bad = _replay(out / "run.mcap", "--through", "planner", "--set", "planner.nope=1")
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1

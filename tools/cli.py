@@ -218,6 +218,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("record", help="record the bus into an MCAP file (raw + Foxglove channels)",
                    add_help=False)
     sub.add_parser("play", help="publish an MCAP recording back onto the bus", add_help=False)
+    sub.add_parser("replay", help="run services on a recording's inputs, compare the outputs",
+                   add_help=False)
 
     mp = sub.add_parser("map", help="map tools")
     msub = mp.add_subparsers(dest="map_command", metavar="ACTION")
@@ -238,6 +240,7 @@ _FORWARD = {
     "warmup": "topoexplore.tools.warm",
     "record": "topoexplore.tools.record:main_record",
     "play": "topoexplore.tools.record:main_play",
+    "replay": "topoexplore.tools.replay",
 }
 
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import socket
 import sys
 import threading
 import time
@@ -47,7 +46,7 @@ from topoexplore.common.params import (
     strategy_overrides,
 )
 from topoexplore.tools.extras import ExtraMissing, require
-from topoexplore.tools.launch.supervisor import port_open
+from topoexplore.tools.launch.supervisor import free_port, port_open
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -74,12 +73,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", "-q", action="store_true", help="print only the final summary")
     add_bus_args(p)
     add_param_args(p)
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @dataclass
@@ -292,6 +285,21 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
         # with --record: messages per key in run.mcap, lost by header.seq, bad, file size
         "recording": _recording_summary(recording),
     }
+
+
+def recording_metadata(args: argparse.Namespace, setup: Setup) -> dict[str, str]:
+    """What ``replay`` needs to run the services as they ran: the overrides every service got
+    (without the router endpoint) and the text of the --params file."""
+    overrides = [o for o in setup.overrides if not o.startswith("bus.connect=")]
+    text = ""
+    if args.params:
+        try:
+            text = Path(args.params).read_text()
+        except OSError:
+            text = ""
+    return {"command": "run", "world": str(args.world), "strategy": args.strategy,
+            "seed": str(args.seed), "lockstep": str(bool(args.lockstep)).lower(),
+            "overrides": json.dumps(overrides), "params_toml": text}
 
 
 def _recording_summary(st: dict | None) -> dict | None:
@@ -672,9 +680,7 @@ class StackRun:
         rec = self.recorder = Recorder(
             self.setup.out / "run.mcap", self.setup.keys.prefix, laser_offset=p.laser.offset,
             p_reliable=p.reliability.p_reliable,
-            metadata={"command": "run", "world": str(self.args.world),
-                      "strategy": self.args.strategy, "seed": str(self.args.seed),
-                      "lockstep": str(bool(self.args.lockstep))})
+            metadata=recording_metadata(self.args, self.setup))
         bus.subscribe_raw(f"{self.setup.keys.prefix}/**", lambda k, b, _e: rec.put(k, b))
 
     def _watch(self, t_run: float) -> None:

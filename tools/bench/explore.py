@@ -46,7 +46,6 @@ import re
 import shlex
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -60,6 +59,7 @@ import numpy as np
 
 from topoexplore.common.params import STRATEGIES, STRATEGY_NAMES
 from topoexplore.tools.extras import ExtraMissing, require
+from topoexplore.tools.launch.supervisor import free_port
 from topoexplore.tools.paths import checkout_root, shared_maps_dir
 
 EXTRA_MAPS = ("lse_arena.yaml",)  # real map_server maps added to the default suite
@@ -780,12 +780,6 @@ _ACTIVE: set[subprocess.Popen] = set()
 _ACTIVE_LOCK = threading.Lock()
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _stop_active() -> None:
     """Stop every run in flight, in parallel (each may take a while to stop its stack)."""
     with _ACTIVE_LOCK:
@@ -850,7 +844,7 @@ def _run_command(label: str, world_arg: str, strategy: str, seed: int, run_dir: 
     and namespace (runs in parallel must not hear each other)."""
     cmd = [sys.executable, "-m", "topoexplore.tools.cli", "run", "--world", world_arg, "--strategy",
            strategy, "--seed", str(seed), "--lockstep", "--quiet", "--out", str(run_dir.resolve()),
-           "--connect", f"tcp/127.0.0.1:{_free_port()}",
+           "--connect", f"tcp/127.0.0.1:{free_port()}",
            "--namespace", f"bench{os.getpid()}{re.sub('[^A-Za-z0-9]', '', label)[:12]}"
                           f"{STRATEGY_NAMES.index(strategy)}s{seed}",
            "--max-sim-time", f"{max_sim_time:g}", "--max-wall-time", f"{max_wall_time:g}"]

@@ -47,6 +47,15 @@ def _pdeathsig() -> None:  # runs in the child between fork and exec
         pass
 
 
+def free_port() -> int:
+    """A TCP port on loopback that nobody listens on now."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def port_open(endpoint: str) -> bool:
     """Does the (first) TCP endpoint's port accept connections now? False for other
     protocols and unparsable endpoints; 0.0.0.0 is tried on loopback."""
