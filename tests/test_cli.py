@@ -118,6 +118,7 @@ def test_map_save_and_render_live_then_saved_dir(procs, endpoint, namespace, tmp
     assert geom.resolution == pytest.approx(0.1)
     r = cli("render", "--live", "-o", str(tmp_path / "live.png"), *common)
     assert r.returncode == 0, r.stderr
+    assert "robot at (" in r.stdout  # drawn from its odometry (issue 13: it was left out)
     assert (tmp_path / "live.png").stat().st_size > 1000
     # a saved directory with only map files renders too
     r = cli("render", str(tmp_path / "live"))

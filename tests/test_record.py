@@ -116,7 +116,13 @@ def test_scan_tf_trail_and_plan():
     stop = m.Path(header=hdr(1, 1.2), waypoints=[])
     ent = dec(sc.convert("plan", stop)[0][1]).entities[0]
     assert len(ent.lines) == 0 and len(ent.spheres) == 0
-    assert sc.convert("explore/status", object()) == []
+    assert sc.convert("cmd_vel", object()) == []  # nothing to draw
+    st = sc.convert("explore/status", m.ExploreStatus(header=hdr(0, 1.0), state="done"))
+    assert st == [("/status/explore", {"header": {"seq": 0, "stamp": 1.0, "frame": "map",
+                                                  "src_seq": -1}, "state": "done",
+                                       "reason": "", "strategy": "", "target_id": -1,
+                                       "target_p": 0.0, "candidates": 0, "end_nodes": 0,
+                                       "reliable": 0, "blacklisted": [], "replans": 0})]
 
 
 # --- the recorder on scripted samples ----------------------------------------------------------
@@ -214,8 +220,13 @@ def test_run_record_loses_no_message(recorded):
     last = {}
     with open(out / "run.mcap", "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
-        for _s, ch, _msg, dm in reader.iter_decoded_messages(topics=list(fox.TOPICS)):
+        for _s, ch, _msg, dm in reader.iter_decoded_messages(
+                topics=[t for t in fox.TOPICS if t not in fox.JSON_TYPES]):
             last[ch.topic] = dm
+        for _s, ch, msg in reader.iter_messages(topics=list(fox.JSON_TYPES)):
+            last[ch.topic] = json.loads(msg.data)
+    assert last["/status/explore"]["state"] == "done"
+    assert last["/status/sim"]["world"] == "paper-room"
     labels = [t.text for t in last["/viz/graph"].entities[0].texts]
     assert labels and all(re.fullmatch(r"\d+\(\d\.\d\d\)", t) for t in labels), labels
     assert last["/viz/map"].column_count > 0 and len(last["/viz/scan"].ranges) == 181

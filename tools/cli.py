@@ -218,6 +218,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("record", help="record the bus into an MCAP file (raw + Foxglove channels)",
                    add_help=False)
     sub.add_parser("play", help="publish an MCAP recording back onto the bus", add_help=False)
+    sub.add_parser("view", help="live Foxglove view of a running stack (WebSocket server)",
+                   add_help=False)
     sub.add_parser("replay", help="run services on a recording's inputs, compare the outputs",
                    add_help=False)
 
@@ -241,6 +243,7 @@ _FORWARD = {
     "record": "topoexplore.tools.record:main_record",
     "play": "topoexplore.tools.record:main_play",
     "replay": "topoexplore.tools.replay",
+    "view": "topoexplore.tools.view",
 }
 
 

@@ -17,6 +17,12 @@ transform, and ``base_link`` -> ``laser`` is the ``[laser] offset``):
   below P = ``p_reliable``, green at or above it; branch purple; corner orange), end nodes
   labelled ``id(P)`` as in the paper's Fig. 10.
 - ``/viz/plan``: ``foxglove.SceneUpdate``: the planned path and its target.
+- ``/status/explore``, ``/status/sim``: the planner's and the simulator's status as JSON
+  (the message's own fields; for the Raw Messages and Plot panels).
+
+A converted message is a Foxglove message object (protobuf: ``encode()``, ``get_schema()``)
+or, for the JSON channels, a plain dict; :data:`JSON_TYPES` names the message type of each
+JSON channel (its JSON Schema).
 """
 
 from __future__ import annotations
@@ -24,11 +30,14 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import msgspec
 import numpy as np
 
 from topoexplore.common import messages as m
 
-TOPICS = ("/viz/map", "/viz/scan", "/tf", "/viz/trail", "/viz/graph", "/viz/plan")
+TOPICS = ("/viz/map", "/viz/scan", "/tf", "/viz/trail", "/viz/graph", "/viz/plan",
+          "/status/explore", "/status/sim")
+JSON_TYPES: dict[str, type] = {"/status/explore": m.ExploreStatus, "/status/sim": m.SimStatus}
 TRAIL_STEP = 0.5  # [m] ground-truth travel per trail entity
 _KIND_RGBA = {"branch": (0.55, 0.25, 0.75, 1.0), "corner": (1.0, 0.6, 0.1, 1.0)}
 _UNRELIABLE = (0.85, 0.1, 0.1, 1.0)
@@ -229,3 +238,9 @@ class FoxScene:
 
     def _plan(self, p: m.Path) -> list[tuple[str, Any]]:
         return [("/viz/plan", plan_scene(p))]
+
+    def _explore_status(self, s: m.ExploreStatus) -> list[tuple[str, Any]]:
+        return [("/status/explore", msgspec.to_builtins(s))]
+
+    def _sim_status(self, s: m.SimStatus) -> list[tuple[str, Any]]:
+        return [("/status/sim", msgspec.to_builtins(s))]

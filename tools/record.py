@@ -44,6 +44,7 @@ from topoexplore.common.keys import DEFAULT_ENDPOINT, TOPICS, Keys, type_for_key
 from topoexplore.common.node import add_bus_args, add_param_args, params_from_args, stop_on_signals
 from topoexplore.common.params import ParamError
 from topoexplore.tools.extras import ExtraMissing, require
+from topoexplore.tools.fox import JSON_TYPES
 
 PROFILE = "topoexplore"
 MESSAGE_ENCODING = "msgpack"
@@ -212,10 +213,17 @@ class Recorder:
             self.last_error = f"{key}: {exc}"
             return
         for fox_topic, fmsg in self._scene.convert(topic, msg):
-            sc = fmsg.get_schema()
-            fcid = self._channel(fox_topic, "protobuf", (sc.name, sc.encoding, bytes(sc.data)),
-                                 {})
-            self._w.add_message(fcid, log_time=log_ns, data=fmsg.encode(), publish_time=pub_ns)
+            if isinstance(fmsg, dict):  # a JSON channel (tools.fox.JSON_TYPES)
+                t = JSON_TYPES[fox_topic]
+                fcid = self._channel(fox_topic, "json", (f"topoexplore.{t.__name__}",
+                                                         SCHEMA_ENCODING, schema_of(t)), {})
+                data = json.dumps(fmsg, allow_nan=False).encode()
+            else:
+                sc = fmsg.get_schema()
+                fcid = self._channel(fox_topic, "protobuf",
+                                     (sc.name, sc.encoding, bytes(sc.data)), {})
+                data = fmsg.encode()
+            self._w.add_message(fcid, log_time=log_ns, data=data, publish_time=pub_ns)
             self.fox_counts[fox_topic] += 1
 
     def _check_seq(self, key: str, seq: int) -> None:
