@@ -35,6 +35,10 @@ from topoexplore.common.params import ParamError, Params, load_params, params_to
 from topoexplore.common.warm import compile_kernels
 
 log = logging.getLogger("topoexplore")
+# every service's log line: wall-clock time to the millisecond, level, logger, message
+LOG_FORMAT = "%(asctime)s.%(msecs)03d %(levelname)s %(name)s: %(message)s"
+LOG_DATEFMT = "%Y-%m-%dT%H:%M:%S"
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
 
 
 # --- pure helpers (unit-tested without a bus) ------------------------------------------------
@@ -357,11 +361,10 @@ def run_service(service: str, build: Callable[[Node], Callable[[], None]],
     parser = argparse.ArgumentParser(prog=f"topoexplore-{service}", description=description)
     add_bus_args(parser)
     add_param_args(parser)
-    parser.add_argument("--log-level", default="INFO",
-                        choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    parser.add_argument("--log-level", default="INFO", choices=LOG_LEVELS)
     args = parser.parse_args(argv)
     logging.basicConfig(level=getattr(logging, args.log_level), stream=sys.stderr,
-                        format="%(levelname)s %(name)s: %(message)s")
+                        format=LOG_FORMAT, datefmt=LOG_DATEFMT)
     init_logging()
     sys.setswitchinterval(0.0005)  # ZENOH_NOTES: shorter GIL hand-off for callback threads
     try:

@@ -30,10 +30,10 @@ def test_classify_every_outcome():
     assert rb.classify({"state": "error"}) == "error"
 
 
-def test_time_limit_scales_with_area_within_bounds():
+def test_time_limit_scales_with_area_without_a_cap():
     assert rb.time_limit(10.0) == 2400.0
     assert rb.time_limit(1000.0) == 6000.0
-    assert rb.time_limit(1e6) == 12000.0
+    assert rb.time_limit(3600.0) == 21600.0  # a 60 x 60 m world (was capped at 12000 s)
 
 
 RUNS = [

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from functools import cache
@@ -62,12 +63,18 @@ def test_explores_world_to_the_end(world):
     assert r["warmup_s"] > 0 and r["first_motion_s"] > r["startup_s"] > 0, r
     logs = (out / "logs.txt").read_text()
     assert "[warmup] " in logs
+    stamp = r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}"  # every service line has its time
+
+    def at(svc: str, text: str) -> int:
+        hit = re.search(rf"^\[{svc}\] {stamp} INFO topoexplore: {re.escape(text)}", logs, re.M)
+        return hit.start() if hit else -1
+
     for svc in ("mapper", "topology", "planner"):
-        kernels = logs.index(f"[{svc}] INFO topoexplore: {svc}: ")
-        assert kernels < logs.index(f"[{svc}] INFO topoexplore: {svc} ready on"), svc
+        assert 0 <= at(svc, f"{svc}: ") < at(svc, f"{svc} ready on"), svc
     # no kernel runs in the simulator, nor in reliability with frontier_group off: no LLVM
     for svc in ("sim", "reliability", "controller"):
-        assert f"[{svc}] INFO topoexplore: {svc}: " not in logs, svc
+        assert at(svc, f"{svc}: ") == -1 and at(svc, f"{svc} ready on") >= 0, svc
+    assert re.search(rf"^\[supervisor\] {stamp} mapper is up", logs, re.M)
 
 
 def test_same_seed_gives_same_report():

@@ -106,3 +106,23 @@ def test_exit_2_before_up_is_not_restarted_other_exits_are():
     cmd = ProcState(spec=ProcSpec(name="laser", cmd=("/bin/false",), liveliness=False))
     cmd.on_start(0.0, 7)
     assert "restart #1" in cmd.on_exit(0.1, 2, policy, stopping=False)  # foreign: its codes
+
+
+def test_module_command_passes_the_log_level_and_lines_are_stamped():
+    import re
+
+    from topoexplore.common.keys import Keys
+    from topoexplore.tools.launch.core import ProcSpec, parse_profile
+    from topoexplore.tools.launch.supervisor import Supervisor, stamped
+
+    prof = parse_profile({"name": "p", "description": "", "router": False,
+                          "process": [{"name": "mapper",
+                                       "module": "topoexplore.services.mapper.service"}]})
+    spec = ProcSpec(name="mapper", module="topoexplore.services.mapper.service")
+    sup = Supervisor(prof, Keys(), "tcp/127.0.0.1:1", log_level="DEBUG", warm=False)
+    cmd = sup.command(spec)
+    assert cmd[cmd.index("--log-level") + 1] == "DEBUG"
+    assert "--log-level" not in Supervisor(prof, Keys(), "tcp/127.0.0.1:1").command(spec)
+    assert re.fullmatch(r"\[supervisor\] \d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3} mapper is up",
+                        stamped("[supervisor] mapper is up"))
+    assert stamped("[mapper] x") == "[mapper] x"

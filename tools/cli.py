@@ -117,7 +117,12 @@ def cmd_up(args: argparse.Namespace) -> int:
     from topoexplore.common.params import ParamError
     from topoexplore.tools.extras import ExtraMissing, require
     from topoexplore.tools.launch.core import ProfileError, load_profile
-    from topoexplore.tools.launch.supervisor import Supervisor, print_line, profile_path
+    from topoexplore.tools.launch.supervisor import (
+        Supervisor,
+        print_line,
+        profile_path,
+        stamped,
+    )
 
     WorldError = _world_error()
     try:
@@ -139,10 +144,13 @@ def cmd_up(args: argparse.Namespace) -> int:
         overrides.append(f'sim.world="{args.world}"')
     keys = Keys(params.bus.namespace, params.bus.robot)
     sup = Supervisor(profile, keys, params.bus.connect, params_file=args.params,
-                     overrides=overrides, zenoh_config=args.zenoh_config)
+                     overrides=overrides, zenoh_config=args.zenoh_config,
+                     log_level=args.log_level)
     stop = threading.Event()
     stop_on_signals(stop.set, sup.interrupted.set)
-    say = print_line  # survives `up | head`: a closed stdout must not skip the stop below
+
+    def say(line: str) -> None:  # survives `up | head`: a closed stdout must not skip the stop
+        print_line(stamped(line))
     say(f"[supervisor] profile {profile.name}: {', '.join(s.name for s in profile.processes)} "
         f"on {params.bus.connect} ({keys.prefix})")
     try:
@@ -182,7 +190,7 @@ def cmd_map_save(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from topoexplore.common.node import add_bus_args, add_param_args
+    from topoexplore.common.node import LOG_LEVELS, add_bus_args, add_param_args
 
     ap = argparse.ArgumentParser(prog="topoexplore", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -197,6 +205,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="profile name in deploy/profiles (sim, robot, sim-only, mapping) or a path")
     up.add_argument("--world", default=None, help="world for the simulator")
     up.add_argument("--lockstep", action="store_true", help="lockstep simulation")
+    up.add_argument("--log-level", default=None, choices=LOG_LEVELS,
+                    help="log level of every service (default INFO)")
     add_bus_args(up)
     add_param_args(up)
 

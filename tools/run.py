@@ -33,6 +33,7 @@ from topoexplore.common import messages as m
 from topoexplore.common.bus import Bus, BusError, check_config_file
 from topoexplore.common.keys import DEFAULT_ENDPOINT, Keys
 from topoexplore.common.node import (
+    LOG_LEVELS,
     add_bus_args,
     add_param_args,
     params_from_args,
@@ -66,6 +67,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-wall-time", type=float, default=0.0,
                    help="give up after this much wall time [s] (0: no limit)")
     p.add_argument("--out", default="runs/latest", help="output directory")
+    p.add_argument("--log-level", default=None, choices=LOG_LEVELS,
+                   help="log level of every service in logs.txt (default INFO)")
     p.add_argument("--record", action="store_true",
                    help="record every key into OUT/run.mcap (raw + Foxglove channels; "
                    "topoexplore play / Foxglove read it)")
@@ -593,7 +596,8 @@ class StackRun:
         self.log_lock = threading.Lock()
         self.sup = Supervisor(load_profile(profile_path("sim")), setup.keys, setup.endpoint,
                               params_file=args.params, overrides=setup.overrides,
-                              zenoh_config=args.zenoh_config, sink=self.sink)
+                              zenoh_config=args.zenoh_config, sink=self.sink,
+                              log_level=args.log_level)
         self.stop = threading.Event()  # set by SIGINT / SIGTERM
         self.bus: Bus | None = None
         self.recorder: Any = None  # tools.record.Recorder with --record

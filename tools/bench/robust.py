@@ -140,11 +140,13 @@ def _real_maps() -> list[Item]:
 
 
 def time_limit(area: float) -> float:
-    """[s] sim time allowed on a world of this area [m^2]: 6 s per m^2, at least 2400 s, at
-    most 12000 s. Generous on purpose (a cluttered 24 x 22 m floor needs about 1700 s at the
-    robot's slow speeds near obstacles): a run that stops making progress is told apart by
-    its stagnant map (livelock), not by the limit."""
-    return float(min(12000.0, max(2400.0, 6.0 * area)))
+    """[s] sim time allowed on a world of this area [m^2]: 6 s per m^2, at least 2400 s.
+    Generous on purpose (a cluttered 24 x 22 m floor needs about 1700 s at the robot's slow
+    speeds near obstacles): a run that stops making progress is told apart by its stagnant map
+    (livelock), not by the limit. There is no upper cap: a cap of 12000 s (until 2026-12-03)
+    stopped every strategy on the 60 x 60 m office while it was still finishing (reliability:
+    done at 12768 s, coverage 0.993), and its slow last pockets were then called a livelock."""
+    return float(max(2400.0, 6.0 * area))
 
 
 # --------------------------------------------------------------------------------------------

@@ -32,6 +32,7 @@ from pathlib import Path
 
 from topoexplore.common.bus import Bus, BusError
 from topoexplore.common.keys import Keys
+from topoexplore.common.node import LOG_DATEFMT
 from topoexplore.tools.launch.core import ProcSpec, ProcState, Profile, RestartPolicy
 
 log = logging.getLogger("topoexplore.supervisor")
@@ -71,6 +72,18 @@ def port_open(endpoint: str) -> bool:
             return sock.connect_ex((host if host != "0.0.0.0" else "127.0.0.1", int(port))) == 0
         except OSError:
             return False
+
+
+def log_time() -> str:
+    """Wall-clock time as in every service log line (common.node.LOG_FORMAT)."""
+    now = time.time()
+    return time.strftime(LOG_DATEFMT, time.localtime(now)) + f".{int(now % 1 * 1000):03d}"
+
+
+def stamped(line: str) -> str:
+    """A supervisor line gets the time after its tag: ``[supervisor] <time> text``."""
+    tag = "[supervisor] "
+    return f"{tag}{log_time()} {line[len(tag):]}" if line.startswith(tag) else line
 
 
 def print_line(line: str) -> None:
@@ -138,11 +151,12 @@ class Supervisor:
                  params_file: str | None = None, overrides: list[str] | None = None,
                  zenoh_config: str | None = None, sink: Callable[[str], None] | None = None,
                  policy: RestartPolicy | None = None, lost_grace: float = 12.0,
-                 warm: bool = True):
+                 warm: bool = True, log_level: str | None = None):
         self.profile = profile
         self.keys = keys
         self.endpoint = endpoint
         self.params_file = params_file
+        self.log_level = log_level  # passed to every module process (--log-level)
         self.overrides = list(overrides or [])
         self.zenoh_config = zenoh_config
         self.sink = sink or print_line
@@ -176,6 +190,8 @@ class Supervisor:
             cmd += ["--zenoh-config", self.zenoh_config]
         for o in self.overrides:
             cmd += ["--set", o]
+        if self.log_level:
+            cmd += ["--log-level", self.log_level]
         return cmd + list(spec.args)
 
     def _spawn(self, name: str, cmd: list[str]) -> subprocess.Popen:
@@ -198,7 +214,7 @@ class Supervisor:
         """A line to the sink. A sink that fails (a closed pipe, a full disk) must not stop the
         draining of a child's output: a child blocked on a full pipe freezes."""
         try:
-            self.sink(line)  # the one call of the sink
+            self.sink(stamped(line))  # the one call of the sink
         except Exception:
             self.sink_errors += 1
 
