@@ -95,6 +95,10 @@ class Keys:
     def state(self, service: str) -> str:
         return f"{self.prefix}/{service}/state"
 
+    def params(self, service: str) -> str:
+        """The queryable that reads and changes a service's live parameters (keys set)."""
+        return f"{self.prefix}/{service}/params"
+
     def all(self) -> str:
         return f"{self.prefix}/**"
 

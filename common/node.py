@@ -25,13 +25,22 @@ import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any
+from urllib.parse import unquote
+
+import msgspec
 
 from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.bus import Bus, BusError, Publisher, init_logging
 from topoexplore.common.domain import Pose
 from topoexplore.common.keys import DEFAULT_ENDPOINT, TOPICS, Keys
-from topoexplore.common.params import ParamError, Params, load_params, params_to_dict
+from topoexplore.common.params import (
+    ParamError,
+    Params,
+    load_params,
+    params_to_dict,
+    with_override,
+)
 from topoexplore.common.warm import compile_kernels
 
 log = logging.getLogger("topoexplore")
@@ -208,6 +217,10 @@ class Node:
         self.processed = 0
         self.errors = 0
         self._state_fns: list[Callable[[], dict]] = []
+        self._live: set[str] = set()  # section.name that may change while running
+        self._apply_live: list[Callable[[Params], None]] = []
+        self._pending_params: Params | None = None
+        self._live_lock = threading.Lock()
         self.bus = Bus.client(params.bus.connect, name=service, config_file=zenoh_config,
                               wait_for_router=True)
         self._seq: dict[str, int] = {}
@@ -263,6 +276,54 @@ class Node:
     def add_state(self, fn: Callable[[], dict]) -> None:
         self._state_fns.append(fn)
 
+    def add_live(self, names: Sequence[str], apply: Callable[[Params], None]) -> None:
+        """Parameters (``section.name``) this service can change while it runs, and the
+        function that hands new parameters to its core. ``apply`` runs on the worker thread
+        between two steps, never during one."""
+        self._live |= set(names)
+        self._apply_live.append(apply)
+
+    def params_query(self, parameters: str = "") -> dict:
+        """The ``params`` queryable: ``set=<section.name=value>`` (URL-quoted) checks the value
+        as at start-up and, if the parameter can change live, queues it for the worker; the
+        answer holds the old and new value or an error. Without ``set``: what can change."""
+        wanted = ""
+        for pair in parameters.split(";"):
+            k, _, v = pair.partition("=")
+            if k.strip() == "set":
+                wanted = unquote(v)
+        if not wanted:
+            return {"service": self.service, "live": sorted(self._live)}
+        try:
+            with self._live_lock:
+                base = self._pending_params or self.params
+                new, name = with_override(base, wanted)
+        except (ParamError, ValueError) as exc:
+            return {"error": str(exc)}
+        if name not in self._live:
+            live = ", ".join(sorted(self._live)) or "none"
+            return {"error": f"{name} cannot change while {self.service} runs (restart it with "
+                             f"--set {name}=...; live here: {live})"}
+        section, field = name.split(".")
+        old = getattr(getattr(base, section), field)
+        with self._live_lock:
+            self._pending_params = new
+        self.inbox.notify()
+        log.info("%s: %s %r -> %r (live)", self.service, name, old,
+                 getattr(getattr(new, section), field))
+        return {"service": self.service, "name": name, "old": msgspec.to_builtins(old),
+                "new": msgspec.to_builtins(getattr(getattr(new, section), field))}
+
+    def apply_pending(self) -> None:
+        """Worker thread, between steps: hand queued live parameters to the core."""
+        with self._live_lock:
+            new, self._pending_params = self._pending_params, None
+        if new is None:
+            return
+        for apply in self._apply_live:
+            apply(new)
+        self.params = new
+
     def state(self, parameters: str = "") -> dict:
         bad, bad_total, last_bad = self.bus.bad.snapshot()
         out: dict[str, Any] = {
@@ -287,6 +348,7 @@ class Node:
     def ready(self) -> None:
         """Declare the state queryable and the liveliness token: the service is up."""
         self.bus.queryable(self.keys.state(self.service), self.state)
+        self.bus.queryable(self.keys.params(self.service), self.params_query)
         self.bus.declare_token(self.keys.alive(self.service))
         log.info("%s ready on %s (%s)", self.service, self.keys.prefix,
                  "lockstep" if self.lockstep else "real-time")
@@ -388,6 +450,7 @@ def run_service(service: str, build: Callable[[Node], Callable[[], None]],
         node.ready()
         while not node.stop.is_set():
             try:
+                node.apply_pending()
                 step()
             except Exception as exc:  # keep running: count, log, go on
                 node.errors += 1

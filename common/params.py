@@ -458,6 +458,17 @@ def validated(p: Params) -> Params:
     return _convert(params_to_dict(p))
 
 
+def with_override(p: Params, assignment: str) -> tuple[Params, str]:
+    """p with one ``section.name=value`` applied (a TOML value, as ``--set`` takes it),
+    validated as at start-up -> (new params, the canonical ``section.name``); ParamError."""
+    data = apply_overrides(params_to_dict(p), [assignment])
+    new = _convert(data)
+    section, name = (s.strip() for s in assignment.split("=", 1)[0].split(".", 1))
+    if not hasattr(getattr(new, section, None), name):
+        raise ParamError(f"unknown parameter {section}.{name}")
+    return new, f"{section}.{name}"
+
+
 def with_changes(p: Params, section: str, **changes: Any) -> Params:
     """Copy of p with fields of one section replaced, validated."""
     data = params_to_dict(p)

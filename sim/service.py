@@ -19,6 +19,7 @@ import numpy as np
 from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.node import Node, run_service
+from topoexplore.common.params import Params
 from topoexplore.sim.core import WARM_MODULES, SimCore
 from topoexplore.sim.world import WorldError, load_world
 
@@ -53,6 +54,7 @@ class SimService:
         self.started = False
         self.applied_cmd_seq = -1
         node.add_state(self.state)
+        node.add_live(("sim.speed",), self.apply_params)  # the pace of real-time mode
 
     # -- publishing -----------------------------------------------------------------------
     def publish_odom(self) -> None:
@@ -172,6 +174,12 @@ class SimService:
             self.step_lockstep()
         else:
             self.step_realtime()
+
+    def apply_params(self, P: Params) -> None:
+        """A new real-time factor: the pacing restarts from now, so sim time does not jump."""
+        if P.sim.speed != self.p.speed and self.started:
+            self.wall_start = time.monotonic() - self.core.time / P.sim.speed
+        self.p = P.sim
 
     def state(self) -> dict:
         x, y, th = self.core.truth_pose()

@@ -216,7 +216,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="generate a world: `topoexplore worlds generate --help`")
     w.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
 
-    sub.add_parser("keys", help="inspect keys: list | echo KEY | hz KEY | get SERVICE",
+    sub.add_parser("keys", help="keys: list | echo KEY | hz KEY | get SERVICE | pub KEY F=V | "
+                   "set SERVICE S.N=V",
                    add_help=False)
     sub.add_parser("router", help="run a Zenoh router", add_help=False)
     sub.add_parser("warmup", help="compile the numba kernels once (the supervisor does it too)",
@@ -228,6 +229,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("record", help="record the bus into an MCAP file (raw + Foxglove channels)",
                    add_help=False)
     sub.add_parser("play", help="publish an MCAP recording back onto the bus", add_help=False)
+    sub.add_parser("teleop", help="drive the robot from the keyboard (stops on silence/exit)",
+                   add_help=False)
     sub.add_parser("view", help="live Foxglove view of a running stack (WebSocket server)",
                    add_help=False)
     sub.add_parser("replay", help="run services on a recording's inputs, compare the outputs",
@@ -254,6 +257,7 @@ _FORWARD = {
     "play": "topoexplore.tools.record:main_play",
     "replay": "topoexplore.tools.replay",
     "view": "topoexplore.tools.view",
+    "teleop": "topoexplore.tools.teleop",
 }
 
 

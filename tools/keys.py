@@ -10,6 +10,8 @@ validation of :func:`common.messages.decode`, so a bad payload is reported, neve
 - ``keys echo KEY [--once|--count N] [--field a.b] [--full] [--json] [--timeout S]``.
 - ``keys hz KEY [--window N] [--duration S]``: rate, period jitter, bandwidth and size.
 - ``keys get SERVICE [--field a.b] [--full] [--json] [--timeout S]``: a service's state.
+- ``keys pub KEY FIELD=VALUE... [--rate HZ] [--count N] [--duration S]``: publish a message.
+- ``keys set SERVICE [section.name=VALUE]``: change a live parameter (:mod:`tools.keypub`).
 
 Exit codes: 0 success (also Ctrl-C in echo/hz, their normal way to stop); 1 nothing received /
 no reply; 2 bad argument, bad key or field, no router; 130 Ctrl-C during list/get.
@@ -933,11 +935,24 @@ def _positive(kind: type, lo: float, name: str):
     return conv
 
 
+def _non_negative(kind: type, name: str):
+    def conv(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name}: not a number: {text!r}") from None
+        if not (math.isfinite(v) and v >= 0):
+            raise argparse.ArgumentTypeError(f"{name} must be >= 0, got {text!r}")
+        return v
+
+    return conv
+
+
 def build_parser() -> argparse.ArgumentParser:
     from topoexplore.common.node import add_bus_args
 
     p = _Parser(prog=PROG, description="Inspect the Zenoh keys of a running topoexplore stack.")
-    sub = p.add_subparsers(dest="cmd", metavar="{list,echo,hz,get}", required=True)
+    sub = p.add_subparsers(dest="cmd", metavar="{list,echo,hz,get,pub,set}", required=True)
 
     sp = sub.add_parser("list", help="live services, state queryables and keys with rates")
     sp.add_argument("--duration", type=_positive(float, 0.05, "--duration"), default=2.0,
@@ -981,10 +996,48 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--timeout", type=_positive(float, 0.01, "--timeout"), default=2.0,
                     help="reply timeout [s] (default 2)")
     add_bus_args(sp)
+
+    sp = sub.add_parser("pub", help="publish a message (or a stream) on a key: FIELD=VALUE ...")
+    sp.add_argument("key", help="topic (cmd_vel) or full key")
+    sp.add_argument("fields", nargs="*", metavar="FIELD=VALUE",
+                    help="message fields, YAML values (v=0.2 w=0.5); the header is filled in")
+    sp.add_argument("--rate", type=_positive(float, 0.001, "--rate"), default=None,
+                    help="publish at this rate [Hz] until --count/--duration or Ctrl-C")
+    sp.add_argument("--count", type=_positive(int, 1, "--count"), default=None,
+                    help="messages to publish (default 1, or unlimited with --rate)")
+    sp.add_argument("--duration", type=_positive(float, 0.01, "--duration"), default=None,
+                    help="stop after S seconds")
+    sp.add_argument("--wait", type=_non_negative(float, "--wait"), default=1.0,
+                    help="wait up to S seconds for a subscriber before the first message")
+    add_bus_args(sp)
+
+    sp = sub.add_parser("set", help="change a parameter of a running service (section.name=V)")
+    sp.add_argument("service", help="service name (controller)")
+    sp.add_argument("assignment", nargs="?", default=None, metavar="SECTION.NAME=VALUE",
+                    help="the change (TOML value); without it: what can change live")
+    sp.add_argument("--timeout", type=_positive(float, 0.01, "--timeout"), default=2.0,
+                    help="reply timeout [s] (default 2)")
+    add_bus_args(sp)
     return p
 
 
-_COMMANDS = {"list": cmd_list, "echo": cmd_echo, "hz": cmd_hz, "get": cmd_get}
+def _cmd_pub(args: argparse.Namespace, bus: Bus, keys: Keys, stop: _Stop) -> int:
+    from topoexplore.tools.keypub import PubError, cmd_pub
+
+    try:
+        return cmd_pub(args, bus, keys, stop)
+    except PubError as exc:
+        raise KeyToolError(str(exc)) from None
+
+
+def _cmd_set(args: argparse.Namespace, bus: Bus, keys: Keys, stop: _Stop) -> int:
+    from topoexplore.tools.keypub import cmd_set
+
+    return cmd_set(args, bus, keys, stop)
+
+
+_COMMANDS = {"list": cmd_list, "echo": cmd_echo, "hz": cmd_hz, "get": cmd_get, "pub": _cmd_pub,
+             "set": _cmd_set}
 
 
 def main(argv: list[str] | None = None) -> int:

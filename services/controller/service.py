@@ -14,9 +14,15 @@ from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.domain import Command
 from topoexplore.common.node import Node, OdomBuffer, run_service
+from topoexplore.common.params import ControllerParams, Params
 from topoexplore.services.controller.core import WARM_MODULES, ControllerCore
 
 log = logging.getLogger("topoexplore.controller")
+
+
+# read by the core on every update, so they can change while it runs (``keys set``);
+# start_turn is spent at the start, the robot's size shapes the core when it is made
+LIVE = tuple(f"controller.{f}" for f in ControllerParams.__struct_fields__ if f != "start_turn")
 
 
 class ControllerService:
@@ -31,6 +37,7 @@ class ControllerService:
         node.subscribe("scan", queue=True)
         self.last_cmd = Command(0.0, 0.0, "idle")
         node.add_state(self.state)
+        node.add_live(LIVE, self.apply_params)
 
     def ready(self, scan: m.LaserScan) -> bool:
         ok = self.odom.newest >= scan.header.stamp - 1e-6
@@ -67,6 +74,9 @@ class ControllerService:
         self.pub.put(convert.command_to_msg(cmd, self.node.header(
             "cmd_vel", scan.header.stamp, scan.header.src_seq)))
         self.node.processed += 1
+
+    def apply_params(self, P: Params) -> None:
+        self.core.params = P.controller
 
     def state(self) -> dict:
         v, w, mode = self.last_cmd

@@ -1,0 +1,192 @@
+"""``topoexplore keys pub`` and ``keys set``: write to a running stack.
+
+- ``keys pub KEY FIELD=VALUE... [--rate HZ] [--count N] [--duration S]``: one message of the
+  key's type (or a stream at a rate), like ``ros2 topic pub``. Values are YAML
+  (``v=0.2``, ``waypoints=[[0,0],[1,1]]``); the header is filled in (seq counting up from a
+  random start, stamp 0, the frame of the topic) unless given (``header.stamp=12.5``). The
+  message is validated exactly as a service would decode it before anything is sent.
+- ``keys set SERVICE section.name=VALUE``: change a parameter of a running service through its
+  ``<ns>/<robot>/<service>/params`` queryable (``common.node``); the answer gives the old and
+  the new value, or the service's one-line refusal (a bad value, or a parameter that cannot
+  change while it runs). ``keys set SERVICE`` alone lists what can change live.
+
+The message building (:func:`parse_assignments`, :func:`build_message`) is pure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import random
+import time
+from typing import Any
+from urllib.parse import quote
+
+import msgspec
+import yaml
+
+from topoexplore.common import messages as m
+from topoexplore.common.bus import Bus
+from topoexplore.common.keys import Keys, type_for_key
+
+# the frame a hand-made message of a topic is in (REP-105)
+FRAMES = {"scan": "laser", "cmd_vel": "base_link"}
+
+
+class PubError(ValueError):
+    """A bad assignment or a message that would not validate (one line)."""
+
+
+def parse_value(text: str) -> Any:
+    """``0.2`` -> 0.2, ``[1, 2]`` -> [1, 2], ``true`` -> True, ``abc`` -> 'abc' (YAML)."""
+    try:
+        return yaml.safe_load(text) if text.strip() else ""
+    except yaml.YAMLError as exc:
+        raise PubError(f"cannot read value {text!r}: {str(exc).splitlines()[0]}") from None
+
+
+def parse_assignments(items: list[str]) -> dict[str, Any]:
+    """``["v=0.2", "header.stamp=3"]`` -> ``{"v": 0.2, "header": {"stamp": 3}}``."""
+    out: dict[str, Any] = {}
+    for item in items:
+        path, eq, text = item.partition("=")
+        parts = path.strip().split(".")
+        if not eq or not all(p.isidentifier() for p in parts):
+            raise PubError(f"expected FIELD=VALUE (a.b=1), got {item!r}")
+        node = out
+        for p in parts[:-1]:
+            nxt = node.setdefault(p, {})
+            if not isinstance(nxt, dict):
+                raise PubError(f"{path}: {p} is given a value and fields at once")
+            node = nxt
+        if isinstance(node.get(parts[-1]), dict):
+            raise PubError(f"{path}: given a value and fields at once")
+        node[parts[-1]] = parse_value(text)
+    return out
+
+
+def _merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in extra.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def zero_fields(msg_type: type) -> dict[str, Any]:
+    """The required fields of a message type at zero ("" for text, [] for lists, nested
+    structs likewise), as ``ros2 topic pub`` fills what it is not given."""
+    import msgspec.inspect as mi
+
+    def zero(t: Any) -> Any:
+        if isinstance(t, mi.StructType):
+            return {f.name: zero(f.type) for f in t.fields if f.required}
+        if isinstance(t, (mi.FloatType, mi.IntType)):
+            return 0
+        if isinstance(t, mi.BoolType):
+            return False
+        if isinstance(t, mi.StrType):
+            return ""
+        if isinstance(t, (mi.ListType, mi.BytesType)):
+            return [] if isinstance(t, mi.ListType) else b""
+        return None
+
+    return zero(mi.type_info(msg_type))
+
+
+def check_names(msg_type: type, fields: dict[str, Any], path: str = "") -> None:
+    """PubError for a field the type does not have (a typo must not be dropped silently)."""
+    import msgspec.inspect as mi
+
+    info = mi.type_info(msg_type)
+    known = {f.name: f.type for f in info.fields}
+    for k, v in fields.items():
+        if k not in known:
+            raise PubError(f"{msg_type.__name__} has no field {path + k!r} (fields: "
+                           f"{', '.join(known)})")
+        t = known[k]
+        if isinstance(v, dict) and isinstance(t, mi.StructType):
+            check_names(t.cls, v, f"{path}{k}.")
+
+
+def build_message(msg_type: type, fields: dict[str, Any], seq: int, frame: str = "map") -> Any:
+    """A message of ``msg_type`` from ``fields`` (nested; what is not given is zero) with the
+    header filled in; validated as a service decodes it (PubError with the reason otherwise)."""
+    check_names(msg_type, fields)
+    base = _merge(zero_fields(msg_type),
+                  {"header": {"seq": seq, "stamp": 0.0, "frame": frame, "src_seq": -1}})
+    try:
+        msg = msgspec.convert(_merge(base, fields), msg_type)
+        return m.decode(m.encode(msg), msg_type)
+    except (msgspec.ValidationError, m.MessageError) as exc:
+        raise PubError(f"not a valid {msg_type.__name__}: {exc}") from None
+
+
+def cmd_pub(args: argparse.Namespace, bus: Bus, keys: Keys, stop: Any) -> int:
+    from topoexplore.tools.keys import KeyToolError, _out, resolve_key
+
+    key = resolve_key(args.key, keys)
+    if "*" in key:
+        raise KeyToolError(f"keys pub needs one key, not a wildcard ({key})")
+    msg_type = type_for_key(key)
+    if msg_type is None:
+        raise KeyToolError(f"{key} carries none of our message types (topics: scan, cmd_vel, ...)")
+    fields = parse_assignments(args.fields)
+    fixed_seq = "seq" in fields.get("header", {})
+    seq0 = random.randrange(1 << 30)  # a fresh seq: the simulator applies a cmd_vel once per seq
+    frame = FRAMES.get(key.rsplit("/", 1)[-1], "map")
+    first = build_message(msg_type, fields, seq0, frame)  # check before anything is sent
+    pub = bus.publisher(key, msg_type, reliable=True)
+    deadline = time.monotonic() + args.wait
+    while not pub.matched and time.monotonic() < deadline and not stop.event.is_set():
+        stop.event.wait(0.02)  # a put before the subscriber is known may be lost
+    count = args.count if args.count is not None else (None if args.rate else 1)
+    t_end = time.monotonic() + args.duration if args.duration else math.inf
+    period = 1.0 / args.rate if args.rate else 0.0
+    sent, t_next = 0, time.monotonic()
+    while not stop.event.is_set() and (count is None or sent < count) \
+            and time.monotonic() < t_end:
+        msg = first if sent == 0 or fixed_seq else build_message(msg_type, fields, seq0 + sent,
+                                                                 frame)
+        pub.put(msg)
+        sent += 1
+        t_next += period
+        if count is not None and sent >= count:
+            break
+        stop.event.wait(max(0.0, t_next - time.monotonic()))
+    time.sleep(0.1)  # let the last put leave before the session closes
+    _out(f"published {sent} {msg_type.__name__} on {key}"
+         + ("" if pub.matched else " (no subscriber was seen)"))
+    return 0
+
+
+def cmd_set(args: argparse.Namespace, bus: Bus, keys: Keys, stop: Any) -> int:
+    from topoexplore.tools.keys import KeyToolError, _err, _get, _out
+
+    svc = args.service.strip()
+    if not svc.isidentifier():
+        raise KeyToolError(f"bad service name {svc!r}")
+    selector = f"{keys.prefix}/{svc}/params"
+    if args.assignment:
+        name, eq, value = args.assignment.partition("=")
+        if not eq or len(name.split(".")) != 2:
+            raise KeyToolError(f"expected section.name=VALUE, got {args.assignment!r}")
+        selector += f"?set={quote(args.assignment, safe='')}"
+    replies = _get(bus, selector, args.timeout)
+    for _k, payload, err in replies:
+        if payload is None:
+            _err(f"{svc}: {err}")
+            return 1
+        ans = msgspec.msgpack.decode(payload)
+        if not isinstance(ans, dict):
+            continue
+        if ans.get("error"):
+            _err(f"{svc}: {ans['error']}")
+            return 1
+        if "old" in ans:
+            _out(f"{svc}: {ans['name']}: {ans['old']!r} -> {ans['new']!r}")
+        else:
+            live = ", ".join(ans.get("live") or []) or "none"
+            _out(f"{svc}: parameters that change live: {live}")
+        return 0
+    _err(f"no reply from {selector.split('?')[0]} within {args.timeout:g} s (service not running?)")
+    return 1

@@ -1,0 +1,181 @@
+"""``topoexplore teleop``: drive the robot from the keyboard in a terminal.
+
+    w / s   faster / slower (backwards below 0)      a / d   turn left / right
+    space   stop                                      q       quit (also Ctrl-C, Ctrl-D)
+
+Publishes ``cmd_vel`` at ``--rate``. Safe by construction:
+- **silence stops**: the command holds only while keys come (keep a key pressed: the
+  terminal repeats it); after ``--hold`` seconds without a key the robot is sent zero;
+- **exit stops**: on q, Ctrl-C, Ctrl-D, SIGTERM or an error, zero is sent three times and the
+  terminal is restored;
+- speeds are clamped to the controller's ``v_max`` / ``w_max`` (``--params`` / ``--set``).
+
+Against a full stack the controller publishes too; use the ``sim-only`` profile
+(``topoexplore up --profile sim-only``) or stop the controller. The key handling
+(:class:`Teleop`) is pure and unit-tested; the shell reads the terminal and publishes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import random
+import select
+import sys
+import threading
+import time
+from dataclasses import dataclass
+
+from topoexplore.common import messages as m
+from topoexplore.common.bus import Bus, BusError
+from topoexplore.common.keys import DEFAULT_ENDPOINT, Keys
+from topoexplore.common.node import add_bus_args, add_param_args, params_from_args, stop_on_signals
+from topoexplore.common.params import ParamError
+
+HELP = "w/s faster/slower, a/d left/right, space stop, q quit"
+
+
+@dataclass
+class Teleop:
+    """Keys -> (v, w), with the silence rule (pure: time comes in as an argument)."""
+
+    v_step: float = 0.05  # [m/s] per key
+    w_step: float = 0.2  # [rad/s] per key
+    v_max: float = 0.2  # [m/s]
+    w_max: float = 1.0  # [rad/s]
+    hold: float = 1.0  # [s] without a key -> stop
+    v: float = 0.0
+    w: float = 0.0
+    last_key: float = -math.inf  # [s]
+    quit: bool = False
+
+    def key(self, ch: str, t: float) -> None:
+        self.last_key = t
+        if ch in ("w", "W"):
+            self.v += self.v_step
+        elif ch in ("s", "S"):
+            self.v -= self.v_step
+        elif ch in ("a", "A"):
+            self.w += self.w_step
+        elif ch in ("d", "D"):
+            self.w -= self.w_step
+        elif ch in (" ", "x", "X"):
+            self.v = self.w = 0.0
+        elif ch in ("q", "Q", "\x03", "\x04"):  # q, Ctrl-C, Ctrl-D
+            self.v = self.w = 0.0
+            self.quit = True
+        self.v = max(-self.v_max, min(self.v_max, round(self.v, 6)))
+        self.w = max(-self.w_max, min(self.w_max, round(self.w, 6)))
+
+    def command(self, t: float) -> tuple[float, float]:
+        """The command to send at time t: zero after `hold` seconds of silence (and the speeds
+        reset, so that the next key starts from standstill)."""
+        if t - self.last_key > self.hold:
+            self.v = self.w = 0.0
+        return self.v, self.w
+
+
+def _err(text: str) -> int:
+    print(f"topoexplore teleop: {text.splitlines()[0] if text else 'error'}", file=sys.stderr)
+    return 2
+
+
+class TeleopError(ValueError):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # type: ignore[override]
+        raise TeleopError(message)
+
+
+def _pos(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(v) or v <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0: {text!r}")
+    return v
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="topoexplore teleop", description=__doc__,
+                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--rate", type=_pos, default=10.0, help="cmd_vel rate [Hz] (default 10)")
+    p.add_argument("--hold", type=_pos, default=1.0,
+                   help="seconds without a key before the robot is stopped (default 1)")
+    p.add_argument("--v-step", type=_pos, default=0.05, help="[m/s] per key (default 0.05)")
+    p.add_argument("--w-step", type=_pos, default=0.2, help="[rad/s] per key (default 0.2)")
+    add_bus_args(p)
+    add_param_args(p)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        args = build_parser().parse_args(argv)
+        P = params_from_args(args)
+    except (TeleopError, ParamError, ValueError) as exc:
+        return _err(str(exc))
+    if not os.isatty(sys.stdin.fileno()):
+        return _err("needs a terminal (stdin is not a TTY)")
+    state = Teleop(v_step=args.v_step, w_step=args.w_step, v_max=P.controller.v_max,
+                   w_max=P.controller.w_max, hold=args.hold)
+    keys = Keys(P.bus.namespace, P.bus.robot)
+    try:
+        connect = args.connect or (None if args.zenoh_config else DEFAULT_ENDPOINT)
+        bus = Bus.client(connect, name="teleop", config_file=args.zenoh_config)
+    except BusError as exc:
+        return _err(str(exc))
+    try:
+        return _drive(bus, keys, state, args.rate)
+    finally:
+        bus.close()
+
+
+def _drive(bus: Bus, keys: Keys, state: Teleop, rate: float) -> int:
+    import termios
+    import tty
+
+    pub = bus.publisher(keys.cmd_vel, m.Twist, reliable=True)
+    seq = random.randrange(1 << 30)
+    stop = threading.Event()
+    restore = stop_on_signals(stop.set)
+    fd = sys.stdin.fileno()
+    saved = termios.tcgetattr(fd)
+
+    def send(v: float, w: float) -> None:
+        nonlocal seq
+        seq += 1
+        pub.put(m.Twist(header=m.Header(seq=seq, stamp=0.0, frame="base_link", src_seq=-1),
+                        v=v, w=w))
+
+    print(f"teleop on {keys.cmd_vel}: {HELP}", flush=True)
+    try:
+        tty.setcbreak(fd)
+        t_next = time.monotonic()
+        while not stop.is_set() and not state.quit:
+            timeout = max(0.0, t_next - time.monotonic())
+            ready, _, _ = select.select([fd], [], [], timeout)
+            if ready:
+                data = os.read(fd, 32)
+                if not data:  # the terminal closed
+                    break
+                for ch in data.decode(errors="ignore"):
+                    state.key(ch, time.monotonic())
+            if time.monotonic() >= t_next:
+                v, w = state.command(time.monotonic())
+                send(v, w)
+                sys.stdout.write(f"\rv {v:+.2f} m/s  w {w:+.2f} rad/s   ")
+                sys.stdout.flush()
+                t_next += 1.0 / rate
+    finally:
+        for _ in range(3):  # safe on any exit: the robot is told to stop
+            send(0.0, 0.0)
+            time.sleep(0.02)
+        termios.tcsetattr(fd, termios.TCSADRAIN, saved)
+        restore()
+        print("\nteleop: stopped the robot", flush=True)
+    return 0
