@@ -5,23 +5,26 @@
     topoexplore bench inproc [--worlds ...] [--strategies ...] [--seeds N] [--set k=v ...]
     topoexplore bench robust [--half tune|held|real|all] [--strategies ...] [--quick]
     topoexplore bench oracle [--worlds ...] [--corpus DIR] [--from-results SRC ...]
+    topoexplore bench record [--world office] [--speed 4] [--sim-time 120] [--repeats 2]
 
 ``stages`` (:mod:`.stages`, :mod:`.bus`) times every core and the bus; ``explore``
 (:mod:`.explore`) runs the strategy comparison suite with the real processes; ``inproc``
 (:mod:`.inproc`) runs the same cores in one process for parameter sweeps; ``oracle``
-(:mod:`.oracle`) divides their paths by a short tour planned on the true map.
+(:mod:`.oracle`) divides their paths by a short tour planned on the true map; ``record``
+(:mod:`.recording`) measures what ``run --record`` costs the services in real time.
 """
 
 from __future__ import annotations
 
 import sys
 
-_USAGE = "usage: topoexplore bench {stages,explore,inproc,robust,oracle} [options]  (-h for help)"
+_USAGE = "usage: topoexplore bench {stages,explore,inproc,robust,oracle,record} [options]  (-h for help)"
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or argv[0] not in ("stages", "explore", "inproc", "robust", "oracle"):
+    if not argv or argv[0] not in ("stages", "explore", "inproc", "robust", "oracle",
+                                         "record"):
         print(_USAGE, file=sys.stderr)
         return 2
     if argv[0] == "stages":
@@ -36,6 +39,10 @@ def main(argv: list[str] | None = None) -> int:
         from topoexplore.tools.bench import oracle
 
         return oracle.main(argv[1:])
+    if argv[0] == "record":
+        from topoexplore.tools.bench import recording
+
+        return recording.main(argv[1:])
     if argv[0] == "robust":
         from topoexplore.tools.bench import robust
 
