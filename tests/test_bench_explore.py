@@ -277,6 +277,11 @@ def test_smoke_suite_files_and_ratio_arithmetic(tmp_path):
         report = json.loads((run_dir / "report.json").read_text())
         reports[(run["world_label"], run["strategy"])] = report
         assert {k: run[k] for k in report} == report  # the report, unchanged, plus fields
+        # every run was recorded; only the recordings of runs that did not finish are kept
+        assert report["recording"]["gaps"] == 0
+        kept = run_dir / "run.mcap"
+        assert kept.is_file() == (not run["finished"])
+        assert run["recording_file"] == (run["run_dir"] + "/run.mcap" if kept.is_file() else None)
     for w in worlds:
         if any(doc["runs"][i]["timeline"] for i in range(6) if doc["runs"][i]["world_label"] == w):
             assert (out / "curves" / f"{w}.png").stat().st_size > 0

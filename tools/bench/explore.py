@@ -596,6 +596,7 @@ class Config:
     notes: list[str] = field(default_factory=list)
     params: str | None = None  # --params FILE.toml for every run
     overrides: list[str] = field(default_factory=list)  # --set section.name=value, every run
+    record: str = "failed"  # run --record: keep the MCAP of failed runs | all | none
 
     @property
     def command(self) -> str:
@@ -608,6 +609,8 @@ class Config:
             args += ["--params", self.params]
         for o in self.overrides:
             args += ["--set", o]
+        if self.record != "failed":
+            args += ["--record", self.record]
         args += ["--out", str(self.out if self.out.is_absolute() or Path.cwd().resolve() == _root()
                              else self.out.resolve())]
         return shlex.join(args)
@@ -637,6 +640,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="parameter file for every run (as `topoexplore run --params`)")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.NAME=VALUE",
                     dest="overrides", help="parameter override for every run (repeatable)")
+    ap.add_argument("--record", choices=("failed", "all", "none"), default="failed",
+                    help="record each run's bus (run --record) and keep the MCAP of the runs "
+                    "that did not finish (default), of all, or record nothing")
     ap.add_argument("--quick", action="store_true",
                     help=f"smoke suite: {','.join(QUICK_WORLDS)} x all strategies x 1 seed")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -766,10 +772,17 @@ def parse_config(argv: Sequence[str]) -> tuple[Config | None, argparse.Namespace
         raise BenchArgError(f"--out {out} is not a directory")
     params = None if args.params is None else str(Path(args.params).resolve())
     check_overrides(params, args.overrides)
+    record = args.record
+    if record != "none":
+        try:
+            require("mcap", "foxglove", what="recording the runs")
+        except ExtraMissing as exc:
+            notes.append(f"{exc}; runs are not recorded")
+            record = "none"
     return Config(worlds=worlds, strategies=strategies, seeds=seeds, out=out,
                   max_sim_time=float(args.max_sim_time), max_wall_time=float(args.max_wall_time),
                   jobs=args.jobs, progress=not args.no_progress, notes=notes, params=params,
-                  overrides=list(args.overrides)), args
+                  overrides=list(args.overrides), record=record), args
 
 
 # --------------------------------------------------------------------------------------------
@@ -808,7 +821,7 @@ def _stop(p: subprocess.Popen) -> None:
 
 def run_one(label: str, world_arg: str, strategy: str, seed: int, out: Path,
             max_sim_time: float, max_wall_time: float, params: str | None = None,
-            overrides: Sequence[str] = ()) -> dict:
+            overrides: Sequence[str] = (), record: str = "none") -> dict:
     """One ``topoexplore run --lockstep`` into ``out/runs/<label>-<strategy>-<seed>/``.
 
     Returns its report plus derived fields; a run that left no report gets a stub report
@@ -820,7 +833,7 @@ def run_one(label: str, world_arg: str, strategy: str, seed: int, out: Path,
         shutil.rmtree(run_dir)  # never read a stale report
     run_dir.mkdir(parents=True)
     cmd = _run_command(label, world_arg, strategy, seed, run_dir, max_sim_time, max_wall_time,
-                       params, overrides)
+                       params, overrides) + (["--record"] if record != "none" else [])
     # safety net above the runner's own wall limit: startup, shutdown and the final picture
     timeout = max_wall_time + 180.0 if max_wall_time > 0 else None
     code, note = _wait_run(cmd, run_dir / "bench-stderr.txt", timeout)
@@ -829,6 +842,10 @@ def run_one(label: str, world_arg: str, strategy: str, seed: int, out: Path,
     run["world_label"] = label
     run["exit_code"] = code
     run["run_dir"] = rel
+    mcap = run_dir / "run.mcap"
+    if mcap.is_file() and record == "failed" and run.get("finished"):
+        mcap.unlink()  # a finished run's recording is not kept (--record all keeps it)
+    run["recording_file"] = f"{rel}/run.mcap" if mcap.is_file() else None
     tl_path = run_dir / "timeline.csv"
     try:
         run["timeline"] = read_timeline(tl_path) if tl_path.is_file() else []
@@ -983,7 +1000,7 @@ class _SuiteRuns:
         if cfg.jobs == 1:
             self.bar.set_postfix_str(f"now {label}/{st}/{seed} | last {self.last}")
         return run_one(label, arg, st, seed, cfg.out, cfg.max_sim_time, cfg.max_wall_time,
-                       cfg.params, cfg.overrides)
+                       cfg.params, cfg.overrides, cfg.record)
 
     def done(self, run: dict) -> None:
         with self.lock:
