@@ -79,13 +79,15 @@ def test_keys_pub_drives_and_keys_set_changes_live(procs, endpoint, namespace):
     keys = Keys(namespace, "robot1")
     bus_args = ["--connect", endpoint, "--namespace", namespace]
     procs.python("-m", "topoexplore.tools.cli", "up", "--profile", "sim-only", *bus_args)
-    procs.python("-m", "topoexplore.services.controller.service", *bus_args)
-    _wait_alive(endpoint, keys, ("sim", "controller"))
+    _wait_alive(endpoint, keys, ("sim",))
     x0 = _truth_x(endpoint, keys)
     r = _cli("keys", "pub", "cmd_vel", "v=0.2", "--rate", "10", "--duration", "1.5", *bus_args)
     assert r.returncode == 0 and "published 15 Twist" in r.stdout, r.stdout + r.stderr
     time.sleep(0.7)  # the sim's watchdog stops the robot 0.5 s after the last command
     assert 0.2 < _truth_x(endpoint, keys) - x0 < 0.6
+    # (the controller publishes cmd_vel too: it starts only now)
+    procs.python("-m", "topoexplore.services.controller.service", *bus_args)
+    _wait_alive(endpoint, keys, ("controller",))
     # live parameters: the list, a change (old and new), a refusal, a bad value
     r = _cli("keys", "set", "controller", *bus_args)
     assert r.returncode == 0 and "controller.v_max" in r.stdout, r.stderr

@@ -122,19 +122,30 @@ class Divergence:
     index: int  # n-th message on the topic
     scan: int  # src_seq of the recorded message
     what: str
+    order: int = 0  # place of the recorded message in the recording's log order
 
 
 class Expectation:
-    """The recorded outputs, compared with the replayed ones as they arrive (pure)."""
+    """The recorded outputs, compared with the replayed ones as they arrive (pure). Outputs of
+    one scan on different topics may arrive in any order; the divergence reported is the first
+    in the recording's log order, so the verdict does not depend on arrival order."""
 
     def __init__(self) -> None:
         self.recorded: dict[str, list[bytes]] = defaultdict(list)
         self.replayed: dict[str, list[bytes]] = defaultdict(list)
+        self._order: dict[str, list[int]] = defaultdict(list)
+        self._n = 0
         self.compared = 0
-        self.divergence: Divergence | None = None
+        self.divergences: list[Divergence] = []
+
+    @property
+    def divergence(self) -> Divergence | None:
+        return min(self.divergences, key=lambda d: d.order) if self.divergences else None
 
     def expect(self, topic: str, payload: bytes) -> None:
         self.recorded[topic].append(payload)
+        self._order[topic].append(self._n)
+        self._n += 1
         self._compare(topic, len(self.recorded[topic]) - 1)
 
     def got(self, topic: str, payload: bytes) -> None:
@@ -144,13 +155,15 @@ class Expectation:
     def _compare(self, topic: str, i: int) -> None:
         """Message i of a topic, once both the recorded and the replayed one are known."""
         rec, rep = self.recorded[topic], self.replayed[topic]
-        if self.divergence is not None or i >= len(rec) or i >= len(rep):
+        if i >= len(rec) or i >= len(rep):
             return
-        self.compared += 1
-        if rec[i] != rep[i]:
-            h = header_of(rec[i])
-            self.divergence = Divergence(topic, i, h.src_seq if h else -1,
-                                         describe(topic, rec[i], rep[i]))
+        if rec[i] == rep[i]:
+            self.compared += 1
+            return
+        h = header_of(rec[i])
+        self.divergences.append(Divergence(topic, i, h.src_seq if h else -1,
+                                           describe(topic, rec[i], rep[i]),
+                                           self._order[topic][i]))
 
     def caught_up(self) -> bool:
         """Every output recorded so far has been replayed."""
@@ -278,14 +291,18 @@ def _drive(args: argparse.Namespace, summary: dict, prefix: str, ins: list[str],
     return n_in
 
 
+GRACE = 2.0  # [s] after a divergence, for the other outputs of its scan (the earliest wins)
+
+
 def _wait(exp: Expectation, lock: threading.Condition, stop: threading.Event,
           timeout: float) -> bool:
     """Until the replay has caught up with the recording (False on a divergence, a stop or a
     timeout: the verdict says which)."""
     with lock:
-        lock.wait_for(lambda: exp.divergence is not None or exp.caught_up() or stop.is_set(),
-                      timeout)
-        return exp.divergence is None and exp.caught_up() and not stop.is_set()
+        lock.wait_for(lambda: exp.divergences or exp.caught_up() or stop.is_set(), timeout)
+        if exp.divergences and not stop.is_set():
+            lock.wait_for(lambda: exp.caught_up() or stop.is_set(), GRACE)
+        return not exp.divergences and exp.caught_up() and not stop.is_set()
 
 
 def _verdict(args: argparse.Namespace, through: list[str], exp: Expectation, n_in: int,
