@@ -27,6 +27,7 @@ JSON channel (its JSON Schema).
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -53,6 +54,7 @@ for _v in range(256):
         _LUT[_v] = (g, g, g, 255)
 
 
+@functools.cache
 def _fm() -> Any:
     import warnings
 

@@ -16,7 +16,8 @@ The file (MCAP, profile ``topoexplore``, zstd chunks) holds:
 
 Counting: the recorder checks each raw key's ``header.seq`` (per publisher, from 0): a jump is
 counted as lost messages (``gaps``); a restarted publisher (seq back to 0) is counted as
-``restarts``. A recording that loses nothing has 0 gaps.
+``restarts``; ``first_seq`` is each key's first seq (0 when the recording saw the publisher
+start). A recording that loses nothing has 0 gaps.
 
 ``play`` publishes the raw channels back onto the bus in log-time order with their recorded
 timing (``--rate`` scales it, ``--start`` skips the first seconds, ``--keys`` picks topics, and
@@ -26,6 +27,7 @@ timing (``--rate`` scales it, ``--start`` skips the first seconds, ``--keys`` pi
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import queue
@@ -88,6 +90,7 @@ def topic_of(key: str, prefix: str) -> str | None:
     return rest if rest in TOPICS else None
 
 
+@functools.cache
 def schema_of(msg_type: type) -> bytes:
     return json.dumps(msgspec.json.schema(msg_type), sort_keys=True).encode()
 
@@ -120,6 +123,7 @@ class Recorder:
         self.fox_counts: Counter[str] = Counter()
         self.gaps: Counter[str] = Counter()  # messages missing by header.seq
         self.restarts: Counter[str] = Counter()
+        self.first_seq: dict[str, int] = {}  # header.seq of each key's first message
         self.bad: Counter[str] = Counter()  # raw messages that failed validation (kept raw)
         self.errors = 0  # conversion failures (logged once each kind)
         self.last_error = ""
@@ -153,12 +157,18 @@ class Recorder:
         self._file.close()
         return self.stats()
 
+    @property
+    def backlog(self) -> int:
+        """Messages queued and not written yet."""
+        return self.queued - self._written
+
     def stats(self) -> dict[str, Any]:
         return {"path": str(self.path), "messages": sum(self.counts.values()),
                 "per_key": dict(sorted(self.counts.items())),
                 "foxglove": dict(sorted(self.fox_counts.items())),
                 "gaps": sum(self.gaps.values()), "gaps_per_key": dict(self.gaps),
-                "restarts": dict(self.restarts), "bad": dict(self.bad),
+                "restarts": dict(self.restarts), "first_seq": dict(self.first_seq),
+                "bad": dict(self.bad),
                 "errors": self.errors, "last_error": self.last_error, "bytes": self.bytes,
                 "max_backlog": self.max_backlog}
 
@@ -191,9 +201,11 @@ class Recorder:
 
     def _write(self, key: str, payload: bytes, log_ns: int) -> None:
         msg_type = type_for_key(key)
-        schema = (f"topoexplore.{msg_type.__name__}", SCHEMA_ENCODING,
-                  schema_of(msg_type)) if msg_type is not None else None
-        cid = self._channel(key, MESSAGE_ENCODING, schema, {"zenoh_key": key})
+        cid = self._channels.get(key)
+        if cid is None:
+            schema = (f"topoexplore.{msg_type.__name__}", SCHEMA_ENCODING,
+                      schema_of(msg_type)) if msg_type is not None else None
+            cid = self._channel(key, MESSAGE_ENCODING, schema, {"zenoh_key": key})
         hdr = header_of(payload)
         pub_ns = to_ns(hdr.stamp) if hdr is not None else log_ns
         seq = hdr.seq if hdr is not None else self.counts[key]
@@ -213,24 +225,26 @@ class Recorder:
             self.last_error = f"{key}: {exc}"
             return
         for fox_topic, fmsg in self._scene.convert(topic, msg):
+            fcid = self._channels.get(fox_topic)
             if isinstance(fmsg, dict):  # a JSON channel (tools.fox.JSON_TYPES)
-                t = JSON_TYPES[fox_topic]
-                fcid = self._channel(fox_topic, "json", (f"topoexplore.{t.__name__}",
-                                                         SCHEMA_ENCODING, schema_of(t)), {})
+                if fcid is None:
+                    t = JSON_TYPES[fox_topic]
+                    fcid = self._channel(fox_topic, "json", (f"topoexplore.{t.__name__}",
+                                                             SCHEMA_ENCODING, schema_of(t)), {})
                 data = json.dumps(fmsg, allow_nan=False).encode()
             else:
-                sc = fmsg.get_schema()
-                fcid = self._channel(fox_topic, "protobuf",
-                                     (sc.name, sc.encoding, bytes(sc.data)), {})
+                if fcid is None:
+                    sc = fmsg.get_schema()
+                    fcid = self._channel(fox_topic, "protobuf",
+                                         (sc.name, sc.encoding, bytes(sc.data)), {})
                 data = fmsg.encode()
             self._w.add_message(fcid, log_time=log_ns, data=data, publish_time=pub_ns)
             self.fox_counts[fox_topic] += 1
 
     def _check_seq(self, key: str, seq: int) -> None:
         want = self._seq.get(key)
-        if want is None:  # the first message of a key: anything before it was not ours
-            if seq > 0:
-                self.gaps[key] += seq
+        if want is None:  # the first message of a key: what came before was not recorded,
+            self.first_seq[key] = seq  # not lost (a recorder may join a running stack)
         elif seq == 0 and want > 0:
             self.restarts[key] += 1
         elif seq > want:
@@ -317,8 +331,8 @@ def cmd_record(args: argparse.Namespace) -> int:
     if out.parent and not out.parent.exists():
         return _err(f"cannot write {out}: folder {out.parent} does not exist")
     stop = threading.Event()
-    restore = stop_on_signals(stop.set)
-    bus = rec = None
+    restore = stop_on_signals(stop.set)  # kept until the file is finished: a second Ctrl-C
+    bus = rec = None  # must not leave it without its summary
     try:
         try:
             bus = _open(args, "record")
@@ -335,6 +349,10 @@ def cmd_record(args: argparse.Namespace) -> int:
         t_end = time.monotonic() + args.duration if args.duration else math.inf
         while not stop.is_set() and time.monotonic() < t_end:
             stop.wait(min(0.2, max(0.0, t_end - time.monotonic())))
+        bus.close()
+        if rec.backlog > 1000 and not args.quiet:
+            print(f"writing the last {rec.backlog} messages ...", file=sys.stderr)
+        st = rec.close()
     except ExtraMissing as exc:
         return _err(str(exc))
     except OSError as exc:
@@ -342,8 +360,9 @@ def cmd_record(args: argparse.Namespace) -> int:
     finally:
         if bus is not None:
             bus.close()
+        if rec is not None:
+            rec.close()
         restore()
-    st = rec.close()
     print(f"recorded {st['messages']} messages on {len(st['per_key'])} keys "
           f"({st['bytes'] / 1e6:.1f} MB raw, {out.stat().st_size / 1e6:.1f} MB file), "
           f"{st['gaps']} lost by seq, {sum(st['bad'].values())} bad, {st['errors']} errors")

@@ -214,6 +214,10 @@ def replay(args: argparse.Namespace) -> int:
     if lacking:
         return _err(f"{args.file} does not hold {', '.join(lacking)} (needed to replay "
                     f"{','.join(through)})")
+    first = _first_input_seq(args.file, prefix, ins)
+    if first:
+        print(f"note: the recording starts at {first} (not at seq 0): the replayed services "
+              f"start empty, so their outputs are expected to differ", file=sys.stderr)
     keys = Keys(f"replay{uuid.uuid4().hex[:8]}", "robot1")
     endpoint = args.connect or f"tcp/127.0.0.1:{free_port()}"
     tmp = Path(tempfile.mkdtemp(prefix="topoexplore-replay-"))
@@ -261,6 +265,17 @@ def replay(args: argparse.Namespace) -> int:
         restore()
         shutil.rmtree(tmp, ignore_errors=True)
     return _verdict(args, through, exp, n_in, time.monotonic() - t0, stop.is_set())
+
+
+def _first_input_seq(path: str, prefix: str, ins: list[str]) -> str:
+    """'scan 27' when the recording's first input message has seq > 0 (it joined a running
+    stack), else ''."""
+    for key, data, _t in raw_messages(path, {f"{prefix}/{t}" for t in ins}):
+        h = header_of(data)
+        if h is not None and h.seq > 0:
+            return f"{key[len(prefix) + 1:]} {h.seq}"
+        return ""
+    return ""
 
 
 def _drive(args: argparse.Namespace, summary: dict, prefix: str, ins: list[str],
