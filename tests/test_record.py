@@ -138,8 +138,11 @@ def test_recorder_file_channels_schemas_counts_and_gaps(tmp_path):
     rec.put(keys.topic("reliability"), m.encode(rel_msg(0)), 2_001)
     rec.put(keys.topic("odom"), b"\x93garbage", 2_002)  # kept raw, counted bad
     rec.put("ns/r1/custom", b"\x01", 2_003)  # not ours: raw channel without schema
+    rec.put(keys.topic("plan"), m.encode(m.Path(header=hdr(7, 1.0), waypoints=[])), 2_004)
     st = rec.close()
-    assert st["messages"] == 8 and st["gaps"] == 1 and st["gaps_per_key"] == {"ns/r1/map": 1}
+    assert st["first_seq"]["ns/r1/plan"] == 7 and st["first_seq"]["ns/r1/map"] == 0
+    # (a recorder that joins a running stack: what came before it is not lost)
+    assert st["messages"] == 9 and st["gaps"] == 1 and st["gaps_per_key"] == {"ns/r1/map": 1}
     assert st["bad"] == {"ns/r1/odom": 1} and st["errors"] == 0
     su = read_summary(path)
     ch = su["channels"]
