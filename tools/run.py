@@ -308,7 +308,8 @@ def recording_metadata(args: argparse.Namespace, setup: Setup) -> dict[str, str]
 def _recording_summary(st: dict | None) -> dict | None:
     if st is None:
         return None
-    keep = ("path", "messages", "per_key", "foxglove", "gaps", "restarts", "bad", "errors",
+    keep = ("path", "messages", "per_key", "foxglove", "gaps", "gaps_per_key", "first_seq",
+            "restarts", "bad", "errors",
             "last_error", "bytes", "max_backlog")
     return {k: st[k] for k in keep if k in st}
 
