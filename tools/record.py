@@ -45,6 +45,7 @@ from topoexplore.common.bus import Bus, BusError
 from topoexplore.common.keys import DEFAULT_ENDPOINT, TOPICS, Keys, type_for_key
 from topoexplore.common.node import add_bus_args, add_param_args, params_from_args, stop_on_signals
 from topoexplore.common.params import ParamError
+from topoexplore.tools.argtypes import OneLineParser, UsageError, fail, non_negative, positive
 from topoexplore.tools.extras import ExtraMissing, require
 from topoexplore.tools.fox import JSON_TYPES
 
@@ -54,7 +55,7 @@ SCHEMA_ENCODING = "jsonschema"
 CHUNK_SIZE = 4 * 1024 * 1024  # [bytes] of an MCAP chunk before compression
 
 
-class RecordError(ValueError):
+class RecordError(UsageError):
     """A bad recording or a bad argument (one line)."""
 
 
@@ -325,11 +326,11 @@ def cmd_record(args: argparse.Namespace) -> int:
         topics = _topics_arg(args.keys)
         P = params_from_args(args)
     except (RecordError, ParamError, ValueError) as exc:
-        return _err(str(exc))
+        return fail(str(exc))
     keys = Keys(P.bus.namespace, P.bus.robot)
     out = Path(args.out)
     if out.parent and not out.parent.exists():
-        return _err(f"cannot write {out}: folder {out.parent} does not exist")
+        return fail(f"cannot write {out}: folder {out.parent} does not exist")
     stop = threading.Event()
     restore = stop_on_signals(stop.set)  # kept until the file is finished: a second Ctrl-C
     bus = rec = None  # must not leave it without its summary
@@ -337,7 +338,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         try:
             bus = _open(args, "record")
         except BusError as exc:
-            return _err(str(exc))
+            return fail(str(exc))
         rec = Recorder(out, keys.prefix, foxglove=not args.no_foxglove,
                        laser_offset=P.laser.offset, p_reliable=P.reliability.p_reliable,
                        metadata={"command": " ".join(sys.argv[1:])})
@@ -354,9 +355,9 @@ def cmd_record(args: argparse.Namespace) -> int:
             print(f"writing the last {rec.backlog} messages ...", file=sys.stderr)
         st = rec.close()
     except ExtraMissing as exc:
-        return _err(str(exc))
+        return fail(str(exc))
     except OSError as exc:
-        return _err(f"cannot write {out}: {exc.strerror or exc}")
+        return fail(f"cannot write {out}: {exc.strerror or exc}")
     finally:
         if bus is not None:
             bus.close()
@@ -376,15 +377,15 @@ def cmd_play(args: argparse.Namespace) -> int:
         topics = _topics_arg(args.keys)
         summary = read_summary(args.file)
     except (RecordError, ExtraMissing) as exc:
-        return _err(str(exc))
+        return fail(str(exc))
     prefix = summary["metadata"].get("topoexplore", {}).get("prefix", "")
     raw = {t for t, c in summary["channels"].items() if c["encoding"] == MESSAGE_ENCODING}
     if not raw or not prefix:
-        return _err(f"{args.file} holds no topoexplore recording (no raw msgpack channels)")
+        return fail(f"{args.file} holds no topoexplore recording (no raw msgpack channels)")
     target = _bus_keys(args).prefix if (args.namespace or args.robot) else prefix
     chosen = {t for t in raw if topics is None or topic_of(t, prefix) in topics}
     if not chosen:
-        return _err(f"none of {', '.join(topics or [])} is in {args.file}")
+        return fail(f"none of {', '.join(topics or [])} is in {args.file}")
     start_ns = summary["start_ns"] + to_ns(args.start)
     stop = threading.Event()
     restore = stop_on_signals(stop.set)
@@ -394,7 +395,7 @@ def cmd_play(args: argparse.Namespace) -> int:
         try:
             bus = _open(args, "play")
         except BusError as exc:
-            return _err(str(exc))
+            return fail(str(exc))
         pubs: dict[str, Any] = {}
         t0 = None
         for key, data, log_ns in raw_messages(args.file, chosen, start_ns):
@@ -420,44 +421,14 @@ def cmd_play(args: argparse.Namespace) -> int:
     return 0
 
 
-def _err(text: str) -> int:
-    print(f"topoexplore: {text.splitlines()[0] if text else 'error'}", file=sys.stderr)
-    return 2
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str):  # type: ignore[override]
-        raise RecordError(message)
-
-
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(v) or v <= 0:
-        raise argparse.ArgumentTypeError(f"must be > 0: {text!r}")
-    return v
-
-
-def _non_negative(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(v) or v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0: {text!r}")
-    return v
-
-
 def build_record_parser(prog: str = "topoexplore record") -> argparse.ArgumentParser:
-    p = _Parser(prog=prog, description="record the bus into an MCAP file (raw channels and "
+    p = OneLineParser(prog=prog, description="record the bus into an MCAP file (raw channels and "
                 "Foxglove channels; see docs/recording.md)")
     p.add_argument("--out", "-o", required=True, help="the MCAP file to write")
     p.add_argument("--keys", default=None,
                    help=f"comma-separated topics (default: every key of the robot): "
                    f"{', '.join(TOPICS)}")
-    p.add_argument("--duration", type=_positive, default=None, help="stop after S seconds")
+    p.add_argument("--duration", type=positive, default=None, help="stop after S seconds")
     p.add_argument("--no-foxglove", action="store_true", help="raw channels only")
     p.add_argument("--stats", default=None, help="write the recorder's counts as JSON here")
     p.add_argument("--quiet", "-q", action="store_true")
@@ -467,11 +438,11 @@ def build_record_parser(prog: str = "topoexplore record") -> argparse.ArgumentPa
 
 
 def build_play_parser(prog: str = "topoexplore play") -> argparse.ArgumentParser:
-    p = _Parser(prog=prog, description="publish a recording back onto the bus with its timing")
+    p = OneLineParser(prog=prog, description="publish a recording back onto the bus with its timing")
     p.add_argument("file", help="an MCAP file written by topoexplore record / run --record")
-    p.add_argument("--rate", type=_positive, default=1.0, help="speed factor (default 1)")
+    p.add_argument("--rate", type=positive, default=1.0, help="speed factor (default 1)")
     p.add_argument("--keys", default=None, help="comma-separated topics (default: all)")
-    p.add_argument("--start", type=_non_negative, default=0.0,
+    p.add_argument("--start", type=non_negative, default=0.0,
                    help="skip the first S seconds of the recording")
     add_bus_args(p)
     return p
@@ -480,14 +451,14 @@ def build_play_parser(prog: str = "topoexplore play") -> argparse.ArgumentParser
 def main_record(argv: list[str] | None = None) -> int:
     try:
         args = build_record_parser().parse_args(argv)
-    except RecordError as exc:
-        return _err(str(exc))
+    except UsageError as exc:
+        return fail(str(exc))
     return cmd_record(args)
 
 
 def main_play(argv: list[str] | None = None) -> int:
     try:
         args = build_play_parser().parse_args(argv)
-    except RecordError as exc:
-        return _err(str(exc))
+    except UsageError as exc:
+        return fail(str(exc))
     return cmd_play(args)

@@ -39,6 +39,7 @@ from topoexplore.common.bus import Bus, BusError
 from topoexplore.common.keys import SERVICE_IO, Keys, type_for_key
 from topoexplore.common.node import stop_on_signals
 from topoexplore.common.params import ParamError, load_params
+from topoexplore.tools.argtypes import OneLineParser, UsageError, count, fail, positive
 from topoexplore.tools.extras import ExtraMissing
 from topoexplore.tools.record import (
     MESSAGE_ENCODING,
@@ -52,7 +53,7 @@ from topoexplore.tools.record import (
 CHAIN = ("mapper", "topology", "reliability", "planner", "controller")
 
 
-class ReplayError(ValueError):
+class ReplayError(UsageError):
     """Bad arguments or a recording that cannot be replayed (one line, exit 2)."""
 
 
@@ -203,16 +204,16 @@ def replay(args: argparse.Namespace) -> int:
         through = parse_through(args.through)
         summary = read_summary(args.file)
     except (ReplayError, RecordError, ExtraMissing) as exc:
-        return _err(str(exc))
+        return fail(str(exc))
     prefix = summary["metadata"].get("topoexplore", {}).get("prefix", "")
     if not prefix:
-        return _err(f"{args.file} holds no topoexplore recording (no prefix in its metadata)")
+        return fail(f"{args.file} holds no topoexplore recording (no prefix in its metadata)")
     ins, outs = chain_io(through)
     have = {topic_of(t, prefix) for t, c in summary["channels"].items()
             if c["encoding"] == MESSAGE_ENCODING}
     lacking = [t for t in ins + outs if t not in have]
     if lacking:
-        return _err(f"{args.file} does not hold {', '.join(lacking)} (needed to replay "
+        return fail(f"{args.file} does not hold {', '.join(lacking)} (needed to replay "
                     f"{','.join(through)})")
     first = _first_input_seq(args.file, prefix, ins)
     if first:
@@ -225,7 +226,7 @@ def replay(args: argparse.Namespace) -> int:
     try:
         load_params(params_file, overrides)  # as the services will: a bad --set stops here
     except ParamError as exc:
-        return _err(str(exc))
+        return fail(str(exc))
     profile = parse_profile({"name": "replay", "description": "replay", "router":
                              args.connect is None,
                              "process": [{"name": s, "module": f"topoexplore.services.{s}"
@@ -254,10 +255,10 @@ def replay(args: argparse.Namespace) -> int:
         pubs = {t: bus.publisher(keys.topic(t), reliable=True) for t in ins}
         if not sup.start():
             tail = " | ".join(lines[-3:])
-            return _err(f"the services did not come up: {tail}")
+            return fail(f"the services did not come up: {tail}")
         n_in = _drive(args, summary, prefix, ins, outs, pubs, exp, lock, stop)
     except BusError as exc:
-        return _err(f"bus error: {exc}")
+        return fail(f"bus error: {exc}")
     finally:
         sup.stop()
         if bus is not None:
@@ -346,44 +347,14 @@ def _verdict(args: argparse.Namespace, through: list[str], exp: Expectation, n_i
     return 0
 
 
-def _err(text: str) -> int:
-    print(f"topoexplore: {text.splitlines()[0] if text else 'error'}", file=sys.stderr)
-    return 2
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str):  # type: ignore[override]
-        raise ReplayError(message)
-
-
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(v) or v <= 0:
-        raise argparse.ArgumentTypeError(f"must be > 0: {text!r}")
-    return v
-
-
-def _count(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1: {text!r}")
-    return v
-
-
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="topoexplore replay",
+    p = OneLineParser(prog="topoexplore replay",
                 description="run services on a recording's inputs and compare their outputs")
     p.add_argument("file", help="an MCAP file of topoexplore run --record / topoexplore record")
     p.add_argument("--through", required=True,
                    help=f"comma-separated services to run: {', '.join(CHAIN)}")
-    p.add_argument("--scans", type=_count, default=None, help="replay only the first N scans")
-    p.add_argument("--timeout", type=_positive, default=30.0,
+    p.add_argument("--scans", type=count, default=None, help="replay only the first N scans")
+    p.add_argument("--timeout", type=positive, default=30.0,
                    help="wall seconds to wait for an output before calling it missing")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.NAME=VALUE",
                    help="override a parameter of the replayed services (repeatable): what "
@@ -396,8 +367,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
-    except ReplayError as exc:
-        return _err(str(exc))
+    except UsageError as exc:
+        return fail(str(exc))
     if not Path(args.file).is_file():
-        return _err(f"no such file: {args.file}")
+        return fail(f"no such file: {args.file}")
     return replay(args)

@@ -32,7 +32,9 @@ from topoexplore.common.bus import Bus, BusError
 from topoexplore.common.keys import DEFAULT_ENDPOINT, Keys
 from topoexplore.common.node import add_bus_args, add_param_args, params_from_args, stop_on_signals
 from topoexplore.common.params import ParamError
+from topoexplore.tools.argtypes import OneLineParser, UsageError, fail, positive
 
+PROG = "topoexplore teleop"
 HELP = "w/s faster/slower, a/d left/right, space stop, q quit"
 
 
@@ -76,38 +78,14 @@ class Teleop:
         return self.v, self.w
 
 
-def _err(text: str) -> int:
-    print(f"topoexplore teleop: {text.splitlines()[0] if text else 'error'}", file=sys.stderr)
-    return 2
-
-
-class TeleopError(ValueError):
-    pass
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str):  # type: ignore[override]
-        raise TeleopError(message)
-
-
-def _pos(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(v) or v <= 0:
-        raise argparse.ArgumentTypeError(f"must be > 0: {text!r}")
-    return v
-
-
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="topoexplore teleop", description=__doc__,
+    p = OneLineParser(prog="topoexplore teleop", description=__doc__,
                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--rate", type=_pos, default=10.0, help="cmd_vel rate [Hz] (default 10)")
-    p.add_argument("--hold", type=_pos, default=1.0,
+    p.add_argument("--rate", type=positive, default=10.0, help="cmd_vel rate [Hz] (default 10)")
+    p.add_argument("--hold", type=positive, default=1.0,
                    help="seconds without a key before the robot is stopped (default 1)")
-    p.add_argument("--v-step", type=_pos, default=0.05, help="[m/s] per key (default 0.05)")
-    p.add_argument("--w-step", type=_pos, default=0.2, help="[rad/s] per key (default 0.2)")
+    p.add_argument("--v-step", type=positive, default=0.05, help="[m/s] per key (default 0.05)")
+    p.add_argument("--w-step", type=positive, default=0.2, help="[rad/s] per key (default 0.2)")
     add_bus_args(p)
     add_param_args(p)
     return p
@@ -117,10 +95,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
         P = params_from_args(args)
-    except (TeleopError, ParamError, ValueError) as exc:
-        return _err(str(exc))
+    except (UsageError, ParamError, ValueError) as exc:
+        return fail(str(exc), PROG)
     if not os.isatty(sys.stdin.fileno()):
-        return _err("needs a terminal (stdin is not a TTY)")
+        return fail("needs a terminal (stdin is not a TTY)", PROG)
     state = Teleop(v_step=args.v_step, w_step=args.w_step, v_max=P.controller.v_max,
                    w_max=P.controller.w_max, hold=args.hold)
     keys = Keys(P.bus.namespace, P.bus.robot)
@@ -128,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
         connect = args.connect or (None if args.zenoh_config else DEFAULT_ENDPOINT)
         bus = Bus.client(connect, name="teleop", config_file=args.zenoh_config)
     except BusError as exc:
-        return _err(str(exc))
+        return fail(str(exc), PROG)
     try:
         return _drive(bus, keys, state, args.rate)
     finally:

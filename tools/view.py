@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 import threading
 import time
 from pathlib import Path
@@ -26,6 +25,7 @@ from topoexplore.common.bus import Bus, BusError
 from topoexplore.common.keys import DEFAULT_ENDPOINT, TOPICS, Keys
 from topoexplore.common.node import add_bus_args, add_param_args, params_from_args, stop_on_signals
 from topoexplore.common.params import ParamError
+from topoexplore.tools.argtypes import OneLineParser, UsageError, fail, port, positive
 from topoexplore.tools.extras import ExtraMissing, require
 from topoexplore.tools.fox import JSON_TYPES, FoxScene
 from topoexplore.tools.record import schema_of
@@ -130,43 +130,13 @@ class LiveView:
         self.counts[topic] = self.counts.get(topic, 0) + 1
 
 
-def _err(text: str) -> int:
-    print(f"topoexplore: {text.splitlines()[0] if text else 'error'}", file=sys.stderr)
-    return 2
-
-
-class ViewError(ValueError):
-    pass
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str):  # type: ignore[override]
-        raise ViewError(message)
-
-
-def _port(text: str) -> int:
-    if not text.isdigit() or not 0 <= int(text) <= 65535:
-        raise argparse.ArgumentTypeError(f"not a port: {text!r}")
-    return int(text)
-
-
-def _duration(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(v) or v <= 0:
-        raise argparse.ArgumentTypeError(f"must be > 0: {text!r}")
-    return v
-
-
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="topoexplore view", description="live Foxglove view of a running stack")
+    p = OneLineParser(prog="topoexplore view", description="live Foxglove view of a running stack")
     p.add_argument("--host", default="127.0.0.1",
                    help="address to serve on (default 127.0.0.1; 0.0.0.0 for other machines)")
-    p.add_argument("--port", type=_port, default=DEFAULT_PORT,
+    p.add_argument("--port", type=port, default=DEFAULT_PORT,
                    help=f"WebSocket port (default {DEFAULT_PORT}; 0: any free port)")
-    p.add_argument("--duration", type=_duration, default=None, help="stop after S seconds")
+    p.add_argument("--duration", type=positive, default=None, help="stop after S seconds")
     p.add_argument("--write-layout", metavar="FILE", default=None,
                    help="write the Foxglove layout to FILE and exit")
     add_bus_args(p)
@@ -182,10 +152,10 @@ def main(argv: list[str] | None = None) -> int:
             write_layout(args.write_layout)
             return 0
         P = params_from_args(args)
-    except (ViewError, ParamError, ExtraMissing, ValueError) as exc:
-        return _err(str(exc))
+    except (UsageError, ParamError, ExtraMissing, ValueError) as exc:
+        return fail(str(exc))
     except OSError as exc:
-        return _err(f"cannot write {args.write_layout}: {exc.strerror or exc}")
+        return fail(f"cannot write {args.write_layout}: {exc.strerror or exc}")
     return serve(args, Keys(P.bus.namespace, P.bus.robot),
                  FoxScene(P.laser.offset, P.reliability.p_reliable))
 
@@ -201,12 +171,12 @@ def serve(args: argparse.Namespace, keys: Keys, scene: FoxScene) -> int:
             server = foxglove.start_server(name=f"topoexplore {keys.prefix}", host=args.host,
                                            port=args.port)
         except Exception as exc:  # noqa: BLE001 - a taken port, a bad host
-            return _err(f"cannot serve on {args.host}:{args.port}: {exc}")
+            return fail(f"cannot serve on {args.host}:{args.port}: {exc}")
         try:
             connect = args.connect or (None if args.zenoh_config else DEFAULT_ENDPOINT)
             bus = Bus.client(connect, name="view", config_file=args.zenoh_config)
         except BusError as exc:
-            return _err(str(exc))
+            return fail(str(exc))
         view = LiveView(scene)
         for topic in VIEW_TOPICS:
             bus.subscribe(keys.topic(topic), TOPICS[topic],
