@@ -174,7 +174,8 @@ def serve(args: argparse.Namespace, keys: Keys, scene: FoxScene) -> int:
             return fail(f"cannot serve on {args.host}:{args.port}: {exc}")
         try:
             connect = args.connect or (None if args.zenoh_config else DEFAULT_ENDPOINT)
-            bus = Bus.client(connect, name="view", config_file=args.zenoh_config)
+            bus = Bus.client(connect, name="view", config_file=args.zenoh_config,
+                             wait_for_router=True)  # a view may start before its router
         except BusError as exc:
             return fail(str(exc))
         view = LiveView(scene)
