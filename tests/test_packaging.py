@@ -195,12 +195,12 @@ def test_systemd_units_start_what_exists():
     service for ``topoexplore@.service``, and ``topoexplore warmup`` / ``router`` / ``up``."""
     import importlib.util
 
-    from topoexplore.tools.cli import _FORWARD, build_parser
+    from topoexplore.tools.cli import FORWARD, build_parser
     from topoexplore.tools.launch.core import load_profile
     from topoexplore.tools.launch.supervisor import profile_path
 
     names = [s.name for s in load_profile(profile_path("robot")).processes]
-    subcommands = set(_FORWARD) | set(build_parser()._subparsers._group_actions[0].choices)
+    subcommands = set(FORWARD) | set(build_parser()._subparsers._group_actions[0].choices)
     for unit in sorted((REPO / "deploy" / "systemd").glob("*.service")):
         for line in unit.read_text().splitlines():
             if not line.startswith(("ExecStart=", "ExecStartPre=")):

@@ -3,12 +3,15 @@
     topoexplore run      explore a world with the whole stack, write a report and a picture
     topoexplore up       start a launch profile under the supervisor (Ctrl-C stops everything)
     topoexplore worlds   list the built-in worlds; worlds generate: write a generated world
-    topoexplore keys     inspect live keys: list | echo KEY | hz KEY | get SERVICE
+    topoexplore keys     live keys: list | echo KEY | hz KEY | get SERVICE | pub KEY | set SERVICE
     topoexplore map      save the live map as a ROS map_server PGM + YAML pair
     topoexplore render   make a PNG from a saved run directory or a running stack
-    topoexplore bench    benchmarks: stages | explore | inproc
+    topoexplore bench    benchmarks: stages | explore | inproc | robust | oracle | record
     topoexplore router   run a Zenoh router
     topoexplore warmup   compile the numba kernels once, before the services start
+    topoexplore record   record the bus into an MCAP file; play publishes one back
+    topoexplore replay   run services on a recording's inputs and compare their outputs
+    topoexplore view     live Foxglove view; teleop drives from the keyboard
 
 Every error in the command line, a file or a parameter prints one line and exits non-zero.
 """
@@ -216,25 +219,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="generate a world: `topoexplore worlds generate --help`")
     w.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
 
-    sub.add_parser("keys", help="keys: list | echo KEY | hz KEY | get SERVICE | pub KEY F=V | "
-                   "set SERVICE S.N=V",
-                   add_help=False)
-    sub.add_parser("router", help="run a Zenoh router", add_help=False)
-    sub.add_parser("warmup", help="compile the numba kernels once (the supervisor does it too)",
-                   add_help=False)
-    sub.add_parser("render", help="PNG from a saved run directory or a running stack",
-                   add_help=False)
-    sub.add_parser("bench", help="benchmarks: stages | explore | inproc | robust | oracle",
-                   add_help=False)
-    sub.add_parser("record", help="record the bus into an MCAP file (raw + Foxglove channels)",
-                   add_help=False)
-    sub.add_parser("play", help="publish an MCAP recording back onto the bus", add_help=False)
-    sub.add_parser("teleop", help="drive the robot from the keyboard (stops on silence/exit)",
-                   add_help=False)
-    sub.add_parser("view", help="live Foxglove view of a running stack (WebSocket server)",
-                   add_help=False)
-    sub.add_parser("replay", help="run services on a recording's inputs, compare the outputs",
-                   add_help=False)
+    for name, (_module, text) in FORWARD.items():  # each parses its own arguments
+        sub.add_parser(name, help=text, add_help=False)
 
     mp = sub.add_parser("map", help="map tools")
     msub = mp.add_subparsers(dest="map_command", metavar="ACTION")
@@ -246,28 +232,35 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
-# subcommands with their own full parsers: forward the remaining argv
-_FORWARD = {
-    "keys": "topoexplore.tools.keys",
-    "router": "topoexplore.tools.router",
-    "render": "topoexplore.tools.render",
-    "bench": "topoexplore.tools.bench",
-    "warmup": "topoexplore.tools.warm",
-    "record": "topoexplore.tools.record:main_record",
-    "play": "topoexplore.tools.record:main_play",
-    "replay": "topoexplore.tools.replay",
-    "view": "topoexplore.tools.view",
-    "teleop": "topoexplore.tools.teleop",
+# subcommands with their own full parsers (module[:function], help): the remaining argv goes
+# to them
+FORWARD = {
+    "keys": ("topoexplore.tools.keys",
+             "keys: list | echo KEY | hz KEY | get SERVICE | pub KEY F=V | set SERVICE S.N=V"),
+    "router": ("topoexplore.tools.router", "run a Zenoh router"),
+    "warmup": ("topoexplore.tools.warm",
+               "compile the numba kernels once (the supervisor does it too)"),
+    "render": ("topoexplore.tools.render", "PNG from a saved run directory or a running stack"),
+    "bench": ("topoexplore.tools.bench",
+              "benchmarks: stages | explore | inproc | robust | oracle | record"),
+    "record": ("topoexplore.tools.record:main_record",
+               "record the bus into an MCAP file (raw + Foxglove channels)"),
+    "play": ("topoexplore.tools.record:main_play", "publish an MCAP recording back onto the bus"),
+    "replay": ("topoexplore.tools.replay",
+               "run services on a recording's inputs, compare the outputs"),
+    "view": ("topoexplore.tools.view", "live Foxglove view of a running stack (WebSocket server)"),
+    "teleop": ("topoexplore.tools.teleop",
+               "drive the robot from the keyboard (stops on silence/exit)"),
 }
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    if argv and argv[0] in _FORWARD:
+    if argv and argv[0] in FORWARD:
         import importlib
 
-        modname, _, fn = _FORWARD[argv[0]].partition(":")
+        modname, _, fn = FORWARD[argv[0]][0].partition(":")
         entry = getattr(importlib.import_module(modname), fn or "main")
         try:
             return int(entry(argv[1:]) or 0)
