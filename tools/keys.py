@@ -935,19 +935,6 @@ def _positive(kind: type, lo: float, name: str):
     return conv
 
 
-def _non_negative(kind: type, name: str):
-    def conv(text: str):
-        try:
-            v = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name}: not a number: {text!r}") from None
-        if not (math.isfinite(v) and v >= 0):
-            raise argparse.ArgumentTypeError(f"{name} must be >= 0, got {text!r}")
-        return v
-
-    return conv
-
-
 def build_parser() -> argparse.ArgumentParser:
     from topoexplore.common.node import add_bus_args
 
@@ -1007,7 +994,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="messages to publish (default 1, or unlimited with --rate)")
     sp.add_argument("--duration", type=_positive(float, 0.01, "--duration"), default=None,
                     help="stop after S seconds")
-    sp.add_argument("--wait", type=_non_negative(float, "--wait"), default=1.0,
+    sp.add_argument("--wait", type=_positive(float, 0.0, "--wait"), default=1.0,
                     help="wait up to S seconds for a subscriber before the first message")
     add_bus_args(sp)
 
