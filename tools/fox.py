@@ -28,6 +28,7 @@ JSON channel (its JSON Schema).
 from __future__ import annotations
 
 import functools
+import json
 import math
 from typing import Any
 
@@ -39,6 +40,8 @@ from topoexplore.common import messages as m
 TOPICS = ("/viz/map", "/viz/scan", "/tf", "/viz/trail", "/viz/graph", "/viz/plan",
           "/status/explore", "/status/sim")
 JSON_TYPES: dict[str, type] = {"/status/explore": m.ExploreStatus, "/status/sim": m.SimStatus}
+PROTO_TYPES = {"/viz/map": "Grid", "/viz/scan": "LaserScan", "/tf": "FrameTransforms",
+               "/viz/trail": "SceneUpdate", "/viz/graph": "SceneUpdate", "/viz/plan": "SceneUpdate"}
 TRAIL_STEP = 0.5  # [m] ground-truth travel per trail entity
 _KIND_RGBA = {"branch": (0.55, 0.25, 0.75, 1.0), "corner": (1.0, 0.6, 0.1, 1.0)}
 _UNRELIABLE = (0.85, 0.1, 0.1, 1.0)
@@ -62,6 +65,22 @@ def _fm() -> Any:
         warnings.simplefilter("ignore", DeprecationWarning)
         import foxglove.messages as fm
     return fm
+
+
+@functools.cache
+def json_schema(msg_type: type) -> bytes:
+    """The JSON Schema of one of our message types (a raw channel's or a JSON channel's)."""
+    return json.dumps(msgspec.json.schema(msg_type), sort_keys=True).encode()
+
+
+def channel_schema(topic: str) -> tuple[str, str, str, bytes]:
+    """(message encoding, schema name, schema encoding, schema data) of a Foxglove channel of
+    :data:`TOPICS`, known before any message: a view creates its channels up front."""
+    if topic in JSON_TYPES:
+        t = JSON_TYPES[topic]
+        return "json", f"topoexplore.{t.__name__}", "jsonschema", json_schema(t)
+    sc = getattr(_fm(), PROTO_TYPES[topic]).get_schema()
+    return "protobuf", sc.name, sc.encoding, bytes(sc.data)
 
 
 def stamp(t: float) -> Any:

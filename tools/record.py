@@ -27,7 +27,6 @@ timing (``--rate`` scales it, ``--start`` skips the first seconds, ``--keys`` pi
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import math
 import queue
@@ -47,7 +46,7 @@ from topoexplore.common.node import add_bus_args, add_param_args, params_from_ar
 from topoexplore.common.params import ParamError
 from topoexplore.tools.argtypes import OneLineParser, UsageError, fail, non_negative, positive
 from topoexplore.tools.extras import ExtraMissing, require
-from topoexplore.tools.fox import JSON_TYPES
+from topoexplore.tools.fox import channel_schema, json_schema
 
 PROFILE = "topoexplore"
 MESSAGE_ENCODING = "msgpack"
@@ -89,11 +88,6 @@ def topic_of(key: str, prefix: str) -> str | None:
         return None
     rest = key[len(prefix) + 1:]
     return rest if rest in TOPICS else None
-
-
-@functools.cache
-def schema_of(msg_type: type) -> bytes:
-    return json.dumps(msgspec.json.schema(msg_type), sort_keys=True).encode()
 
 
 class Recorder:
@@ -205,7 +199,7 @@ class Recorder:
         cid = self._channels.get(key)
         if cid is None:
             schema = (f"topoexplore.{msg_type.__name__}", SCHEMA_ENCODING,
-                      schema_of(msg_type)) if msg_type is not None else None
+                      json_schema(msg_type)) if msg_type is not None else None
             cid = self._channel(key, MESSAGE_ENCODING, schema, {"zenoh_key": key})
         hdr = header_of(payload)
         pub_ns = to_ns(hdr.stamp) if hdr is not None else log_ns
@@ -227,18 +221,11 @@ class Recorder:
             return
         for fox_topic, fmsg in self._scene.convert(topic, msg):
             fcid = self._channels.get(fox_topic)
-            if isinstance(fmsg, dict):  # a JSON channel (tools.fox.JSON_TYPES)
-                if fcid is None:
-                    t = JSON_TYPES[fox_topic]
-                    fcid = self._channel(fox_topic, "json", (f"topoexplore.{t.__name__}",
-                                                             SCHEMA_ENCODING, schema_of(t)), {})
-                data = json.dumps(fmsg, allow_nan=False).encode()
-            else:
-                if fcid is None:
-                    sc = fmsg.get_schema()
-                    fcid = self._channel(fox_topic, "protobuf",
-                                         (sc.name, sc.encoding, bytes(sc.data)), {})
-                data = fmsg.encode()
+            if fcid is None:
+                enc, name, sch_enc, sch = channel_schema(fox_topic)
+                fcid = self._channel(fox_topic, enc, (name, sch_enc, sch), {})
+            data = (json.dumps(fmsg, allow_nan=False).encode() if isinstance(fmsg, dict)
+                    else fmsg.encode())
             self._w.add_message(fcid, log_time=log_ns, data=data, publish_time=pub_ns)
             self.fox_counts[fox_topic] += 1
 

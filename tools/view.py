@@ -27,8 +27,8 @@ from topoexplore.common.node import add_bus_args, add_param_args, params_from_ar
 from topoexplore.common.params import ParamError
 from topoexplore.tools.argtypes import OneLineParser, UsageError, fail, port, positive
 from topoexplore.tools.extras import ExtraMissing, require
-from topoexplore.tools.fox import JSON_TYPES, FoxScene
-from topoexplore.tools.record import schema_of
+from topoexplore.tools.fox import TOPICS as FOX_TOPICS
+from topoexplore.tools.fox import FoxScene, channel_schema
 
 VIEW_TOPICS = ("scan", "odom", "truth", "map", "topo", "reliability", "plan", "explore/status",
                "sim/status")
@@ -65,17 +65,35 @@ def write_layout(path: str | Path) -> None:
     Path(path).write_text(json.dumps(json.loads(layout().to_json()), indent=1) + "\n")
 
 
+def make_channels(context: Any = None) -> dict[str, Any]:
+    """Every Foxglove channel of :data:`tools.fox.TOPICS`, made before a client can connect.
+
+    foxglove-sdk 0.30.3 can advertise a channel made while a client is connected before it
+    will accept a subscription to it: the client's subscribe is answered "Unknown channel ID"
+    and that panel stays empty (4 of 51 runs of the view test when each channel was made at
+    its first message; 0 of 50 with every channel made up front). Channels that exist when a
+    client connects are advertised on connection, before the client's messages are read."""
+    import foxglove
+
+    out = {}
+    for topic in FOX_TOPICS:
+        enc, name, sch_enc, data = channel_schema(topic)
+        out[topic] = foxglove.Channel(topic, message_encoding=enc, context=context,
+                                      schema=foxglove.Schema(name=name, encoding=sch_enc,
+                                                             data=data))
+    return out
+
+
 class LiveView:
     """Bus -> Foxglove channels: :meth:`offer` (zenoh threads) keeps the newest message per
     topic; the converter thread turns them into Foxglove messages and logs them."""
 
     def __init__(self, scene: FoxScene, context: Any = None):
         self.scene = scene
-        self.context = context
         self._latest: dict[str, Any] = {}
         self._cv = threading.Condition()
         self._stop = False
-        self._channels: dict[str, Any] = {}
+        self._channels = make_channels(context)
         self.counts: dict[str, int] = {}
         self.errors = 0
         self.last_error = ""
@@ -111,22 +129,8 @@ class LiveView:
                     self.last_error = f"{topic}: {type(exc).__name__}: {exc}"
 
     def _log(self, topic: str, fmsg: Any) -> None:
-        import foxglove
-
-        ch = self._channels.get(topic)
-        if ch is None:
-            if isinstance(fmsg, dict):
-                t = JSON_TYPES[topic]
-                schema = foxglove.Schema(name=f"topoexplore.{t.__name__}",
-                                         encoding="jsonschema", data=schema_of(t))
-                ch = foxglove.Channel(topic, schema=schema, message_encoding="json",
-                                      context=self.context)
-            else:
-                ch = foxglove.Channel(topic, schema=fmsg.get_schema(),
-                                      message_encoding="protobuf", context=self.context)
-            self._channels[topic] = ch
         data = json.dumps(fmsg).encode() if isinstance(fmsg, dict) else fmsg.encode()
-        ch.log(data, log_time=time.time_ns())
+        self._channels[topic].log(data, log_time=time.time_ns())
         self.counts[topic] = self.counts.get(topic, 0) + 1
 
 
@@ -165,7 +169,8 @@ def serve(args: argparse.Namespace, keys: Keys, scene: FoxScene) -> int:
 
     stop = threading.Event()
     restore = stop_on_signals(stop.set)
-    bus = server = view = None
+    bus = server = None
+    view = LiveView(scene)  # every channel exists before a client can connect
     try:
         try:
             server = foxglove.start_server(name=f"topoexplore {keys.prefix}", host=args.host,
@@ -178,7 +183,6 @@ def serve(args: argparse.Namespace, keys: Keys, scene: FoxScene) -> int:
                              wait_for_router=True)  # a view may start before its router
         except BusError as exc:
             return fail(str(exc))
-        view = LiveView(scene)
         for topic in VIEW_TOPICS:
             bus.subscribe(keys.topic(topic), TOPICS[topic],
                           lambda msg, k, t=topic: view.offer(t, msg))
@@ -190,8 +194,7 @@ def serve(args: argparse.Namespace, keys: Keys, scene: FoxScene) -> int:
     finally:
         if bus is not None:
             bus.close()
-        if view is not None:
-            view.close()
+        view.close()
         if server is not None:
             server.stop()
         restore()
