@@ -193,6 +193,8 @@ class SimStatus(msgspec.Struct, kw_only=True):
     real_time_factor: float
     watchdog_stops: int = 0
     lockstep_timeouts: int = 0
+    stale_cmds: int = 0  # cmd_vel dropped as stale by stamp (sim.cmd_max_age)
+    clipped_cmds: int = 0  # cmd_vel beyond robot.v_limit / w_limit, clipped
 
 
 MESSAGE_TYPES: dict[str, type] = {
@@ -429,7 +431,8 @@ def _v_sim(m: SimStatus) -> None:
     _finite(m, "sim_time", m.sim_time, 0.0, 1.0e12)
     _finite(m, "path_length", m.path_length, 0.0, 1.0e12)
     _finite(m, "real_time_factor", m.real_time_factor, 0.0, 1.0e9)
-    for name in ("steps", "collisions", "watchdog_stops", "lockstep_timeouts"):
+    for name in ("steps", "collisions", "watchdog_stops", "lockstep_timeouts", "stale_cmds",
+                 "clipped_cmds"):
         if getattr(m, name) < 0:
             _fail(m, f"{name} negative")
 

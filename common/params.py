@@ -172,6 +172,9 @@ class SimParams(_P):
     odom_hz: Pos = 20.0  # [Hz]
     range_noise: NonNeg = 0.01  # [m] Gaussian sigma of the simulated laser
     watchdog: Pos = 0.5  # [s] sim time without cmd_vel -> stop
+    cmd_max_age: Pos = 1.0  # [s] sim time: a cmd_vel stamped earlier than this, or later than
+    #   now (another clock), is stale and dropped; the controller stamps each command with the
+    #   scan it answers, so in real time its age is the controller's latency times sim.speed
     odom_drift: NonNeg = 0.0  # relative odometry noise per metre (0 = perfect odometry)
 
 

@@ -123,6 +123,8 @@ class SimCore:
         self.collisions = 0
         self.path_length = 0.0  # [m]
         self.watchdog_stops = 0
+        self.stale_cmds = 0  # commands dropped: stamped too long ago or ahead of the clock
+        self.clipped_cmds = 0  # commands beyond the robot's v_limit / w_limit
 
     # ---------------------------------------------------------------- contacts
     def _drive(self, body, gravity, damping, dt) -> None:
@@ -172,17 +174,29 @@ class SimCore:
         return self._meas
 
     # ---------------------------------------------------------------- control
-    def command(self, v: float, w: float) -> None:
-        """Set the latest cmd_vel (clipped to v_limit / w_limit) and reset the watchdog."""
+    def command(self, v: float, w: float, stamp: float | None = None) -> bool:
+        """Set the latest cmd_vel (clipped to v_limit / w_limit) and reset the watchdog.
+
+        A command stamped (sim time [s]) more than ``cmd_max_age`` before now, or after now, is
+        stale: dropped and counted, and False is returned. ``stamp=None``: not checked (the
+        core's own callers)."""
         try:
             v, w = float(v), float(w)
         except (TypeError, ValueError):
             raise SimError(f"command needs two numbers (got {v!r}, {w!r})") from None
         if not (math.isfinite(v) and math.isfinite(w)):
             raise SimError(f"command must be finite (got v={v}, w={w})")
+        if stamp is not None and not (self.time - self.params.cmd_max_age <= stamp
+                                      <= self.time):
+            self.stale_cmds += 1
+            return False
         r = self.robot
-        self._cmd = (min(max(v, -r.v_limit), r.v_limit), min(max(w, -r.w_limit), r.w_limit))
+        cmd = (min(max(v, -r.v_limit), r.v_limit), min(max(w, -r.w_limit), r.w_limit))
+        if cmd != (v, w):
+            self.clipped_cmds += 1
+        self._cmd = cmd
         self._cmd_time = self.time
+        return True
 
     def step(self) -> None:
         """Advance one physics step of 1 / physics_hz seconds."""

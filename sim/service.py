@@ -80,13 +80,17 @@ class SimService:
             sim_time=self.core.time, steps=self.step_count, collisions=self.core.collisions,
             path_length=self.core.path_length,
             real_time_factor=self.core.time / wall if wall > 0 else 0.0,
-            watchdog_stops=self.core.watchdog_stops, lockstep_timeouts=self.lockstep_timeouts))
+            watchdog_stops=self.core.watchdog_stops, lockstep_timeouts=self.lockstep_timeouts,
+            stale_cmds=self.core.stale_cmds, clipped_cmds=self.core.clipped_cmds))
 
     def apply_latest_cmd(self) -> None:
         cmd = self.node.inbox.latest.get("cmd_vel")
         if cmd is not None and cmd.header.seq != self.applied_cmd_seq:
             self.applied_cmd_seq = cmd.header.seq
-            self.core.command(cmd.v, cmd.w)
+            if not self.core.command(cmd.v, cmd.w, cmd.header.stamp):
+                log.warning("stale cmd_vel #%d dropped: stamp %.3f s, sim time %.3f s "
+                            "(%d so far)", cmd.header.seq, cmd.header.stamp, self.core.time,
+                            self.core.stale_cmds)
 
     def physics_step(self) -> None:
         before = self.core.collisions
@@ -193,6 +197,8 @@ class SimService:
             "path_length": self.core.path_length,
             "watchdog_stops": self.core.watchdog_stops,
             "lockstep_timeouts": self.lockstep_timeouts,
+            "stale_cmds": self.core.stale_cmds,
+            "clipped_cmds": self.core.clipped_cmds,
             "truth_pose": [x, y, th],
             "heading_deg": math.degrees(th),
         }

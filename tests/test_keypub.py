@@ -84,7 +84,18 @@ def test_keys_pub_drives_and_keys_set_changes_live(procs, endpoint, namespace):
     r = _cli("keys", "pub", "cmd_vel", "v=0.2", "--rate", "10", "--duration", "1.5", *bus_args)
     assert r.returncode == 0 and "published 15 Twist" in r.stdout, r.stdout + r.stderr
     time.sleep(0.7)  # the sim's watchdog stops the robot 0.5 s after the last command
-    assert 0.2 < _truth_x(endpoint, keys) - x0 < 0.6
+    x1 = _truth_x(endpoint, keys)
+    assert 0.2 < x1 - x0 < 0.6  # stamped with the robot's clock (its odometry), so applied
+    # issue 14: a command stamped long ago (a replay) or ahead of the sim clock is dropped
+    for stamp in ("0", "1e6"):
+        r = _cli("keys", "pub", "cmd_vel", "v=0.2", f"header.stamp={stamp}", "--rate", "10",
+                 "--duration", "1", *bus_args)
+        assert r.returncode == 0, r.stderr
+    time.sleep(0.3)
+    x2 = _truth_x(endpoint, keys)
+    assert abs(x2 - x1) < 0.02, (x1, x2)
+    r = _cli("keys", "get", "sim", "--field", "stale_cmds", *bus_args)
+    assert r.returncode == 0 and int(r.stdout) >= 18, r.stdout + r.stderr
     # (the controller publishes cmd_vel too: it starts only now)
     procs.python("-m", "topoexplore.services.controller.service", *bus_args)
     _wait_alive(endpoint, keys, ("controller",))

@@ -241,6 +241,26 @@ def test_watchdog_stops_after_half_a_second():
     assert sim.watchdog_stops == 2
 
 
+def test_stale_commands_are_dropped_and_over_limit_ones_clipped():
+    """Issue 14: a cmd_vel stamped more than cmd_max_age before the sim clock, or after it (a
+    replay, another clock), has no effect; one beyond robot.v_limit / w_limit is clipped."""
+    sim = make()
+    for _ in range(100):  # 2 s of sim time
+        sim.step()
+    now = sim.time
+    assert not sim.command(0.5, 0.0, now - 1.5) and sim.stale_cmds == 1
+    assert not sim.command(0.5, 0.0, now + 0.1) and sim.stale_cmds == 2
+    assert not sim.command(0.5, 0.0, 0.0) and sim.stale_cmds == 3
+    sim.step()
+    assert sim.velocity() == (0.0, 0.0)
+    assert sim.command(0.5, 0.0, sim.time - 0.5) and sim.stale_cmds == 3  # fresh enough
+    assert sim.clipped_cmds == 0
+    assert sim.command(100.0, -50.0, sim.time) and sim.clipped_cmds == 1
+    sim.step()
+    v, w = sim.velocity()
+    assert v == pytest.approx(sim.robot.v_limit) and w == pytest.approx(-sim.robot.w_limit)
+
+
 def test_no_watchdog_event_when_idle():
     sim = make()
     for _ in range(100):

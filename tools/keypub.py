@@ -3,8 +3,9 @@
 - ``keys pub KEY FIELD=VALUE... [--rate HZ] [--count N] [--duration S]``: one message of the
   key's type (or a stream at a rate), like ``ros2 topic pub``. Values are YAML
   (``v=0.2``, ``waypoints=[[0,0],[1,1]]``); the header is filled in (seq counting up from a
-  random start, stamp 0, the frame of the topic) unless given (``header.stamp=12.5``). The
-  message is validated exactly as a service would decode it before anything is sent.
+  random start, the stamp of the robot's latest odometry (:mod:`tools.clock`; 0 if none is
+  seen), the frame of the topic) unless given (``header.stamp=12.5``). The message is
+  validated exactly as a service would decode it before anything is sent.
 - ``keys set SERVICE section.name=VALUE``: change a parameter of a running service through its
   ``<ns>/<robot>/<service>/params`` queryable (``common.node``); the answer gives the old and
   the new value, or the service's one-line refusal (a bad value, or a parameter that cannot
@@ -28,6 +29,7 @@ import yaml
 from topoexplore.common import messages as m
 from topoexplore.common.bus import Bus
 from topoexplore.common.keys import Keys, type_for_key
+from topoexplore.tools.clock import RobotClock
 
 # the frame a hand-made message of a topic is in (REP-105)
 FRAMES = {"scan": "laser", "cmd_vel": "base_link"}
@@ -108,21 +110,22 @@ def check_names(msg_type: type, fields: dict[str, Any], path: str = "") -> None:
             check_names(t.cls, v, f"{path}{k}.")
 
 
-def build_message(msg_type: type, fields: dict[str, Any], seq: int, frame: str = "map") -> Any:
+def build_message(msg_type: type, fields: dict[str, Any], seq: int, frame: str = "map",
+                  stamp: float = 0.0) -> Any:
     """A message of ``msg_type`` from ``fields`` (nested; what is not given is zero) with the
     header filled in; validated as a service decodes it (PubError with the reason otherwise)."""
     check_names(msg_type, fields)
     base = _merge(zero_fields(msg_type),
-                  {"header": {"seq": seq, "stamp": 0.0, "frame": frame, "src_seq": -1}})
+                  {"header": {"seq": seq, "stamp": stamp, "frame": frame, "src_seq": -1}})
     try:
-        msg = msgspec.convert(_merge(base, fields), msg_type)
+        msg = msgspec.convert(_merge(base, fields), msg_type, strict=False)  # "1e6": YAML str
         return m.decode(m.encode(msg), msg_type)
     except (msgspec.ValidationError, m.MessageError) as exc:
         raise PubError(f"not a valid {msg_type.__name__}: {exc}") from None
 
 
 def cmd_pub(args: argparse.Namespace, bus: Bus, keys: Keys, stop: Any) -> int:
-    from topoexplore.tools.keys import KeyToolError, _out, resolve_key
+    from topoexplore.tools.keys import KeyToolError, _err, _out, resolve_key
 
     key = resolve_key(args.key, keys)
     if "*" in key:
@@ -134,19 +137,23 @@ def cmd_pub(args: argparse.Namespace, bus: Bus, keys: Keys, stop: Any) -> int:
     fixed_seq = "seq" in fields.get("header", {})
     seq0 = random.randrange(1 << 30)  # a fresh seq: the simulator applies a cmd_vel once per seq
     frame = FRAMES.get(key.rsplit("/", 1)[-1], "map")
-    first = build_message(msg_type, fields, seq0, frame)  # check before anything is sent
+    build_message(msg_type, fields, seq0, frame)  # check before anything is sent
+    clock = None if "stamp" in fields.get("header", {}) else RobotClock(bus, keys)
     pub = bus.publisher(key, msg_type, reliable=True)
     deadline = time.monotonic() + args.wait
     while not pub.matched and time.monotonic() < deadline and not stop.event.is_set():
         stop.event.wait(0.02)  # a put before the subscriber is known may be lost
+    if clock is not None and clock.wait(max(0.0, deadline - time.monotonic())) is None:
+        _err(f"no odometry on {keys.topic('odom')}: stamp 0 (a simulator or driver drops a "
+             "cmd_vel stamped long before its clock)")
     count = args.count if args.count is not None else (None if args.rate else 1)
     t_end = time.monotonic() + args.duration if args.duration else math.inf
     period = 1.0 / args.rate if args.rate else 0.0
     sent, t_next = 0, time.monotonic()
     while not stop.event.is_set() and (count is None or sent < count) \
             and time.monotonic() < t_end:
-        msg = first if sent == 0 or fixed_seq else build_message(msg_type, fields, seq0 + sent,
-                                                                 frame)
+        stamp = (clock.now() if clock is not None else None) or 0.0
+        msg = build_message(msg_type, fields, seq0 if fixed_seq else seq0 + sent, frame, stamp)
         pub.put(msg)
         sent += 1
         t_next += period

@@ -279,6 +279,9 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
         "bad_messages": bad_messages,
         "lockstep_timeouts": sim.lockstep_timeouts if sim else 0,
         "watchdog_stops": sim.watchdog_stops if sim else 0,
+        # cmd_vel the sim dropped as stale by stamp / clipped to the robot's limits
+        "stale_cmds": sim.stale_cmds if sim else 0,
+        "clipped_cmds": sim.clipped_cmds if sim else 0,
         "scans": sim.header.src_seq + 1 if sim else 0,
         "planner": planner,  # watchdog escalations and their log, learned obstacles
         # per process at the end of the run: resident now and its high-water mark [MB]

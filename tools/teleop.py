@@ -33,6 +33,7 @@ from topoexplore.common.keys import DEFAULT_ENDPOINT, Keys
 from topoexplore.common.node import add_bus_args, add_param_args, params_from_args, stop_on_signals
 from topoexplore.common.params import ParamError
 from topoexplore.tools.argtypes import OneLineParser, UsageError, fail, positive
+from topoexplore.tools.clock import RobotClock
 
 PROG = "topoexplore teleop"
 HELP = "w/s faster/slower, a/d left/right, space stop, q quit"
@@ -118,6 +119,7 @@ def _drive(bus: Bus, keys: Keys, state: Teleop, rate: float) -> int:
     import tty
 
     pub = bus.publisher(keys.cmd_vel, m.Twist, reliable=True)
+    clock = RobotClock(bus, keys)  # commands carry the robot's time, or the sim drops them
     seq = random.randrange(1 << 30)
     stop = threading.Event()
     restore = stop_on_signals(stop.set)
@@ -127,8 +129,8 @@ def _drive(bus: Bus, keys: Keys, state: Teleop, rate: float) -> int:
     def send(v: float, w: float) -> None:
         nonlocal seq
         seq += 1
-        pub.put(m.Twist(header=m.Header(seq=seq, stamp=0.0, frame="base_link", src_seq=-1),
-                        v=v, w=w))
+        pub.put(m.Twist(header=m.Header(seq=seq, stamp=clock.now() or 0.0, frame="base_link",
+                                        src_seq=-1), v=v, w=w))
 
     print(f"teleop on {keys.cmd_vel}: {HELP}", flush=True)
     try:
@@ -146,7 +148,8 @@ def _drive(bus: Bus, keys: Keys, state: Teleop, rate: float) -> int:
             if time.monotonic() >= t_next:
                 v, w = state.command(time.monotonic())
                 send(v, w)
-                sys.stdout.write(f"\rv {v:+.2f} m/s  w {w:+.2f} rad/s   ")
+                wait = "" if clock.now() is not None else "  (no odometry yet)"
+                sys.stdout.write(f"\rv {v:+.2f} m/s  w {w:+.2f} rad/s{wait}   ")
                 sys.stdout.flush()
                 t_next += 1.0 / rate
     finally:
