@@ -277,12 +277,15 @@ def occupancy_to_pixels(grid_int8: np.ndarray, p_free: float = 0.35,
 
 
 def atomic_write(path: Path, data: bytes) -> None:
-    """Write via a temporary file in the same directory + rename (readers never see half)."""
+    """Write via a temporary file in the same directory, fsync, rename, fsync the directory:
+    readers never see half a file, and after a crash the file is the old one or the new one."""
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             os.fchmod(f.fileno(), 0o644)  # mkstemp creates 0600
+            f.flush()
+            os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
         try:
@@ -290,6 +293,16 @@ def atomic_write(path: Path, data: bytes) -> None:
         except OSError:
             pass
         raise
+    try:
+        dfd = os.open(path.parent, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(dfd)
+    except OSError:
+        pass  # some file systems cannot sync a directory
+    finally:
+        os.close(dfd)
 
 
 def _check_grid(grid_int8: np.ndarray, geom: GridGeometry) -> np.ndarray:

@@ -146,6 +146,10 @@ class RuntimeParams(_P):
     lockstep_wait_for: list[str] = msgspec.field(
         default_factory=lambda: ["mapper", "topology", "reliability", "planner", "controller"])
     lockstep_wait: Pos = 60.0  # [s] wall time to wait for those services before the first scan
+    state_dir: str = ""  # directory of the services' checkpoints ("": none); a restarted
+    #   service resumes from its checkpoint there (``run`` uses OUT/state)
+    checkpoint_every: Pos = 1.0  # [s] wall time between two checkpoints of a service
+    checkpoint_max_age: Pos = 300.0  # [s] an older checkpoint is an earlier session's: ignored
 
 
 class BusParams(_P):

@@ -193,7 +193,8 @@ def _params_for(summary: dict, tmp: Path, extra: list[str]) -> tuple[str | None,
     if meta.get("params_toml"):
         params_file = str(tmp / "params.toml")
         Path(params_file).write_text(meta["params_toml"])
-    return params_file, [*overrides, "runtime.lockstep=true", *extra]
+    # a replay keeps no state between its services' starts and never reads the run's
+    return params_file, [*overrides, "runtime.lockstep=true", 'runtime.state_dir=""', *extra]
 
 
 def replay(args: argparse.Namespace) -> int:

@@ -31,6 +31,7 @@ import msgspec
 from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.bus import Bus, BusError, check_config_file
+from topoexplore.common.checkpoint import clear_state_dir
 from topoexplore.common.keys import DEFAULT_ENDPOINT, Keys
 from topoexplore.common.node import (
     LOG_LEVELS,
@@ -243,7 +244,8 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
                 planner: dict | None = None, warmup: float | None = None,
                 first_motion: float | None = None,
                 memory: dict | None = None, cpu: dict | None = None,
-                recording: dict | None = None) -> dict[str, Any]:
+                recording: dict | None = None,
+                checkpoints: dict | None = None) -> dict[str, Any]:
     """The report.json document. ``coverage``: share of the free cells the robot can map that
     the final map knows; ``coverage_free``: share of every free cell connected to the start."""
     rel = mon.rel
@@ -290,13 +292,17 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
         "cpu_s": cpu,
         # with --record: messages per key in run.mcap, lost by header.seq, bad, file size
         "recording": _recording_summary(recording),
+        # per service keeping a checkpoint (runtime.state_dir): written, failed, size, time per
+        # write [ms], and what a restart resumed (known cells, age of the checkpoint)
+        "checkpoints": checkpoints or {},
     }
 
 
 def recording_metadata(args: argparse.Namespace, setup: Setup) -> dict[str, str]:
     """What ``replay`` needs to run the services as they ran: the overrides every service got
     (without the router endpoint) and the text of the --params file."""
-    overrides = [o for o in setup.overrides if not o.startswith("bus.connect=")]
+    overrides = [o for o in setup.overrides
+                 if not o.startswith(("bus.connect=", "runtime.state_dir="))]
     text = ""
     if args.params:
         try:
@@ -337,6 +343,21 @@ def planner_robustness(state: dict) -> dict:
             "watchdog_approaches": wd.get("approaches", 0),
             "blocked_marks": bl.get("made", 0), "blocked_forgotten": bl.get("forgotten", 0),
             "replans": core.get("replans", 0)}
+
+
+def _checkpoints(bus: Bus, keys: Keys) -> dict:
+    """The checkpoint counters of the services that keep one (their state queryables)."""
+    from topoexplore.tools.livestate import StateError, fetch_state
+
+    out = {}
+    for s in ("mapper",):
+        try:
+            ck = fetch_state(bus, keys, s, timeout=1.0).get("checkpoint")
+        except StateError:
+            continue
+        if isinstance(ck, dict) and ck.get("path"):
+            out[s] = ck
+    return out
 
 
 def _bad_message_total(bus: Bus, keys: Keys) -> int:
@@ -470,6 +491,10 @@ def check_input(args: argparse.Namespace) -> Setup:
     out = Path(args.out)
     try:
         out.mkdir(parents=True, exist_ok=True)
+        if not params.runtime.state_dir:  # checkpoints: a restarted service resumes
+            overrides.append(f"runtime.state_dir={json.dumps(str(out / 'state'))}")
+            params = _params_with(args, overrides)
+        clear_state_dir(params.runtime.state_dir)  # a new run: no earlier run's state
     except OSError as exc:
         raise InputError(f"cannot create output directory {out}: {exc}") from None
     return Setup(params, keys, overrides, out)
@@ -583,6 +608,7 @@ class Outcome:
     memory: dict | None = None  # resident memory per process [MB] (Supervisor.memory)
     cpu: dict | None = None  # CPU seconds per process (Supervisor.cpu)
     recording: dict | None = None  # the recorder's counts (tools.record.Recorder.stats)
+    checkpoints: dict | None = None  # per service: its checkpoint counters (_checkpoints)
 
 
 class StackRun:
@@ -740,6 +766,7 @@ class StackRun:
         out.cpu = self.sup.cpu() or None
         out.bad = _bad_message_total(self.bus, self.setup.keys) if out.startup else 0
         out.planner = _planner_robustness(self.bus, self.setup.keys) if out.startup else None
+        out.checkpoints = _checkpoints(self.bus, self.setup.keys) if out.startup else None
 
 
 # --- step 5: the report and the files ------------------------------------------------------
@@ -763,7 +790,8 @@ def write_results(args: argparse.Namespace, setup: Setup, truth: Truth, mon: Mon
                              p_reliable=params.reliability.p_reliable, lockstep=args.lockstep,
                              planner=outcome.planner, warmup=outcome.warmup,
                              first_motion=outcome.first_motion, memory=outcome.memory,
-                             cpu=outcome.cpu, recording=outcome.recording)
+                             cpu=outcome.cpu, recording=outcome.recording,
+                             checkpoints=outcome.checkpoints)
         title = (f"{args.world} / {args.strategy} / seed {args.seed}: "
                  f"{'finished' if outcome.finished else 'not finished'}, "
                  f"{report['path_length_m']:.1f} m, {report['sim_time_s']:.0f} s, "

@@ -44,6 +44,7 @@ grow beyond ``max_size`` (protection against a bad pose).
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import numpy as np
 from numba import njit
@@ -362,6 +363,52 @@ class MapperCore:
         core._occ = np.full(g.shape, -1, np.int8)
         core._occ[known] = logodds_to_int8(lo[known])
         core._stamp = np.zeros(g.shape, np.int32)
+        return core
+
+    # -- checkpoints (issue 14: a restarted mapper keeps its map) -------------------------------
+
+    def checkpoint(self) -> dict[str, np.ndarray]:
+        """What a restarted mapper needs to go on exactly where this one is: the log-odds, the
+        touched cells and the grid's placement, as arrays (the shell writes them)."""
+        self._need_grid()
+        return {"log_odds": self._l.copy(), "occupancy": self._occ.copy(),
+                "placement": np.array([self._base_x, self._base_y, self._res], np.float64),
+                "counts": np.array([self._off_c, self._off_r, self.scans, self.grown], np.int64)}
+
+    @classmethod
+    def from_checkpoint(cls, ck: Mapping[str, np.ndarray], params: MapperParams,
+                        laser_offset: float = 0.0) -> MapperCore:
+        """The mapper a :meth:`checkpoint` describes; MapLoadError if it is not one this
+        mapper's parameters can continue (another resolution, a grid beyond max_size, bad
+        values)."""
+        try:
+            lo = np.asarray(ck["log_odds"])
+            occ = np.asarray(ck["occupancy"])
+            place = np.asarray(ck["placement"], np.float64)
+            counts = np.asarray(ck["counts"])
+        except KeyError as exc:
+            raise MapLoadError(f"checkpoint has no {exc.args[0]!r}") from None
+        if lo.dtype != np.float32 or occ.dtype != np.int8 or lo.ndim != 2 \
+                or occ.shape != lo.shape or place.shape != (3,) or counts.shape != (4,) \
+                or counts.dtype.kind != "i":
+            raise MapLoadError("checkpoint arrays have the wrong types or shapes")
+        if not (np.isfinite(place).all() and np.isfinite(lo).all()):
+            raise MapLoadError("checkpoint holds non-finite numbers")
+        if lo.size and (lo.min() < params.l_min - 1e-6 or lo.max() > params.l_max + 1e-6
+                        or occ.min() < -1 or occ.max() > 100):
+            raise MapLoadError("checkpoint values are outside the log-odds clamp")
+        if not math.isclose(place[2], params.resolution, rel_tol=1e-9):
+            raise MapLoadError(f"checkpoint resolution {place[2]} m differs from "
+                               f"mapper.resolution {params.resolution} m")
+        if max(lo.shape) * params.resolution > params.max_size + 1e-9:
+            raise MapLoadError(f"checkpoint grid is larger than mapper.max_size="
+                               f"{params.max_size} m")
+        core = cls(params, laser_offset)
+        core._base_x, core._base_y = float(place[0]), float(place[1])
+        core._off_c, core._off_r, core.scans, core.grown = (int(v) for v in counts)
+        core._l = lo.copy()
+        core._occ = occ.copy()
+        core._stamp = np.zeros(lo.shape, np.int32)
         return core
 
     # -- the update ----------------------------------------------------------------------------

@@ -1,0 +1,154 @@
+"""Checkpoints (issue 14, "no state lost"): the mapper's round trip, refusals of files it
+cannot continue, atomic writes, and a mapper killed mid-run that resumes its map."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.conftest import REPO
+from tests.test_mapper_core import params, room_ranges, scan
+from topoexplore.common import checkpoint as ck
+from topoexplore.common.bus import Bus
+from topoexplore.common.keys import Keys
+from topoexplore.common.mapio import atomic_write
+from topoexplore.services.mapper.core import MapLoadError, MapperCore
+
+# --- the mapper core ----------------------------------------------------------------------------
+
+
+def mapped(n: int = 4) -> MapperCore:
+    core = MapperCore(params())
+    for k in range(n):
+        pose = (-1.0 + 0.5 * k, 0.2 * k, 0.3 * k)
+        scan(core, pose, room_ranges(pose))
+    return core
+
+
+def test_mapper_resumes_exactly_where_it_was():
+    core = mapped()
+    again = MapperCore.from_checkpoint(ck.decode_checkpoint(
+        ck.encode_checkpoint(core.checkpoint(), 100.0))[0], params())
+    assert again.geometry == core.geometry and again.scans == core.scans
+    assert np.array_equal(again.log_odds(), core.log_odds())
+    assert np.array_equal(again.occupancy(), core.occupancy())
+    pose = (1.5, -0.5, 2.0)  # both go on the same way, growth included
+    for c in (core, again):
+        scan(c, pose, room_ranges(pose, half_x=4.0))
+    assert again.geometry == core.geometry
+    assert np.array_equal(again.log_odds(), core.log_odds())
+    assert np.array_equal(again.occupancy(), core.occupancy())
+
+
+@pytest.mark.parametrize("change, match", [
+    (lambda a: a.pop("occupancy"), "no 'occupancy'"),
+    (lambda a: a.update(log_odds=a["log_odds"].astype(np.float64)), "wrong types"),
+    (lambda a: a["log_odds"].__setitem__((0, 0), np.nan), "non-finite"),
+    (lambda a: a["log_odds"].__setitem__((0, 0), 99.0), "outside the log-odds clamp"),
+    (lambda a: a["placement"].__setitem__(2, 0.05), "resolution"),
+    (lambda a: a.update(counts=a["counts"][:2]), "wrong types or shapes"),
+])
+def test_a_checkpoint_the_mapper_cannot_continue_is_refused(change, match):
+    arrays = mapped(2).checkpoint()
+    change(arrays)
+    with pytest.raises(MapLoadError, match=match):
+        MapperCore.from_checkpoint(arrays, params())
+
+
+def test_checkpoint_files_age_and_garbage(tmp_path):
+    path = ck.checkpoint_path(str(tmp_path / "state"), "mapper")
+    assert ck.checkpoint_path("", "mapper") is None
+    assert ck.read_checkpoint(path, 1000.0, 300.0) is None  # none yet
+    n = ck.write_checkpoint(path, mapped(2).checkpoint(), written_at=1000.0)
+    assert n == path.stat().st_size and not [p for p in path.parent.iterdir() if p != path]
+    arrays, age = ck.read_checkpoint(path, 1010.0, 300.0)
+    assert age == pytest.approx(10.0) and set(arrays) == {"log_odds", "occupancy",
+                                                           "placement", "counts"}
+    assert ck.read_checkpoint(path, 1000.0 + 301.0, 300.0) is None  # an earlier session's
+    with pytest.raises(ck.CheckpointError, match="future"):
+        ck.read_checkpoint(path, 900.0, 300.0)
+    for junk in (b"", b"PK\x03\x04junk", b"\x00" * 100):
+        path.write_bytes(junk)
+        with pytest.raises(ck.CheckpointError, match="not a checkpoint"):
+            ck.read_checkpoint(path, 1000.0, 300.0)
+    buf = ck.encode_checkpoint({"x": np.zeros(3)}, 1.0)
+    path.write_bytes(buf.replace(b"_checkpoint", b"_checkpoinX"))
+    with pytest.raises(ck.CheckpointError, match="no or bad header"):
+        ck.read_checkpoint(path, 1.0, 300.0)
+    assert ck.clear_state_dir(str(path.parent)) == 1 and not path.exists()
+
+
+def test_atomic_write_keeps_the_old_file_when_the_write_fails(tmp_path, monkeypatch):
+    path = tmp_path / "map.bin"
+    atomic_write(path, b"old")
+
+    def broken(*_a):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "replace", broken)
+    with pytest.raises(OSError):
+        atomic_write(path, b"new" * 1000)
+    monkeypatch.undo()
+    assert path.read_bytes() == b"old" and [p.name for p in tmp_path.iterdir()] == ["map.bin"]
+
+
+# --- a mapper killed mid-run ---------------------------------------------------------------------
+
+
+def _state(bus: Bus, keys: Keys, service: str) -> dict | None:
+    from topoexplore.tools.livestate import StateError, fetch_state
+
+    try:
+        return fetch_state(bus, keys, service, timeout=1.0)
+    except StateError:
+        return None
+
+
+def _known(state: dict) -> int:
+    grid = state.get("map")
+    return 0 if not grid else int((np.frombuffer(grid["data"], np.int8) >= 0).sum())
+
+
+def test_a_mapper_killed_mid_run_resumes_its_map(tmp_path, endpoint, namespace):
+    """SIGKILL the mapper of a lockstep office run once it has written checkpoints: the
+    supervisor restarts it, it resumes the map from its checkpoint (not an empty one), and the
+    run finishes as it would have."""
+    out = tmp_path / "run"
+    keys = Keys(namespace, "robot1")
+    run = subprocess.Popen([sys.executable, "-m", "topoexplore.tools.cli", "run", "--world",
+                            "office", "--lockstep", "--quiet", "--out", str(out), "--connect",
+                            endpoint, "--namespace", namespace, "--max-sim-time", "2000"],
+                           cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                           text=True, start_new_session=True)
+    try:
+        with Bus.client(endpoint, wait_for_router=True) as bus:
+            deadline, st = time.monotonic() + 120, None
+            while time.monotonic() < deadline:
+                st = _state(bus, keys, "mapper")
+                if st and st["checkpoint"]["written"] >= 3 and _known(st) > 2000:
+                    break
+                time.sleep(0.2)
+            assert st and st["checkpoint"]["written"] >= 3, st and st["checkpoint"]
+            os.kill(st["pid"], signal.SIGKILL)
+            known_at_kill = _known(st)
+        stdout, _ = run.communicate(timeout=400)
+    finally:
+        if run.poll() is None:
+            os.killpg(run.pid, signal.SIGKILL)
+            run.wait(timeout=10)
+    report = json.loads(Path(out / "report.json").read_text())
+    assert report["finished"] and report["restarts"] >= 1, stdout[-2000:]
+    assert report["coverage"] >= 0.95 and report["collisions"] == 0
+    mapper = report["checkpoints"]["mapper"]
+    # it resumed the map it had (the scans of at most checkpoint_every before the kill are
+    # scanned again), not an empty one
+    assert mapper["resumed_cells"] >= 0.8 * known_at_kill, (mapper, known_at_kill)
+    assert mapper["failed"] == 0
