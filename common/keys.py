@@ -95,6 +95,11 @@ class Keys:
     def state(self, service: str) -> str:
         return f"{self.prefix}/{service}/state"
 
+    def latest(self, service: str, topic: str) -> str:
+        """The queryable answering with the last message of ``topic`` a service received: a
+        restarted publisher gets its last output back from any peer (``Node.serve_latest``)."""
+        return f"{self.prefix}/{service}/latest/{topic}"
+
     def params(self, service: str) -> str:
         """The queryable that reads and changes a service's live parameters (keys set)."""
         return f"{self.prefix}/{service}/params"

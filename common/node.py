@@ -276,6 +276,34 @@ class Node:
     def add_state(self, fn: Callable[[], dict]) -> None:
         self._state_fns.append(fn)
 
+    def serve_latest(self, topic: str) -> None:
+        """Answer ``<prefix>/<service>/latest/<topic>`` with the last message of a subscribed
+        topic (empty before the first): a restarted publisher takes its last output back
+        from a peer (the mapper its map)."""
+
+        def answer(_params: str) -> bytes:
+            msg = self.inbox.latest.get(topic)
+            return m.encode(msg) if msg is not None else b""
+
+        self.bus.queryable(self.keys.latest(self.service, topic), answer)
+
+    def latest_from_peers(self, topic: str, timeout: float = 1.0) -> Any:
+        """The newest (highest ``header.src_seq``) valid message of ``topic`` that any peer's
+        :meth:`serve_latest` holds, or None."""
+        best = None
+        for _key, payload, _err in self.bus.get(f"{self.keys.prefix}/*/latest/{topic}",
+                                                timeout=timeout):
+            if not payload:
+                continue
+            try:
+                msg = m.decode(payload, TOPICS[topic])
+            except m.MessageError as exc:
+                log.warning("a peer's latest %s is not valid: %s", topic, exc)
+                continue
+            if best is None or msg.header.src_seq > best.header.src_seq:
+                best = msg
+        return best
+
     def add_live(self, names: Sequence[str], apply: Callable[[Params], None]) -> None:
         """Parameters (``section.name``) this service can change while it runs, and the
         function that hands new parameters to its core. ``apply`` runs on the worker thread

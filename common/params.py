@@ -150,6 +150,8 @@ class RuntimeParams(_P):
     #   service resumes from its checkpoint there (``run`` uses OUT/state)
     checkpoint_every: Pos = 1.0  # [s] wall time between two checkpoints of a service
     checkpoint_max_age: Pos = 300.0  # [s] an older checkpoint is an earlier session's: ignored
+    resume_from_peers: bool = True  # a restarted mapper takes its last map back from a peer
+    #   that kept it (planner, reliability): the cells after its checkpoint, or all of them
 
 
 class BusParams(_P):
@@ -359,6 +361,8 @@ class ControllerParams(_P):
     slow_min_scale: Fraction = 0.25  # speed factor at safety_distance (1 at slow_distance)
     stuck_distance: Pos = 0.05  # [m] moving less than this ...
     stuck_angle: Pos = 0.2  # [rad] ... and turning less than this for stuck_time = stuck
+    plan_timeout: Pos = 1.0  # [s] robot time without a new plan message (the planner sends
+    #   one per map: a stalled or dead planner) -> stop, mode "stale-plan"
 
     def __post_init__(self) -> None:
         _need(self.slow_distance >= self.safety_distance, "need slow_distance >= safety_distance")

@@ -259,6 +259,19 @@ def test_a_door_of_the_body_width_plus_the_margins_is_passed_at_a_creep():
     assert mode == "blocked" and v == 0.0
 
 
+def test_a_stale_plan_stops_the_robot_until_a_new_one_comes():
+    """Issue 14: a planner frozen (SIGSTOP) or dead leaves its last plan on the bus; beyond
+    plan_timeout of robot time without a new plan message the controller stops."""
+    core = ControllerCore(P)
+    route = Route(np.asarray(STRAIGHT, float).reshape(-1, 2), 1)
+    assert core.update(0.0, Pose(0.0, 0.0, 0.0), route, False, free_scan(), None).mode == "track"
+    assert core.update(0.1, Pose(0.0, 0.0, 0.0), route, False, free_scan(),
+                       P.plan_timeout).mode == "track"
+    cmd = core.update(0.2, Pose(0.0, 0.0, 0.0), route, False, free_scan(), P.plan_timeout + 0.1)
+    assert cmd == (0.0, 0.0, "stale-plan") and core.stale_plan_steps == 1
+    assert core.update(0.3, Pose(0.0, 0.0, 0.0), route, False, free_scan(), 0.0).mode == "track"
+
+
 def test_empty_path_and_done_stop():
     core = ControllerCore(P)
     assert step(core, 0.0, (0.0, 0.0, 0.0), np.zeros((0, 2)), 1, False, free_scan()) == (

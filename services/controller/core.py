@@ -266,6 +266,7 @@ class ControllerCore:
         self.radius = robot.radius  # [m]
         self.half_width = robot.radius + robot.body_margin  # [m] the swept corridor
         self.plan_id: int | None = None
+        self.stale_plan_steps = 0  # steps stopped for want of a fresh plan (plan_timeout)
         self.path = np.zeros((0, 2))
         self._raw = np.zeros((0, 2))
         self.cum = np.zeros(0)
@@ -417,13 +418,15 @@ class ControllerCore:
     # -- public --
 
     def update(self, t: float, pose: Pose, route: Route | None, done: bool,
-               scan: Scan | None) -> Command:
+               scan: Scan | None, plan_age: float | None = None) -> Command:
         """One control step at time t [s] for the robot at pose (map frame).
 
         route: the path to follow (None or no waypoints = stop); a new plan_id, changed
         waypoints or a changed goal heading start it anew; at its end the robot turns to the
         route's goal_heading (mode "face", within face_tolerance) before reporting "arrived".
-        done: exploration over. scan: the latest scan (robot frame), or None.
+        done: exploration over. scan: the latest scan (robot frame), or None. plan_age: robot
+        time [s] since the last plan message arrived (None: none yet); beyond plan_timeout the
+        planner is taken for stalled and the robot stops (mode "stale-plan") until one comes.
         """
         if t < self._t_last:  # clock went back (sim restart): forget timers, look again
             self._ref = None
@@ -435,6 +438,9 @@ class ControllerCore:
         self._take_route(route)
         if bool(done):
             return self._out(0.0, 0.0, "done", False, t, pose)
+        if plan_age is not None and plan_age > self.params.plan_timeout:
+            self.stale_plan_steps += 1
+            return self._out(0.0, 0.0, "stale-plan", False, t, pose)
         look = self._look(t, pose)
         if look is not None:
             return look
@@ -467,6 +473,7 @@ class ControllerCore:
             "v": self.cmd[0],
             "w": self.cmd[1],
             "plan_id": self.plan_id,
+            "stale_plan_steps": self.stale_plan_steps,
             "waypoints": int(len(self.path)),
             "path_length": total,
             "progress": self.s,

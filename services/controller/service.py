@@ -36,6 +36,7 @@ class ControllerService:
         node.subscribe("explore/status")
         node.subscribe("scan", queue=True)
         self.last_cmd = Command(0.0, 0.0, "idle")
+        self.plan_seen: tuple[int, float] | None = None  # (plan seq, robot time it came)
         node.add_state(self.state)
         node.add_live(LIVE, self.apply_params)
 
@@ -62,8 +63,13 @@ class ControllerService:
             done = status is not None and convert.status_from_msg(status).finished
             cmd = self.core.update(scan.header.stamp, pose,
                                    convert.route_from_msg(plan) if plan is not None else None,
-                                   done, convert.scan_from_msg(scan))
+                                   done, convert.scan_from_msg(scan),
+                                   self.plan_age(plan, scan.header.stamp))
         v, w, mode = cmd
+        if mode != self.last_cmd.mode and mode == "stale-plan":
+            log.warning("t=%.1f s: no new plan for %.1f s: the robot stops until one comes "
+                        "(%d stopped steps so far)", scan.header.stamp,
+                        self.plan_age(plan, scan.header.stamp) or 0.0, self.core.stale_plan_steps)
         if mode != self.last_cmd.mode and mode in ("blocked", "recovery") and pose is not None:
             c = self.core  # the safety stop or a stuck recovery took over: say where and why
             log.info("t=%.1f s %s at (%.2f, %.2f, %.2f rad): front %.2f m, heading error "
@@ -74,6 +80,16 @@ class ControllerService:
         self.pub.put(convert.command_to_msg(cmd, self.node.header(
             "cmd_vel", scan.header.stamp, scan.header.src_seq)))
         self.node.processed += 1
+
+    def plan_age(self, plan: m.Path | None, t: float) -> float | None:
+        """Robot time [s] since a new plan message (another seq) last came; None before the
+        first. A clock that went back (a sim restart) starts the count again."""
+        if plan is None:
+            return None
+        if self.plan_seen is None or plan.header.seq != self.plan_seen[0] \
+                or t < self.plan_seen[1]:
+            self.plan_seen = (plan.header.seq, t)
+        return t - self.plan_seen[1]
 
     def apply_params(self, P: Params) -> None:
         self.core.params = P.controller

@@ -411,6 +411,45 @@ class MapperCore:
         core._stamp = np.zeros(lo.shape, np.int32)
         return core
 
+    def adopt(self, newer: GridMap) -> int:
+        """Take in a newer map of this mapper's own (its last published one, kept by a peer):
+        every cell whose value there differs from ours takes that value (log-odds =
+        logit(value / 100), clamped), growing the grid to cover it. Cells it does not know
+        stay as they are. Returns how many cells changed. MapLoadError if the map cannot be
+        this mapper's (another resolution, off the cell lattice, beyond max_size)."""
+        g, geom = newer.data, newer.geom
+        if g.size == 0:
+            return 0
+        if g.min() < -1 or g.max() > 100:
+            raise MapLoadError("grid values must be -1 (unknown) or 0..100")
+        if not math.isclose(geom.resolution, self._res, rel_tol=1e-9):
+            raise MapLoadError(f"map resolution {geom.resolution} m differs from "
+                               f"mapper.resolution {self._res} m")
+        if not self.ready:
+            other = MapperCore.from_grid(newer, self.params, self.laser_offset)
+            self.__dict__.update(other.__dict__)
+            return int((g >= 0).sum())
+        fc = (geom.origin_x - self._origin_x()) / self._res  # its cell (0, 0) in ours
+        fr = (geom.origin_y - self._origin_y()) / self._res
+        c0, r0 = round(fc), round(fr)
+        if abs(fc - c0) > 1e-3 or abs(fr - r0) > 1e-3:
+            raise MapLoadError("map cells are not on this mapper's cell lattice")
+        h, w = g.shape
+        H, W = self._l.shape
+        if r0 < 0 or c0 < 0 or r0 + h > H or c0 + w > W:
+            try:
+                dr, dc = self._grow(r0, r0 + h - 1, c0, c0 + w - 1)
+            except ScanError as exc:
+                raise MapLoadError(str(exc)) from None
+            r0, c0 = r0 + dr, c0 + dc
+        mine = self._occ[r0:r0 + h, c0:c0 + w]
+        change = (g >= 0) & (g != mine)
+        if change.any():
+            lo = prob_to_logodds(g[change] / 100.0, self.params.l_min, self.params.l_max)
+            self._l[r0:r0 + h, c0:c0 + w][change] = lo
+            self._occ[r0:r0 + h, c0:c0 + w][change] = g[change]
+        return int(change.sum())
+
     # -- the update ----------------------------------------------------------------------------
 
     def integrate(self, pose: Pose, scan: Scan) -> tuple[int, int, int, int]:

@@ -17,6 +17,8 @@ from __future__ import annotations
 import logging
 import time
 
+import numpy as np
+
 from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.checkpoint import (
@@ -38,10 +40,9 @@ class MapperService:
         self.core = MapperCore(P.mapper, P.laser.offset)
         self.ckpt_path = checkpoint_path(P.runtime.state_dir, "mapper")
         self.ckpt = {"written": 0, "failed": 0, "last_error": "", "bytes": 0, "ms": 0.0,
-                     "resumed_cells": 0, "resumed_age_s": None}
+                     "resumed_cells": 0, "resumed_from_peer": 0, "resumed_age_s": None}
         self.ckpt_due = 0.0  # [s] monotonic time of the next checkpoint
-        if self.ckpt_path is not None:
-            self.resume()
+        self.last_src = -1  # src_seq of the last scan in the map
         self.odom = OdomBuffer()
         self.pub_map = node.publisher("map")
         node.subscribe_odom(self.odom)
@@ -50,30 +51,54 @@ class MapperService:
         self.last_map: m.OccupancyGrid | None = None
         self.last_block = -1  # src_seq // map_every of the last published map
         node.add_state(self.state)
+        self.resume()
 
     def resume(self) -> None:
-        """Continue from this robot's checkpoint, if there is a recent one."""
-        rt = self.node.params.runtime
-        try:
-            got = read_checkpoint(self.ckpt_path, time.time(), rt.checkpoint_max_age)
-            if got is None:
-                return
-            arrays, age = got
-            self.core = MapperCore.from_checkpoint(arrays, self.node.params.mapper,
-                                                   self.node.params.laser.offset)
-        except (CheckpointError, MapLoadError) as exc:
-            log.error("checkpoint not used, starting with an empty map: %s", exc)
+        """A restarted mapper goes on with its map: the checkpoint in ``runtime.state_dir``
+        (exact log-odds, up to ``checkpoint_every`` old) and then the last map it published,
+        as a peer that subscribes to ``map`` keeps it (``Node.serve_latest``): the cells that
+        changed after the checkpoint. A fresh start finds neither."""
+        P = self.node.params
+        ck_src, age = -1, None
+        if self.ckpt_path is not None:
+            try:
+                got = read_checkpoint(self.ckpt_path, time.time(), P.runtime.checkpoint_max_age)
+                if got is not None:
+                    arrays, age = got
+                    core = MapperCore.from_checkpoint(arrays, P.mapper, P.laser.offset)
+                    src = arrays.get("src_seq")
+                    ck_src = int(src[0]) if src is not None and src.shape == (1,) else -1
+                    self.core = core
+            except (CheckpointError, MapLoadError) as exc:
+                log.error("checkpoint not used: %s", exc)
+        from_peer = 0
+        if P.runtime.resume_from_peers:
+            try:
+                peer = self.node.latest_from_peers("map")
+            except Exception as exc:  # noqa: BLE001 - a failed query: go on without it
+                log.warning("could not ask the peers for the last map: %s", exc)
+                peer = None
+            if peer is not None and peer.header.src_seq > ck_src:
+                try:
+                    from_peer = self.core.adopt(convert.grid_from_msg(peer))
+                except MapLoadError as exc:
+                    log.error("the peers' last map not used: %s", exc)
+                else:
+                    self.last_src = peer.header.src_seq
+        if not self.core.ready:
             return
         known = int((self.core.occupancy() >= 0).sum())
-        self.ckpt.update(resumed_cells=known, resumed_age_s=round(age, 3))
-        log.info("resumed from %s (written %.1f s ago): %d known cells, %d scans",
-                 self.ckpt_path, age, known, self.core.scans)
+        self.ckpt.update(resumed_cells=known, resumed_from_peer=from_peer,
+                         resumed_age_s=None if age is None else round(age, 3))
+        log.info("resumed the map: %d known cells (checkpoint %s, %d cells from the peers' "
+                 "last map)", known, "none" if age is None else f"{age:.1f} s old", from_peer)
 
     def save_checkpoint(self) -> None:
         t0 = time.monotonic()
         self.ckpt_due = t0 + self.node.params.runtime.checkpoint_every
         try:
-            n = write_checkpoint(self.ckpt_path, self.core.checkpoint(), time.time())
+            arrays = {**self.core.checkpoint(), "src_seq": np.array([self.last_src], np.int64)}
+            n = write_checkpoint(self.ckpt_path, arrays, time.time())
         except OSError as exc:
             self.ckpt["failed"] += 1
             self.ckpt["last_error"] = f"{exc.strerror or exc}"
@@ -109,6 +134,7 @@ class MapperService:
             self.skip("rejected", str(exc))
             return
         self.node.processed += 1
+        self.last_src = scan.header.src_seq
         block = scan.header.src_seq // self.node.params.mapper.map_every
         if block != self.last_block:  # else integrated; this block's map went out already
             self.last_block = block

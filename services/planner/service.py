@@ -28,6 +28,7 @@ class PlannerService:
         self.pub_status = node.publisher("explore/status", reliable=True)
         node.subscribe_odom(self.odom)
         node.subscribe("map")
+        node.serve_latest("map")  # a restarted mapper takes its last map back
         node.subscribe("topo")
         node.subscribe("reliability", queue=True)
         self.last_status: m.ExploreStatus | None = None

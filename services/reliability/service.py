@@ -26,6 +26,7 @@ class ReliabilityService:
         self.pub = node.publisher("reliability")
         node.subscribe_odom(self.odom)
         node.subscribe("map")
+        node.serve_latest("map")  # a restarted mapper takes its last map back
         node.subscribe("topo", queue=True)
         self.skipped = 0
         self.last: m.Reliability | None = None

@@ -432,6 +432,8 @@ class Supervisor:
                 "profile": self.profile.name,
                 "endpoint": self.endpoint,
                 "router_restarts": self.router_restarts,
+                "router_pid": (self.router.pid if self.router is not None
+                               and self.router.poll() is None else None),
                 "processes": {
                     n: {"pid": s.pid, "alive": s.alive, "restarts": s.restarts,
                         "last_exit": s.last_exit, "given_up": s.given_up,

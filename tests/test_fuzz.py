@@ -1,0 +1,162 @@
+"""Property-based fuzzing of what crosses the bus (issue 14, item 5): every decoder, and the
+conversion each service shell applies after it, on random bytes and on random maps shaped like
+our messages (right field names, any values: NaN, Inf, huge numbers, wrong types, long lists).
+
+A payload is either refused with :class:`MessageError` or it is a message that round-trips and
+that the shell's conversion takes without an exception; nothing else may happen. The
+controller's output stays finite and within its limits for any valid inputs.
+"""
+
+from __future__ import annotations
+
+import math
+
+import msgspec
+import msgspec.inspect as mi
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from tests.test_record import grid_msg, hdr, rel_msg, topo_msg
+from topoexplore.common import convert
+from topoexplore.common import messages as m
+
+SETTINGS = settings(max_examples=300, deadline=None,
+                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+
+# the conversion each shell applies to a decoded message of each type
+SHELL_INPUT = {
+    m.LaserScan: convert.scan_from_msg,
+    m.Odometry: convert.odom_from_msg,
+    m.Pose: convert.truth_from_msg,
+    m.Twist: convert.command_from_msg,
+    m.OccupancyGrid: convert.grid_from_msg,
+    m.TopoGraph: convert.graph_from_msg,
+    m.Reliability: convert.beliefs_from_msg,
+    m.Path: convert.route_from_msg,
+    m.ExploreStatus: convert.status_from_msg,
+    m.SimStatus: lambda msg: msg,
+}
+TYPES = list(m.MESSAGE_TYPES.values())
+
+WILD_FLOATS = st.one_of(st.floats(allow_nan=True, allow_infinity=True),
+                        st.sampled_from([0.0, -0.0, 1e-300, 1e300, -1e300, 0.5, 8.0, 2**53]))
+WILD_INTS = st.one_of(st.integers(-(2**63), 2**64 - 1), st.sampled_from([-1, 0, 1, 181, 2**62]))
+ANY_SCALAR = st.one_of(st.none(), st.booleans(), WILD_INTS, WILD_FLOATS, st.text(max_size=20),
+                       st.binary(max_size=20))
+
+
+def shaped(t: mi.Type, depth: int = 0) -> st.SearchStrategy:
+    """Values shaped like type ``t``: mostly the right kind with wild contents, sometimes any
+    scalar in its place."""
+    if isinstance(t, mi.StructType):
+        fields = {f.name: shaped(f.type, depth + 1) for f in t.fields}
+        right = st.fixed_dictionaries({}, optional=fields)
+    elif isinstance(t, mi.ListType) and depth < 4:
+        right = st.lists(shaped(t.item_type, depth + 1), max_size=6)
+    elif isinstance(t, mi.FloatType):
+        right = WILD_FLOATS
+    elif isinstance(t, mi.IntType):
+        right = WILD_INTS
+    elif isinstance(t, mi.StrType):
+        right = st.text(max_size=30)
+    elif isinstance(t, mi.BytesType):
+        right = st.binary(max_size=64)
+    elif isinstance(t, mi.BoolType):
+        right = st.booleans()
+    elif isinstance(t, mi.UnionType):
+        right = st.one_of([shaped(u, depth + 1) for u in t.types])
+    else:
+        right = ANY_SCALAR
+    return st.one_of(right, right, right, ANY_SCALAR)
+
+
+# one valid message per type: the mutation test changes one leaf of it
+VALID = {
+    m.LaserScan: m.LaserScan(header=hdr(3, 0.3, 3, "laser"), angle_min=-1.5707963,
+                             angle_increment=0.0174533, range_min=0.02, range_max=8.0,
+                             ranges=[1.0, 2.0, 8.0, 0.5]),
+    m.Odometry: m.Odometry(header=hdr(3, 0.3, 3), pose=m.Pose2D(x=1.0, y=2.0, theta=0.5)),
+    m.Pose: m.Pose(header=hdr(3, 0.3, 3), pose=m.Pose2D(x=1.0, y=2.0, theta=0.5)),
+    m.Twist: m.Twist(header=hdr(3, 0.3, 3, "base_link"), v=0.2, w=-0.1),
+    m.OccupancyGrid: grid_msg(3),
+    m.TopoGraph: topo_msg(3),
+    m.Reliability: rel_msg(3),
+    m.Path: m.Path(header=hdr(3, 0.3, 3), waypoints=[[0.0, 0.0], [1.0, 1.0]], target_id=9,
+                   target_x=1.0, target_y=1.0),
+    m.ExploreStatus: m.ExploreStatus(header=hdr(3, 0.3, 3), state="exploring"),
+    m.SimStatus: m.SimStatus(header=hdr(3, 0.3, 3), world="w", mode="lockstep", sim_time=0.3,
+                             steps=15, collisions=0, path_length=0.1, real_time_factor=1.0),
+}
+
+
+def _leaves(value, path=()):
+    if isinstance(value, dict):
+        for k, v in value.items():
+            yield from _leaves(v, (*path, k))
+    elif isinstance(value, list) and value:
+        for i, v in enumerate(value):
+            yield from _leaves(v, (*path, i))
+    else:
+        yield path
+
+
+def _set(value, path, new):
+    if not path:
+        return new
+    value = list(value) if isinstance(value, list) else dict(value)
+    value[path[0]] = _set(value[path[0]], path[1:], new)
+    return value
+
+
+def _check(payload: bytes, msg_type: type) -> None:
+    try:
+        msg = m.decode(payload, msg_type)
+    except m.MessageError:
+        return  # refused with a reason: what a shell counts and logs
+    assert m.decode(m.encode(msg), msg_type) == msg
+    SHELL_INPUT[msg_type](msg)
+
+
+@pytest.mark.parametrize("msg_type", TYPES, ids=lambda t: t.__name__)
+@SETTINGS
+@given(payload=st.binary(max_size=512))
+def test_random_bytes_are_refused_or_taken(msg_type, payload):
+    _check(payload, msg_type)
+
+
+@pytest.mark.parametrize("msg_type", TYPES, ids=lambda t: t.__name__)
+@SETTINGS
+@given(data=st.data())
+def test_message_shaped_maps_are_refused_or_taken(msg_type, data):
+    value = data.draw(shaped(mi.type_info(msg_type)))
+    _check(msgspec.msgpack.encode(value), msg_type)
+
+
+@pytest.mark.parametrize("msg_type", TYPES, ids=lambda t: t.__name__)
+@SETTINGS
+@given(data=st.data())
+def test_valid_messages_with_one_wild_field_are_refused_or_taken(msg_type, data):
+    base = msgspec.to_builtins(VALID[msg_type])
+    path = data.draw(st.sampled_from(list(_leaves(base))))
+    value = _set(base, path, data.draw(st.one_of(ANY_SCALAR, st.lists(ANY_SCALAR, max_size=3))))
+    _check(msgspec.msgpack.encode(value), msg_type)
+
+
+def test_the_valid_examples_are_valid():
+    for t, msg in VALID.items():
+        _check(m.encode(msg), t)
+        assert m.decode(m.encode(msg), t) == msg
+
+
+@SETTINGS
+@given(v=WILD_FLOATS, w=WILD_FLOATS)
+def test_no_nan_or_inf_command_gets_through(v, w):
+    payload = msgspec.msgpack.encode({"header": {"seq": 1, "stamp": 1.0, "frame": "base_link",
+                                                 "src_seq": -1}, "v": v, "w": w})
+    try:
+        msg = m.decode(payload, m.Twist)
+    except m.MessageError:
+        assert not (math.isfinite(v) and math.isfinite(w)) or max(abs(v), abs(w)) > 100.0
+        return
+    assert math.isfinite(msg.v) and math.isfinite(msg.w)
