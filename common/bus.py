@@ -97,13 +97,25 @@ def make_config(
     return cfg
 
 
+_NUMBER = re.compile(r"-?\d+(\.\d+)?(e[-+]?\d+)?|\b(nan|inf)\b", re.IGNORECASE)
+MAX_KINDS = 32  # kinds of error logged apart per key; beyond, the 5 s summary only
+
+
+def error_kind(error: str) -> str:
+    """An error message with its numbers masked: "3 ranges are not finite" and "5 ranges are
+    not finite" are one kind."""
+    return _NUMBER.sub("#", error)[:160]
+
+
 @dataclass
 class BadMessageCounter:
-    """Counts and logs bad messages per key (rate-limited logging)."""
+    """Counts bad messages per key and logs the first of each kind of error per key (then at
+    most one line per key every 5 s): a flood of garbage is counted, not echoed."""
 
     counts: dict[str, int] = field(default_factory=dict)
     last_error: str = ""
     _last_log: dict[str, float] = field(default_factory=dict)
+    _kinds: dict[str, set[str]] = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
     def add(self, key: str, error: str) -> None:
@@ -111,10 +123,16 @@ class BadMessageCounter:
             self.counts[key] = self.counts.get(key, 0) + 1
             self.last_error = f"{key}: {error}"
             now = time.monotonic()
-            first = self.counts[key] == 1
-            if first or now - self._last_log.get(key, 0.0) > 5.0:
+            kinds = self._kinds.setdefault(key, set())
+            kind = error_kind(error)
+            if kind not in kinds and len(kinds) < MAX_KINDS:
+                kinds.add(kind)
                 self._last_log[key] = now
                 log.warning("bad message #%d on %s: %s", self.counts[key], key, error)
+            elif now - self._last_log.get(key, 0.0) > 5.0:
+                self._last_log[key] = now
+                log.warning("bad message #%d on %s (%d kinds so far): %s", self.counts[key],
+                            key, len(kinds), error)
 
     @property
     def total(self) -> int:

@@ -361,8 +361,9 @@ class ControllerParams(_P):
     slow_min_scale: Fraction = 0.25  # speed factor at safety_distance (1 at slow_distance)
     stuck_distance: Pos = 0.05  # [m] moving less than this ...
     stuck_angle: Pos = 0.2  # [rad] ... and turning less than this for stuck_time = stuck
-    plan_timeout: Pos = 1.0  # [s] robot time without a new plan message (the planner sends
-    #   one per map: a stalled or dead planner) -> stop, mode "stale-plan"
+    plan_timeout: Pos = 0.5  # [s] robot time without a new plan message (the planner sends
+    #   one per map: a stalled or dead planner) -> stop, mode "stale-plan" (0 such stops in
+    #   office and a 60 x 60 m office at real time x4, tools/bench/faults.py)
 
     def __post_init__(self) -> None:
         _need(self.slow_distance >= self.safety_distance, "need slow_distance >= safety_distance")

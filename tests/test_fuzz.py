@@ -17,9 +17,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tests.test_record import grid_msg, hdr, rel_msg, topo_msg
 from topoexplore.common import convert
 from topoexplore.common import messages as m
+from topoexplore.tools.bench.fuzz import EXAMPLES, KINDS, fuzz_payloads
 
 SETTINGS = settings(max_examples=300, deadline=None,
                     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
@@ -71,23 +71,7 @@ def shaped(t: mi.Type, depth: int = 0) -> st.SearchStrategy:
     return st.one_of(right, right, right, ANY_SCALAR)
 
 
-# one valid message per type: the mutation test changes one leaf of it
-VALID = {
-    m.LaserScan: m.LaserScan(header=hdr(3, 0.3, 3, "laser"), angle_min=-1.5707963,
-                             angle_increment=0.0174533, range_min=0.02, range_max=8.0,
-                             ranges=[1.0, 2.0, 8.0, 0.5]),
-    m.Odometry: m.Odometry(header=hdr(3, 0.3, 3), pose=m.Pose2D(x=1.0, y=2.0, theta=0.5)),
-    m.Pose: m.Pose(header=hdr(3, 0.3, 3), pose=m.Pose2D(x=1.0, y=2.0, theta=0.5)),
-    m.Twist: m.Twist(header=hdr(3, 0.3, 3, "base_link"), v=0.2, w=-0.1),
-    m.OccupancyGrid: grid_msg(3),
-    m.TopoGraph: topo_msg(3),
-    m.Reliability: rel_msg(3),
-    m.Path: m.Path(header=hdr(3, 0.3, 3), waypoints=[[0.0, 0.0], [1.0, 1.0]], target_id=9,
-                   target_x=1.0, target_y=1.0),
-    m.ExploreStatus: m.ExploreStatus(header=hdr(3, 0.3, 3), state="exploring"),
-    m.SimStatus: m.SimStatus(header=hdr(3, 0.3, 3), world="w", mode="lockstep", sim_time=0.3,
-                             steps=15, collisions=0, path_length=0.1, real_time_factor=1.0),
-}
+VALID = EXAMPLES  # one valid message per type: the mutation test changes one leaf
 
 
 def _leaves(value, path=()):
@@ -160,3 +144,27 @@ def test_no_nan_or_inf_command_gets_through(v, w):
         assert not (math.isfinite(v) and math.isfinite(w)) or max(abs(v), abs(w)) > 100.0
         return
     assert math.isfinite(msg.v) and math.isfinite(msg.w)
+
+
+def test_the_bus_fuzzer_sends_only_refused_payloads_of_every_kind():
+    import random
+
+    for t in TYPES:
+        got = fuzz_payloads(t, 120, random.Random(1))
+        assert len(got) == 120 and {k for k, _ in got} >= set(KINDS) - {"missing"}
+        for _kind, p in got:
+            with pytest.raises(m.MessageError):
+                m.decode(p, t)
+
+
+def test_bench_fuzz_on_a_running_stack():
+    """The bus fuzzer against the real stack (50 per key here; 10 000 in the benchmark)."""
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+
+    r = subprocess.run([sys.executable, "-m", "topoexplore.tools.cli", "bench", "fuzz",
+                        "--per-key", "50"], cwd=REPO, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0 and "all checks hold" in r.stdout, r.stdout + r.stderr[-2000:]

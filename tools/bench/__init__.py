@@ -7,27 +7,29 @@
     topoexplore bench oracle [--worlds ...] [--corpus DIR] [--from-results SRC ...]
     topoexplore bench record [--world office] [--speed 4] [--sim-time 120] [--repeats 2]
     topoexplore bench faults [--world office] [--speed 4] [--faults kill:mapper,stop:planner,router]
+    topoexplore bench fuzz [--per-key 10000] [--rate 2000] [--world paper-room]
 
 ``stages`` (:mod:`.stages`, :mod:`.bus`) times every core and the bus; ``explore``
 (:mod:`.explore`) runs the strategy comparison suite with the real processes; ``inproc``
 (:mod:`.inproc`) runs the same cores in one process for parameter sweeps; ``oracle``
 (:mod:`.oracle`) divides their paths by a short tour planned on the true map; ``record``
 (:mod:`.recording`) measures what ``run --record`` costs the services in real time; ``faults``
-(:mod:`.faults`) runs explorations while it kills, freezes and restarts processes.
+(:mod:`.faults`) runs explorations while it kills, freezes and restarts processes; ``fuzz``
+(:mod:`.fuzz`) floods a running stack with malformed messages on every key it subscribes.
 """
 
 from __future__ import annotations
 
 import sys
 
-_USAGE = ("usage: topoexplore bench {stages,explore,inproc,robust,oracle,record,faults} "
+_USAGE = ("usage: topoexplore bench {stages,explore,inproc,robust,oracle,record,faults,fuzz} "
           "[options]  (-h for help)")
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] not in ("stages", "explore", "inproc", "robust", "oracle",
-                                   "record", "faults"):
+                                   "record", "faults", "fuzz"):
         print(_USAGE, file=sys.stderr)
         return 2
     if argv[0] == "stages":
@@ -46,6 +48,10 @@ def main(argv: list[str] | None = None) -> int:
         from topoexplore.tools.bench import recording
 
         return recording.main(argv[1:])
+    if argv[0] == "fuzz":
+        from topoexplore.tools.bench import fuzz
+
+        return fuzz.main(argv[1:])
     if argv[0] == "faults":
         from topoexplore.tools.bench import faults
 
