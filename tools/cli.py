@@ -19,6 +19,7 @@ Every error in the command line, a file or a parameter prints one line and exits
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 import threading
@@ -115,6 +116,7 @@ def _world_error() -> type[Exception]:
 
 def cmd_up(args: argparse.Namespace) -> int:
     from topoexplore.common.bus import BusError, check_config_file
+    from topoexplore.common.checkpoint import clear_state_dir
     from topoexplore.common.keys import Keys
     from topoexplore.common.node import params_from_args, stop_on_signals
     from topoexplore.common.params import ParamError
@@ -128,6 +130,8 @@ def cmd_up(args: argparse.Namespace) -> int:
     )
 
     WorldError = _world_error()
+    if args.state_dir:
+        args.set = [*args.set, f"runtime.state_dir={json.dumps(args.state_dir)}"]
     try:
         profile = load_profile(profile_path(args.profile))
         params = params_from_args(args)
@@ -138,8 +142,11 @@ def cmd_up(args: argparse.Namespace) -> int:
             load_world(args.world or params.sim.world)  # else the sim would restart forever
         if args.zenoh_config:
             check_config_file(args.zenoh_config)
+        clear_state_dir(params.runtime.state_dir)  # a new session: no earlier state
     except (ProfileError, ParamError, ExtraMissing, WorldError, BusError) as exc:
         return _err(str(exc))
+    except OSError as exc:
+        return _err(f"state dir {params.runtime.state_dir}: {exc.strerror or exc}")
     overrides = list(args.set)
     if args.lockstep:
         overrides.append("runtime.lockstep=true")
@@ -210,6 +217,9 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--lockstep", action="store_true", help="lockstep simulation")
     up.add_argument("--log-level", default=None, choices=LOG_LEVELS,
                     help="log level of every service (default INFO)")
+    up.add_argument("--state-dir", default=None, metavar="DIR",
+                    help="keep the services' checkpoints here: a restarted service resumes "
+                         "(runtime.state_dir; cleared when up starts)")
     add_bus_args(up)
     add_param_args(up)
 
