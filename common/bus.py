@@ -90,11 +90,49 @@ def make_config(
             # a client connects to named endpoints: it has no reason to answer multicast
             # scouting on every interface (it did: a Hello to anyone who asks)
             cfg.insert_json5("scouting/multicast/enabled", "false")
+        _apply_credentials(cfg, mode)
     except BusError:
         raise
     except Exception as exc:  # zenoh raises ZError for bad keys/values/files
         raise BusError(f"bad zenoh configuration: {exc}") from None
     return cfg
+
+
+CREDENTIALS_ENV = "TOPOEXPLORE_ZENOH_CREDENTIALS"  # file: one line "user:password"
+USERS_ENV = "TOPOEXPLORE_ZENOH_USERS"  # a router's user dictionary (lines "user:password")
+
+
+def read_credentials(path: str) -> tuple[str, str]:
+    """(user, password) from a file holding one line ``user:password``; BusError otherwise.
+    Credentials come from files named by the environment, never from the command line."""
+    try:
+        text = open(path, encoding="utf-8").read().strip()
+    except OSError as exc:
+        raise BusError(f"{CREDENTIALS_ENV}: cannot read {path}: {exc.strerror or exc}") from None
+    user, sep, password = text.partition(":")
+    if not sep or not user or not password or "\n" in text:
+        raise BusError(f"{CREDENTIALS_ENV}: {path} must hold one line user:password")
+    return user, password
+
+
+def _apply_credentials(cfg: zenoh.Config, mode: str) -> None:
+    """usrpwd authentication from the environment: ``TOPOEXPLORE_ZENOH_CREDENTIALS`` (this
+    process's user and password, for a client or a router that connects to another) and, for
+    a router, ``TOPOEXPLORE_ZENOH_USERS`` (the users it accepts; else its config file's
+    ``transport.auth.usrpwd.dictionary_file``)."""
+    import json
+    import os
+
+    path = os.environ.get(CREDENTIALS_ENV)
+    if path:
+        user, password = read_credentials(path)
+        cfg.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
+        cfg.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
+    users = os.environ.get(USERS_ENV)
+    if users and mode == "router":
+        if not os.path.isfile(users):
+            raise BusError(f"{USERS_ENV}: no such file {users}")
+        cfg.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(users))
 
 
 _NUMBER = re.compile(r"-?\d+(\.\d+)?(e[-+]?\d+)?|\b(nan|inf)\b", re.IGNORECASE)

@@ -140,8 +140,9 @@ def cmd_up(args: argparse.Namespace) -> int:
             from topoexplore.sim.world import load_world
 
             load_world(args.world or params.sim.world)  # else the sim would restart forever
-        if args.zenoh_config:
-            check_config_file(args.zenoh_config)
+        for f in (args.zenoh_config, args.router_config):
+            if f:
+                check_config_file(f)
         clear_state_dir(params.runtime.state_dir)  # a new session: no earlier state
     except (ProfileError, ParamError, ExtraMissing, WorldError, BusError) as exc:
         return _err(str(exc))
@@ -155,7 +156,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     keys = Keys(params.bus.namespace, params.bus.robot)
     sup = Supervisor(profile, keys, params.bus.connect, params_file=args.params,
                      overrides=overrides, zenoh_config=args.zenoh_config,
-                     log_level=args.log_level)
+                     log_level=args.log_level, router_config=args.router_config)
     stop = threading.Event()
     stop_on_signals(stop.set, sup.interrupted.set)
 
@@ -217,6 +218,9 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--lockstep", action="store_true", help="lockstep simulation")
     up.add_argument("--log-level", default=None, choices=LOG_LEVELS,
                     help="log level of every service (default INFO)")
+    up.add_argument("--router-config", default=None, metavar="FILE",
+                    help="Zenoh config of the profile's router (e.g. "
+                         "deploy/zenoh/secure-router.json5); --zenoh-config is the services'")
     up.add_argument("--state-dir", default=None, metavar="DIR",
                     help="keep the services' checkpoints here: a restarted service resumes "
                          "(runtime.state_dir; cleared when up starts)")

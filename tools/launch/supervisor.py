@@ -151,7 +151,8 @@ class Supervisor:
                  params_file: str | None = None, overrides: list[str] | None = None,
                  zenoh_config: str | None = None, sink: Callable[[str], None] | None = None,
                  policy: RestartPolicy | None = None, lost_grace: float = 12.0,
-                 warm: bool = True, log_level: str | None = None):
+                 warm: bool = True, log_level: str | None = None,
+                 router_config: str | None = None):
         self.profile = profile
         self.keys = keys
         self.endpoint = endpoint
@@ -159,6 +160,7 @@ class Supervisor:
         self.log_level = log_level  # passed to every module process (--log-level)
         self.overrides = list(overrides or [])
         self.zenoh_config = zenoh_config
+        self.router_config = router_config  # the router's own config (else zenoh_config)
         self.sink = sink or print_line
         self.sink_errors = 0  # lines a failing sink could not take (the pipes drain anyway)
         self.policy = policy or RestartPolicy()
@@ -257,8 +259,8 @@ class Supervisor:
                            f"listens there): give --connect a free port, or use a profile "
                            f"without a router to join that one")
         cmd = [sys.executable, "-u", "-m", "topoexplore.tools.router", "--listen", self.endpoint]
-        if self.zenoh_config:
-            cmd += ["--zenoh-config", self.zenoh_config]
+        if self.router_config or self.zenoh_config:
+            cmd += ["--zenoh-config", self.router_config or self.zenoh_config]
         self.router = self._spawn("router", cmd)
         self._wait_router_port()
 
