@@ -9,8 +9,10 @@ atomically (:func:`common.mapio.atomic_write`: temporary file, fsync, rename) un
 from __future__ import annotations
 
 import io
+import logging
 import math
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -91,3 +93,65 @@ def clear_state_dir(state_dir: str) -> int:
         f.unlink(missing_ok=True)
         n += 1
     return n
+
+
+class Checkpointer:
+    """A service shell's checkpoints: load at start, write when due, count what failed.
+
+    ``stats`` (for the state queryable and report.json): written, failed, last_error, bytes,
+    ms (the last write), resumed_age_s (the checkpoint a restart resumed, else None)."""
+
+    def __init__(self, state_dir: str, service: str, every: float, max_age: float,
+                 log: logging.Logger):
+        self.path = checkpoint_path(state_dir, service)
+        self.every = every  # [s] between two checkpoints, on the clock given to due/save
+        self.max_age = max_age  # [s]
+        self.log = log
+        self.due_at = -math.inf  # [s] time of the next checkpoint (the first is due at once)
+        self.stats: dict = {"path": str(self.path or ""), "written": 0, "failed": 0,
+                            "last_error": "", "bytes": 0, "ms": 0.0, "resumed_age_s": None}
+
+    @property
+    def on(self) -> bool:
+        return self.path is not None
+
+    def load(self, now: float) -> dict[str, np.ndarray] | None:
+        """This service's recent checkpoint, or None (none, too old, unreadable: logged)."""
+        if self.path is None:
+            return None
+        try:
+            got = read_checkpoint(self.path, now, self.max_age)
+        except CheckpointError as exc:
+            self.log.error("checkpoint not used: %s", exc)
+            return None
+        if got is None:
+            return None
+        arrays, age = got
+        self.stats["resumed_age_s"] = round(age, 3)
+        return arrays
+
+    def due(self, clock: float) -> bool:
+        """A checkpoint is due at ``clock`` [s] (the service's choice of clock: wall for the
+        mapper, sim time for the simulator; a clock that went back makes one due)."""
+        return self.path is not None and (clock >= self.due_at
+                                          or clock < self.due_at - 2 * self.every)
+
+    def save(self, arrays: dict[str, np.ndarray], clock: float, now: float,
+             elapsed: Callable[[], float]) -> None:
+        """Write ``arrays`` at ``clock`` (the next is due ``every`` later), stamped with the
+        wall time ``now``; ``elapsed()`` [s] is what the write took. A failed write is
+        counted and logged (1st, 10th, 100th, every 1000th)."""
+        self.due_at = clock + self.every
+        try:
+            n = write_checkpoint(self.path, arrays, now)
+        except OSError as exc:
+            self.stats["failed"] += 1
+            self.stats["last_error"] = f"{exc.strerror or exc}"
+            k = self.stats["failed"]
+            if k in (1, 10, 100) or k % 1000 == 0:
+                self.log.error("checkpoint %s not written (%d so far): %s", self.path, k,
+                               exc.strerror or exc)
+            return
+        self.stats["written"] += 1
+        self.stats["bytes"] = n
+        self.stats["ms"] = round(1000.0 * elapsed(), 2)

@@ -148,7 +148,8 @@ class RuntimeParams(_P):
     lockstep_wait: Pos = 60.0  # [s] wall time to wait for those services before the first scan
     state_dir: str = ""  # directory of the services' checkpoints ("": none); a restarted
     #   service resumes from its checkpoint there (``run`` uses OUT/state)
-    checkpoint_every: Pos = 1.0  # [s] wall time between two checkpoints of a service
+    checkpoint_every: Pos = 1.0  # [s] between two checkpoints of a service (mapper: wall
+    #   time; sim: sim time, the robot motion a restart can lose)
     checkpoint_max_age: Pos = 300.0  # [s] an older checkpoint is an earlier session's: ignored
     resume_from_peers: bool = True  # a restarted mapper takes its last map back from a peer
     #   that kept it (planner, reliability): the cells after its checkpoint, or all of them

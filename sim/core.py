@@ -149,6 +149,11 @@ class SimCore:
         return self._steps * self._dt
 
     @property
+    def steps(self) -> int:
+        """Physics steps since the start (of the first run, after a resume)."""
+        return self._steps
+
+    @property
     def in_contact(self) -> bool:
         """The robot touches a static shape now."""
         return self._touching > 0
@@ -172,6 +177,48 @@ class SimCore:
     def velocity(self) -> tuple[float, float]:
         """Measured (v [m/s] along the heading, w [rad/s]) after the last step."""
         return self._meas
+
+    # ---------------------------------------------------------------- checkpoints
+    def checkpoint(self) -> dict[str, np.ndarray]:
+        """What a restarted simulator needs to go on with the same robot: the pose, the
+        odometry, the clock and the counters (issue 14: one clock across restarts)."""
+        x, y, th = self.truth_pose()
+        return {"sim_world": np.array(self.world.name),
+                "sim_pose": np.array([x, y, th], np.float64),
+                "sim_odom": np.array(self._odom, np.float64),
+                "sim_path": np.array([self.path_length], np.float64),
+                "sim_counts": np.array([self._steps, self.collisions, self.watchdog_stops,
+                                        self.stale_cmds, self.clipped_cmds], np.int64)}
+
+    def resume(self, ck: dict[str, np.ndarray]) -> None:
+        """Go on from a :meth:`checkpoint` of this world: the robot stands at its pose,
+        at rest, and the clock and counters continue. SimError if it is not one."""
+        try:
+            world = str(ck["sim_world"])
+            pose = np.asarray(ck["sim_pose"], np.float64)
+            odom = np.asarray(ck["sim_odom"], np.float64)
+            path = np.asarray(ck["sim_path"], np.float64)
+            counts = np.asarray(ck["sim_counts"])
+        except KeyError as exc:
+            raise SimError(f"checkpoint has no {exc.args[0]!r}") from None
+        if world != self.world.name:
+            raise SimError(f"checkpoint of world {world!r}, not {self.world.name!r}")
+        if pose.shape != (3,) or odom.shape != (3,) or path.shape != (1,) \
+                or counts.shape != (5,) or counts.dtype.kind != "i" or (counts < 0).any():
+            raise SimError("checkpoint arrays have the wrong types or shapes")
+        if not (np.isfinite(pose).all() and np.isfinite(odom).all() and np.isfinite(path).all()
+                and path[0] >= 0.0):
+            raise SimError("checkpoint holds non-finite numbers")
+        self._body.position = (float(pose[0]), float(pose[1]))
+        self._body.angle = float(pose[2])
+        self._body.velocity = (0.0, 0.0)
+        self._body.angular_velocity = 0.0
+        self._space.reindex_shapes_for_body(self._body)
+        self._odom = (float(odom[0]), float(odom[1]), float(odom[2]))
+        self.path_length = float(path[0])
+        (self._steps, self.collisions, self.watchdog_stops, self.stale_cmds,
+         self.clipped_cmds) = (int(v) for v in counts)
+        self._cmd, self._cmd_time, self._meas = (0.0, 0.0), self.time, (0.0, 0.0)
 
     # ---------------------------------------------------------------- control
     def command(self, v: float, w: float, stamp: float | None = None) -> bool:

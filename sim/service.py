@@ -18,9 +18,10 @@ import numpy as np
 
 from topoexplore.common import convert
 from topoexplore.common import messages as m
+from topoexplore.common.checkpoint import Checkpointer
 from topoexplore.common.node import Node, run_service
 from topoexplore.common.params import Params
-from topoexplore.sim.core import WARM_MODULES, SimCore
+from topoexplore.sim.core import WARM_MODULES, SimCore, SimError
 from topoexplore.sim.world import WorldError, load_world
 
 log = logging.getLogger("topoexplore.sim")
@@ -53,8 +54,47 @@ class SimService:
         self.last_status_wall = 0.0
         self.started = False
         self.applied_cmd_seq = -1
+        rt = P.runtime
+        self.ckpt = Checkpointer(rt.state_dir, "sim", rt.checkpoint_every,
+                                 rt.checkpoint_max_age, log)
+        self.resume()
         node.add_state(self.state)
         node.add_live(("sim.speed",), self.apply_params)  # the pace of real-time mode
+
+    # -- checkpoints: a restarted simulator goes on with the same robot and clock ----------
+    def resume(self) -> None:
+        arrays = self.ckpt.load(time.time())
+        if arrays is None:
+            return
+        try:
+            self.core.resume(arrays)
+            seq = arrays.get("sim_scan_seq")
+            if seq is None or seq.shape != (1,) or seq.dtype.kind != "i":
+                raise SimError("checkpoint has no scan count")
+        except SimError as exc:
+            log.error("checkpoint not used, starting over: %s", exc)
+            self.core = SimCore(self.world, self.p, np.random.default_rng(self.p.seed),
+                                self.node.params.robot, self.node.params.laser)
+            self.ckpt.stats["resumed_age_s"] = None
+            return
+        self.scan_seq = int(seq[0])
+        self.step_count = self.core.steps
+        p = self.p  # the next odometry tick after this step (see odom_due)
+        self.odom_tick = int(math.floor(self.step_count * p.odom_hz / p.physics_hz + 1e-9)) + 1
+        x, y, th = self.core.truth_pose()
+        log.info("resumed at sim time %.2f s (checkpoint %.1f s old): robot at (%.2f, %.2f, "
+                 "%.2f rad), path %.1f m, scan %d", self.core.time,
+                 self.ckpt.stats["resumed_age_s"], x, y, th, self.core.path_length,
+                 self.scan_seq)
+
+    def maybe_checkpoint(self) -> None:
+        """Every ``checkpoint_every`` of sim time (the robot's motion a restart can lose, in
+        lockstep as in real time)."""
+        if self.ckpt.due(self.core.time):
+            t0 = time.monotonic()
+            arrays = {**self.core.checkpoint(),
+                      "sim_scan_seq": np.array([self.scan_seq], np.int64)}
+            self.ckpt.save(arrays, self.core.time, time.time(), lambda: time.monotonic() - t0)
 
     # -- publishing -----------------------------------------------------------------------
     def publish_odom(self) -> None:
@@ -152,17 +192,19 @@ class SimService:
         for _ in range(self.steps_per_scan):
             self.physics_step()
         self.node.processed += 1
+        self.maybe_checkpoint()
 
     def step_realtime(self) -> None:
         if not self.started:
             self.started = True
-            self.wall_start = time.monotonic()
+            self.wall_start = time.monotonic() - self.core.time / self.p.speed  # 0 unless resumed
             self.publish_scan()
         self.apply_latest_cmd()
         self.physics_step()
         if self.step_count % self.steps_per_scan == 0:
             self.publish_scan()
             self.node.processed += 1
+            self.maybe_checkpoint()
         now = time.monotonic()
         if now - self.last_status_wall >= 1.0 / self.p.status_hz:
             self.last_status_wall = now
@@ -199,6 +241,7 @@ class SimService:
             "lockstep_timeouts": self.lockstep_timeouts,
             "stale_cmds": self.core.stale_cmds,
             "clipped_cmds": self.core.clipped_cmds,
+            "checkpoint": dict(self.ckpt.stats),
             "truth_pose": [x, y, th],
             "heading_deg": math.degrees(th),
         }

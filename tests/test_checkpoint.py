@@ -191,10 +191,11 @@ def _known(state: dict) -> int:
     return 0 if not grid else int((np.frombuffer(grid["data"], np.int8) >= 0).sum())
 
 
-def test_a_mapper_killed_mid_run_resumes_its_map(tmp_path, endpoint, namespace):
-    """SIGKILL the mapper of a lockstep office run once it has written checkpoints: the
-    supervisor restarts it, it resumes the map from its checkpoint (not an empty one), and the
-    run finishes as it would have."""
+@pytest.mark.parametrize("service", ["mapper", "sim"])
+def test_a_service_killed_mid_run_resumes(tmp_path, endpoint, namespace, service):
+    """SIGKILL the mapper or the simulator of a lockstep office run once they have written
+    checkpoints: the supervisor restarts it, it resumes (the map; the robot, its clock and
+    its path), and the run finishes as it would have."""
     out = tmp_path / "run"
     keys = Keys(namespace, "robot1")
     run = subprocess.Popen([sys.executable, "-m", "topoexplore.tools.cli", "run", "--world",
@@ -204,15 +205,15 @@ def test_a_mapper_killed_mid_run_resumes_its_map(tmp_path, endpoint, namespace):
                            text=True, start_new_session=True)
     try:
         with Bus.client(endpoint, wait_for_router=True) as bus:
-            deadline, st = time.monotonic() + 120, None
+            deadline, st, mp = time.monotonic() + 120, None, None
             while time.monotonic() < deadline:
-                st = _state(bus, keys, "mapper")
-                if st and st["checkpoint"]["written"] >= 3 and _known(st) > 2000:
+                st, mp = _state(bus, keys, service), _state(bus, keys, "mapper")
+                if st and mp and st["checkpoint"]["written"] >= 3 and _known(mp) > 2000:
                     break
                 time.sleep(0.2)
             assert st and st["checkpoint"]["written"] >= 3, st and st["checkpoint"]
             os.kill(st["pid"], signal.SIGKILL)
-            known_at_kill = _known(st)
+            known_at_kill = _known(mp)
         stdout, _ = run.communicate(timeout=400)
     finally:
         if run.poll() is None:
@@ -221,8 +222,13 @@ def test_a_mapper_killed_mid_run_resumes_its_map(tmp_path, endpoint, namespace):
     report = json.loads(Path(out / "report.json").read_text())
     assert report["finished"] and report["restarts"] >= 1, stdout[-2000:]
     assert report["coverage"] >= 0.95 and report["collisions"] == 0
-    mapper = report["checkpoints"]["mapper"]
-    # it resumed the map it had: the checkpoint, then the cells of its last map (kept by the
-    # planner and reliability) that changed after it; known cells never become unknown
-    assert mapper["resumed_cells"] >= known_at_kill, (mapper, known_at_kill)
-    assert mapper["failed"] == 0
+    ck = report["checkpoints"][service]
+    assert ck["failed"] == 0 and ck["resumed_age_s"] is not None, ck
+    if service == "mapper":
+        # it resumed the map it had: the checkpoint, then the cells of its last map (kept by
+        # the planner and reliability) that changed after it; known cells never become unknown
+        assert ck["resumed_cells"] >= known_at_kill, (ck, known_at_kill)
+    else:
+        # one clock and one path: at most checkpoint_every (1 s of sim time) of motion lost
+        assert report["path_length_m"] >= st["path_length"] - 0.3, (report, st)
+        assert report["sim_time_s"] > st["sim_time"]

@@ -261,6 +261,27 @@ def test_stale_commands_are_dropped_and_over_limit_ones_clipped():
     assert v == pytest.approx(sim.robot.v_limit) and w == pytest.approx(-sim.robot.w_limit)
 
 
+def test_a_resumed_sim_goes_on_with_the_same_robot_and_clock():
+    sim = make()
+    drive(sim, 0.3, 0.2, 2.0)
+    ck = sim.checkpoint()
+    again = make()
+    again.resume(ck)
+    assert again.time == sim.time and again.steps == sim.steps
+    assert again.truth_pose() == pytest.approx(sim.truth_pose())
+    assert again.path_length == sim.path_length and again.collisions == sim.collisions
+    assert again.velocity() == (0.0, 0.0)  # at rest until a command comes
+    drive(again, 0.3, 0.0, 1.0)
+    assert again.path_length > sim.path_length
+    bad = dict(ck, sim_world=np.array("elsewhere"))
+    with pytest.raises(SimError, match="world"):
+        make().resume(bad)
+    with pytest.raises(SimError, match="non-finite"):
+        make().resume(dict(ck, sim_pose=np.array([np.nan, 0.0, 0.0])))
+    with pytest.raises(SimError, match="no 'sim_path'"):
+        make().resume({k: v for k, v in ck.items() if k != "sim_path"})
+
+
 def test_no_watchdog_event_when_idle():
     sim = make()
     for _ in range(100):

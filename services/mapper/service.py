@@ -21,12 +21,7 @@ import numpy as np
 
 from topoexplore.common import convert
 from topoexplore.common import messages as m
-from topoexplore.common.checkpoint import (
-    CheckpointError,
-    checkpoint_path,
-    read_checkpoint,
-    write_checkpoint,
-)
+from topoexplore.common.checkpoint import Checkpointer
 from topoexplore.common.node import Node, OdomBuffer, run_service
 from topoexplore.services.mapper.core import WARM_MODULES, MapLoadError, MapperCore, ScanError
 
@@ -38,10 +33,10 @@ class MapperService:
         self.node = node
         P = node.params
         self.core = MapperCore(P.mapper, P.laser.offset)
-        self.ckpt_path = checkpoint_path(P.runtime.state_dir, "mapper")
-        self.ckpt = {"written": 0, "failed": 0, "last_error": "", "bytes": 0, "ms": 0.0,
-                     "resumed_cells": 0, "resumed_from_peer": 0, "resumed_age_s": None}
-        self.ckpt_due = 0.0  # [s] monotonic time of the next checkpoint
+        rt = P.runtime
+        self.ckpt = Checkpointer(rt.state_dir, "mapper", rt.checkpoint_every,
+                                 rt.checkpoint_max_age, log)
+        self.ckpt.stats.update(resumed_cells=0, resumed_from_peer=0)
         self.last_src = -1  # src_seq of the last scan in the map
         self.odom = OdomBuffer()
         self.pub_map = node.publisher("map")
@@ -59,18 +54,17 @@ class MapperService:
         as a peer that subscribes to ``map`` keeps it (``Node.serve_latest``): the cells that
         changed after the checkpoint. A fresh start finds neither."""
         P = self.node.params
-        ck_src, age = -1, None
-        if self.ckpt_path is not None:
+        ck_src = -1
+        arrays = self.ckpt.load(time.time())
+        if arrays is not None:
             try:
-                got = read_checkpoint(self.ckpt_path, time.time(), P.runtime.checkpoint_max_age)
-                if got is not None:
-                    arrays, age = got
-                    core = MapperCore.from_checkpoint(arrays, P.mapper, P.laser.offset)
-                    src = arrays.get("src_seq")
-                    ck_src = int(src[0]) if src is not None and src.shape == (1,) else -1
-                    self.core = core
-            except (CheckpointError, MapLoadError) as exc:
+                self.core = MapperCore.from_checkpoint(arrays, P.mapper, P.laser.offset)
+            except MapLoadError as exc:
                 log.error("checkpoint not used: %s", exc)
+                self.ckpt.stats["resumed_age_s"] = None
+            else:
+                src = arrays.get("src_seq")
+                ck_src = int(src[0]) if src is not None and src.shape == (1,) else -1
         from_peer = 0
         if P.runtime.resume_from_peers:
             try:
@@ -88,27 +82,15 @@ class MapperService:
         if not self.core.ready:
             return
         known = int((self.core.occupancy() >= 0).sum())
-        self.ckpt.update(resumed_cells=known, resumed_from_peer=from_peer,
-                         resumed_age_s=None if age is None else round(age, 3))
+        self.ckpt.stats.update(resumed_cells=known, resumed_from_peer=from_peer)
+        age = self.ckpt.stats["resumed_age_s"]
         log.info("resumed the map: %d known cells (checkpoint %s, %d cells from the peers' "
                  "last map)", known, "none" if age is None else f"{age:.1f} s old", from_peer)
 
     def save_checkpoint(self) -> None:
         t0 = time.monotonic()
-        self.ckpt_due = t0 + self.node.params.runtime.checkpoint_every
-        try:
-            arrays = {**self.core.checkpoint(), "src_seq": np.array([self.last_src], np.int64)}
-            n = write_checkpoint(self.ckpt_path, arrays, time.time())
-        except OSError as exc:
-            self.ckpt["failed"] += 1
-            self.ckpt["last_error"] = f"{exc.strerror or exc}"
-            if self.ckpt["failed"] in (1, 10, 100) or self.ckpt["failed"] % 1000 == 0:
-                log.error("checkpoint %s not written (%d so far): %s", self.ckpt_path,
-                          self.ckpt["failed"], exc.strerror or exc)
-            return
-        self.ckpt["written"] += 1
-        self.ckpt["bytes"] = n
-        self.ckpt["ms"] = round(1000.0 * (time.monotonic() - t0), 2)
+        arrays = {**self.core.checkpoint(), "src_seq": np.array([self.last_src], np.int64)}
+        self.ckpt.save(arrays, t0, time.time(), lambda: time.monotonic() - t0)
 
     def skip(self, reason: str, detail: str) -> None:
         self.skipped[reason] = self.skipped.get(reason, 0) + 1
@@ -140,7 +122,7 @@ class MapperService:
             self.last_block = block
             self.last_map = self.make_map(scan.header.stamp, scan.header.src_seq)
             self.pub_map.put(self.last_map)
-        if self.ckpt_path is not None and time.monotonic() >= self.ckpt_due:
+        if self.ckpt.due(time.monotonic()):
             self.save_checkpoint()  # after the map went out: it does not wait for the disk
 
     def make_map(self, stamp: float, src_seq: int) -> m.OccupancyGrid:
@@ -148,7 +130,7 @@ class MapperService:
 
     def state(self) -> dict:
         out: dict = {"skipped_scans": dict(self.skipped), "map": self.last_map, "grid": None,
-                     "checkpoint": dict(self.ckpt, path=str(self.ckpt_path or ""))}
+                     "checkpoint": dict(self.ckpt.stats)}
         if self.last_map is not None:
             g = self.last_map
             out["grid"] = {"width": g.width, "height": g.height, "resolution": g.resolution,
