@@ -60,10 +60,19 @@ class OdomBuffer:
         self.horizon = horizon  # [s] history kept
         self._t: list[float] = []
         self._p: list[Pose] = []
+        self._seq: int | None = None
         self._lock = threading.Lock()
 
-    def add(self, stamp: float, pose: Pose) -> None:
+    def add(self, stamp: float, pose: Pose, seq: int | None = None) -> None:
+        """One pose. ``seq`` (the message's header.seq) going back means the publisher
+        restarted: its clock may have gone back a little too (a simulator resumed from its
+        checkpoint), so the history of the one before is dropped, not mixed in."""
         with self._lock:
+            if seq is not None:
+                if self._seq is not None and seq < self._seq:
+                    self._t.clear()
+                    self._p.clear()
+                self._seq = seq
             if self._t and stamp < self._t[-1]:
                 if stamp < self._t[-1] - self.horizon:  # clock went back (sim restarted)
                     self._t.clear()
@@ -246,7 +255,7 @@ class Node:
 
     def subscribe_odom(self, buffer: OdomBuffer) -> None:
         self.subscribe("odom", on_msg=lambda o: buffer.add(
-            o.header.stamp, convert.pose_from_msg(o.pose)))
+            o.header.stamp, convert.pose_from_msg(o.pose), o.header.seq))
 
     def header(self, topic: str, stamp: float, src_seq: int, frame: str = "map") -> m.Header:
         seq = self._seq.get(topic, 0)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 import threading
 
+import pytest
+
 from topoexplore.common.node import Inbox, OdomBuffer
 
 
@@ -65,3 +67,14 @@ def test_pose_near_falls_back_to_newest():
     b.add(1.0, (1.0, 0.0, 0.0))
     assert b.pose_near(0.5) == (0.5, 0.0, 0.0)
     assert b.pose_near(5.0) == (1.0, 0.0, 0.0)  # not covered yet: newest
+
+
+def test_a_restarted_publisher_replaces_the_history():
+    """A simulator resumed from its checkpoint: its seq starts again and its clock went back
+    0.6 s. The poses of the one before are dropped, not mixed with the new ones."""
+    b = OdomBuffer()
+    for k in range(10):
+        b.add(0.1 * k, (0.1 * k, 0.0, 0.0), seq=100 + k)
+    b.add(0.3, (5.0, 5.0, 0.0), seq=0)  # the resumed one, elsewhere
+    b.add(0.4, (5.0, 5.1, 0.0), seq=1)
+    assert b.newest == 0.4 and b.pose_at(0.35) == pytest.approx((5.0, 5.05, 0.0))
