@@ -137,10 +137,73 @@ def fuzz_payloads(msg_type: type, n: int, rng: random.Random) -> list[tuple[str,
 _BAD_LINE = re.compile(r"\[(\w+)\].*bad message #")
 
 
+def flood(bus: Bus, keys: Keys, topics: list[str], per_key: int, rate: float,
+          rng: random.Random) -> dict[str, Counter]:
+    """Publish ``per_key`` refused payloads on each topic at ``rate``; the kinds sent."""
+    sent: dict[str, Counter] = {}
+    for topic in topics:
+        pub = bus.publisher(keys.topic(topic), reliable=True)
+        payloads = fuzz_payloads(TOPICS[topic], per_key, rng)
+        sent[topic] = Counter(k for k, _ in payloads)
+        t_next = time.monotonic()
+        for _kind, p in payloads:
+            pub.put(p)
+            t_next += 1.0 / rate
+            delay = t_next - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+    return sent
+
+
+def settle(bus: Bus, keys: Keys, before: dict[str, dict], expected: dict[str, int],
+           timeout: float = 30.0) -> dict[str, dict]:
+    """The services' states once each counted what it was sent (or after ``timeout``)."""
+    from topoexplore.tools.livestate import StateError, fetch_state
+
+    deadline = time.monotonic() + timeout
+    after: dict[str, dict] = {}
+    while time.monotonic() < deadline:
+        try:
+            after = {s: fetch_state(bus, keys, s) for s in SERVICE_IO}
+        except StateError:
+            time.sleep(0.5)
+            continue
+        if all(after[s]["bad_messages_total"] - before[s]["bad_messages_total"] >= expected[s]
+               for s in SERVICE_IO):
+            break
+        time.sleep(0.5)
+    return after
+
+
+def verdict(before: dict, after: dict, expected: dict[str, int], processes: dict,
+            logged: Counter, took: float) -> list[str]:
+    """Print the table per service; the checks that failed."""
+    failures = []
+    print(f"{'service':12s} {'same pid':>8s} {'restarts':>8s} {'bad counted':>12s} "
+          f"{'expected':>9s} {'log lines':>9s}")
+    for s in SERVICE_IO:
+        st, b = after.get(s) or {}, before[s]
+        counted = st.get("bad_messages_total", 0) - b["bad_messages_total"]
+        same = st.get("pid") == b["pid"]
+        restarts = processes.get(s, {}).get("restarts", 0)
+        print(f"{s:12s} {str(same):>8s} {restarts:>8d} {counted:>12d} {expected[s]:>9d} "
+              f"{logged.get(s, 0):>9d}")
+        if not same or restarts:
+            failures.append(f"{s} restarted")
+        if counted != expected[s]:
+            failures.append(f"{s} counted {counted} of {expected[s]}")
+        if st.get("callback_errors", 0):
+            failures.append(f"{s}: {st['callback_errors']} callback errors")
+        limit = len(SERVICE_IO[s][0]) * (MAX_KINDS + took / 5.0 + 2)
+        if logged.get(s, 0) > limit:
+            failures.append(f"{s} logged {logged[s]} bad-message lines (> {limit:.0f})")
+    return failures
+
+
 def main(argv: list[str] | None = None) -> int:
     from topoexplore.tools.launch.core import load_profile
     from topoexplore.tools.launch.supervisor import Supervisor, free_port, profile_path
-    from topoexplore.tools.livestate import StateError, fetch_state
+    from topoexplore.tools.livestate import fetch_state
 
     ap = argparse.ArgumentParser(prog="topoexplore bench fuzz", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -164,84 +227,41 @@ def main(argv: list[str] | None = None) -> int:
         with lock:
             lines.append(line)
 
-    subscribed = sorted({t for ins, _ in SERVICE_IO.values() for t in ins})
+    bad_cmds = Counter()
+
+    def on_cmd(_key: str, payload: bytes, _enc: str) -> None:  # the controller's commands
+        try:
+            d = msgspec.msgpack.decode(payload)
+        except msgspec.DecodeError:
+            return
+        vals = [d.get("v"), d.get("w")] if isinstance(d, dict) else []
+        if any(isinstance(v, float) and not math.isfinite(v) for v in vals):
+            bad_cmds["non-finite"] += 1
+
+    topics = sorted({t for ins, _ in SERVICE_IO.values() for t in ins})
     sup = Supervisor(load_profile(profile_path("sim")), keys, endpoint, sink=sink,
                      overrides=[f'sim.world="{a.world}"'])
-    failures: list[str] = []
     try:
         if not sup.start(ready_timeout=120):
             print("topoexplore bench fuzz: the stack did not come up:\n" + "\n".join(lines[-20:]),
                   file=sys.stderr)
             return 1
         with Bus.client(endpoint, name="fuzz") as bus:
-            bad_cmds = Counter()
-
-            def on_cmd(_key: str, payload: bytes, _enc: str) -> None:
-                try:
-                    d = msgspec.msgpack.decode(payload)
-                    vals = [d.get("v"), d.get("w")] if isinstance(d, dict) else []
-                except msgspec.DecodeError:
-                    return
-                if any(isinstance(v, float) and not math.isfinite(v) for v in vals):
-                    bad_cmds["non-finite"] += 1
-
-            # cmd_vel from the controller only: the fuzzer's own garbage is not decoded by
-            # this check when it is not a map, and its NaN ones are counted apart below
             before = {s: fetch_state(bus, keys, s) for s in SERVICE_IO}
-            sent: dict[str, Counter] = {}
             t0 = time.monotonic()
-            for topic in subscribed:
-                pubs = bus.publisher(keys.topic(topic), reliable=True)
-                payloads = fuzz_payloads(TOPICS[topic], a.per_key, rng)
-                sent[topic] = Counter(k for k, _ in payloads)
-                t_next = time.monotonic()
-                for _kind, p in payloads:
-                    pubs.put(p)
-                    t_next += 1.0 / a.rate
-                    delay = t_next - time.monotonic()
-                    if delay > 0:
-                        time.sleep(delay)
-            bus.subscribe_raw(keys.topic("cmd_vel"), on_cmd)
-            time.sleep(3.0)  # the controller's own commands after the flood
-            expected = {s: sum(sum(sent[t].values()) for t in ins) for s, (ins, _) in
-                        SERVICE_IO.items()}
-            deadline = time.monotonic() + 30
-            after: dict[str, dict] = {}
-            while time.monotonic() < deadline:
-                try:
-                    after = {s: fetch_state(bus, keys, s) for s in SERVICE_IO}
-                except StateError:
-                    time.sleep(0.5)
-                    continue
-                if all(after[s]["bad_messages_total"] - before[s]["bad_messages_total"]
-                       >= expected[s] for s in SERVICE_IO):
-                    break
-                time.sleep(0.5)
+            sent = flood(bus, keys, topics, a.per_key, a.rate, rng)
+            bus.subscribe_raw(keys.topic("cmd_vel"), on_cmd)  # after our own garbage
+            time.sleep(3.0)
+            expected = {s: sum(sum(sent[t].values()) for t in ins)
+                        for s, (ins, _) in SERVICE_IO.items()}
+            after = settle(bus, keys, before, expected)
             took = time.monotonic() - t0
-        table = sup.table()["processes"]
         print(f"{sum(sum(c.values()) for c in sent.values())} malformed messages on "
-              f"{len(subscribed)} keys in {took:.0f} s (kinds: "
+              f"{len(topics)} keys in {took:.0f} s (kinds: "
               f"{', '.join(f'{k} {v}' for k, v in sum(sent.values(), Counter()).items())})")
         with lock:
             logged = Counter(mt.group(1) for ln in lines if (mt := _BAD_LINE.search(ln)))
-        print(f"{'service':12s} {'same pid':>8s} {'restarts':>8s} {'bad counted':>12s} "
-              f"{'expected':>9s} {'log lines':>9s}")
-        for s in SERVICE_IO:
-            st, b = after.get(s) or {}, before[s]
-            counted = st.get("bad_messages_total", 0) - b["bad_messages_total"]
-            same = st.get("pid") == b["pid"]
-            restarts = table.get(s, {}).get("restarts", 0)
-            print(f"{s:12s} {str(same):>8s} {restarts:>8d} {counted:>12d} {expected[s]:>9d} "
-                  f"{logged.get(s, 0):>9d}")
-            if not same or restarts:
-                failures.append(f"{s} restarted")
-            if counted != expected[s]:
-                failures.append(f"{s} counted {counted} of {expected[s]}")
-            if st.get("callback_errors", 0):
-                failures.append(f"{s}: {st['callback_errors']} callback errors")
-            limit = len(SERVICE_IO[s][0]) * (MAX_KINDS + took / 5.0 + 2)
-            if logged.get(s, 0) > limit:
-                failures.append(f"{s} logged {logged[s]} bad-message lines (> {limit:.0f})")
+        failures = verdict(before, after, expected, sup.table()["processes"], logged, took)
         if bad_cmds:
             failures.append(f"{bad_cmds['non-finite']} cmd_vel with NaN/Inf after the flood")
         print(f"cmd_vel with NaN or Inf from the stack: {bad_cmds['non-finite']}")
