@@ -15,6 +15,7 @@ import time
 import pytest
 
 from tests.conftest import REPO
+from tests.test_supervisor import wait_for
 from topoexplore.common import messages as m
 from topoexplore.common.bus import CREDENTIALS_ENV, USERS_ENV, Bus, BusError
 from topoexplore.common.keys import Keys
@@ -40,15 +41,6 @@ def _client(monkeypatch, endpoint: str, cred: str | None) -> Bus:
     return Bus.client(endpoint, name="auth-test")
 
 
-def _wait(cond, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.1)
-    return False
-
-
 def test_secure_router_keeps_strangers_out(procs, tmp_path, namespace, monkeypatch):
     users = tmp_path / "users.txt"
     users.write_text("robot:robot-pw\nviewer:viewer-pw\nteleop:teleop-pw\n")
@@ -60,7 +52,7 @@ def test_secure_router_keeps_strangers_out(procs, tmp_path, namespace, monkeypat
                  str(CONFIG))
     monkeypatch.setenv(CREDENTIALS_ENV, robot)  # the supervisor and its children: "robot"
     keys = Keys(namespace, "robot1")
-    _wait(lambda: _port_open(endpoint), 30)
+    wait_for(lambda: _port_open(endpoint), 30)
     profile = dataclasses.replace(load_profile(profile_path("sim")), router=False)
     sup = Supervisor(profile, keys, endpoint, overrides=['sim.world="paper-room"'])
     try:
@@ -79,7 +71,7 @@ def test_secure_router_keeps_strangers_out(procs, tmp_path, namespace, monkeypat
                     return 0
                 return st["processed"]
 
-            assert _wait(lambda: mapped() > 20, 60), "the stack does not run through the router"
+            assert wait_for(lambda: mapped() > 20, 60), "the stack does not run through the router"
 
             # strangers: no credentials, a wrong password
             for cred in (None, _creds(tmp_path, "viewer", "not-the-password")):
@@ -91,7 +83,7 @@ def test_secure_router_keeps_strangers_out(procs, tmp_path, namespace, monkeypat
                 maps: list[int] = []
                 vw.subscribe(keys.topic("map"), m.OccupancyGrid,
                              lambda msg, k: maps.append(msg.header.seq))
-                assert _wait(lambda: bool(maps), 10), "the viewer cannot read the map"
+                assert wait_for(lambda: bool(maps), 10), "the viewer cannot read the map"
                 assert fetch_state(vw, keys, "sim", timeout=2.0)["service"] == "sim"
                 spoof = m.Twist(header=m.Header(seq=987654321, stamp=0.0, frame="base_link",
                                                 src_seq=-1), v=100.0, w=0.0)
@@ -99,7 +91,7 @@ def test_secure_router_keeps_strangers_out(procs, tmp_path, namespace, monkeypat
                 done = vw.publisher(keys.topic("explore/status"), m.ExploreStatus,
                                     reliable=True)
                 # it sees the subscribers, so its puts go out and the router drops them
-                assert _wait(lambda: pub.matched and done.matched, 5)
+                assert wait_for(lambda: pub.matched and done.matched, 5)
                 for _ in range(5):
                     pub.put(spoof)
                     done.put(m.ExploreStatus(header=m.Header(seq=987654321, stamp=0.0,
@@ -124,7 +116,7 @@ def test_secure_router_keeps_strangers_out(procs, tmp_path, namespace, monkeypat
                                                      frame="base_link", src_seq=-1),
                                      v=0.0, w=0.0))
                     time.sleep(0.1)
-                assert _wait(lambda: any(m.decode(c, m.Twist).header.seq >= 123456789
+                assert wait_for(lambda: any(m.decode(c, m.Twist).header.seq >= 123456789
                                          for c in list(cmds)), 5), "teleop cannot drive"
                 time.sleep(1.0)
                 assert odoms and not tmaps
