@@ -111,10 +111,6 @@ class Checkpointer:
         self.stats: dict = {"path": str(self.path or ""), "written": 0, "failed": 0,
                             "last_error": "", "bytes": 0, "ms": 0.0, "resumed_age_s": None}
 
-    @property
-    def on(self) -> bool:
-        return self.path is not None
-
     def load(self, now: float) -> dict[str, np.ndarray] | None:
         """This service's recent checkpoint, or None (none, too old, unreadable: logged)."""
         if self.path is None:

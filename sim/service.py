@@ -127,7 +127,9 @@ class SimService:
         cmd = self.node.inbox.latest.get("cmd_vel")
         if cmd is not None and cmd.header.seq != self.applied_cmd_seq:
             self.applied_cmd_seq = cmd.header.seq
-            if not self.core.command(cmd.v, cmd.w, cmd.header.stamp):
+            n = self.core.stale_cmds
+            if not self.core.command(cmd.v, cmd.w, cmd.header.stamp) \
+                    and (n + 1 in (1, 10, 100) or (n + 1) % 1000 == 0):  # counted, not echoed
                 log.warning("stale cmd_vel #%d dropped: stamp %.3f s, sim time %.3f s "
                             "(%d so far)", cmd.header.seq, cmd.header.stamp, self.core.time,
                             self.core.stale_cmds)

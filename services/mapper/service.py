@@ -8,8 +8,9 @@ Bad or inconsistent scans (wrong beam count, pose missing, rejected by the core)
 and skipped. The state queryable answers with a summary and the full current map.
 
 With ``runtime.state_dir`` set, the mapper writes a checkpoint of its grid there every
-``runtime.checkpoint_every`` seconds (``common.checkpoint``), and a restarted mapper resumes
-from it: the map keeps every cell but those of the scans after the last checkpoint.
+``runtime.checkpoint_every`` seconds (``common.checkpoint``). A restarted mapper resumes from
+it, then takes the cells that changed after it from its last published map, which planner
+and reliability keep (:meth:`MapperService.resume`).
 """
 
 from __future__ import annotations
