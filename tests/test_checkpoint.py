@@ -161,10 +161,12 @@ def test_bench_faults_cells_lost_and_stand_still():
     import threading
 
     w.lock = threading.Lock()
-    w.moves = [(t / 10, 0.2 if t < 13 else 0.0) for t in range(10, 40)]
+    w.moves = [(t / 10, 0.2 if t < 13 else 0.0, 0.0) for t in range(10, 40)]
     assert w.stood_still_after(1.0) == pytest.approx(0.3)
-    w.moves = [(t / 10, 0.2) for t in range(10, 40)]
+    w.moves = [(t / 10, 0.2, 0.0) for t in range(10, 40)]
     assert w.stood_still_after(1.0) is None
+    w.moves = [(t / 10, 0.0, 0.5 if t < 20 else 0.0) for t in range(10, 40)]  # turning
+    assert w.stood_still_after(1.0) == pytest.approx(1.0)
 
 
 def test_bench_faults_refuses_unknown_faults():

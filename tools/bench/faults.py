@@ -12,7 +12,8 @@ in 15-45 % of the fault-free run's, from ``--seed``):
   Map cells lost: cells known just before the kill and unknown in the mapper's first map after
   it is working again.
 - ``stop:SERVICE``: SIGSTOP for ``--stop-for`` s (wall), then SIGCONT. Stand-still: sim time
-  from the SIGSTOP until the robot's true speed stays below 1 cm/s (None: it did not stop).
+  from the SIGSTOP until the robot stays still, below 1 cm/s and 0.02 rad/s, for 0.5 s
+  (None: it did not stop).
 - ``router``: SIGKILL of the router; the supervisor restarts it. Recovery: wall time until
   every service is up again and the sim time moves on.
 
@@ -54,8 +55,8 @@ class Watch:
     def __init__(self, bus: Bus, keys: Keys):
         self.sim_time = 0.0  # [s]
         self.pose: tuple[float, float] | None = None
-        self.moves: list[tuple[float, float]] = []  # (sim time [s], speed [m/s])
-        self._last: tuple[float, float, float] | None = None
+        self.moves: list[tuple[float, float, float]] = []  # (sim time [s], v [m/s], |w| [rad/s])
+        self._last: tuple[float, float, float, float] | None = None
         self.lock = threading.Lock()
         bus.subscribe(keys.topic("sim/status"), m.SimStatus, self._on_status)
         bus.subscribe(keys.topic("truth"), m.Pose, self._on_truth)
@@ -64,21 +65,24 @@ class Watch:
         self.sim_time = msg.sim_time
 
     def _on_truth(self, msg: m.Pose, _k: str) -> None:
-        t, x, y = msg.header.stamp, msg.pose.x, msg.pose.y
+        t, x, y, th = msg.header.stamp, msg.pose.x, msg.pose.y, msg.pose.theta
         with self.lock:
             if self._last is not None and t > self._last[0]:
-                v = math.hypot(x - self._last[1], y - self._last[2]) / (t - self._last[0])
-                self.moves.append((t, v))
-            self._last = (t, x, y)
+                dt = t - self._last[0]
+                dth = math.remainder(th - self._last[3], 2 * math.pi)
+                self.moves.append((t, math.hypot(x - self._last[1], y - self._last[2]) / dt,
+                                   abs(dth) / dt))
+            self._last = (t, x, y, th)
             self.sim_time = max(self.sim_time, t)
 
     def stood_still_after(self, t0: float, hold: float = 0.5) -> float | None:
-        """Sim time [s] from t0 until the speed stayed below 1 cm/s for ``hold`` s."""
+        """Sim time [s] from t0 until the robot stayed still (below 1 cm/s and 0.02 rad/s:
+        turning in place is moving) for ``hold`` s."""
         with self.lock:
-            moves = [(t, v) for t, v in self.moves if t >= t0]
+            moves = [(t, v, w) for t, v, w in self.moves if t >= t0]
         still_since = None
-        for t, v in moves:
-            if v < 0.01:
+        for t, v, w in moves:
+            if v < 0.01 and w < 0.02:
                 still_since = t if still_since is None else still_since
                 if t - still_since >= hold:
                     return max(0.0, still_since - t0)
