@@ -436,6 +436,15 @@ def stop_on_signals(*actions: Callable[[], None],
     return restore
 
 
+def ignore_further_signals(signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> None:
+    """The process is stopping: later SIGINT / SIGTERM (systemd's and the supervisor's, sent
+    back to back) have nothing left to do. Python's finalization puts a Python-level handler
+    back to the default, so a signal landing while the process exits killed it (exit -2
+    instead of 0, seen in CI); SIG_IGN is left alone. Main thread only."""
+    for sig in signals:
+        signal.signal(sig, signal.SIG_IGN)
+
+
 def _ignore_here(signum: int, frame: Any) -> None:
     """The Python-level handler: nothing (the wakeup pipe carries the signal)."""
 
@@ -494,6 +503,7 @@ def run_service(service: str, build: Callable[[Node], Callable[[], None]],
                 log.exception("%s: error in step: %s", service, exc)
                 time.sleep(0.05)
     finally:
+        ignore_further_signals()
         node.close()
     log.info("%s stopped", service)
     return 0

@@ -11,7 +11,7 @@ import threading
 
 from topoexplore.common.bus import Bus, BusError, init_logging
 from topoexplore.common.keys import DEFAULT_ENDPOINT
-from topoexplore.common.node import stop_on_signals
+from topoexplore.common.node import ignore_further_signals, stop_on_signals
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -31,6 +31,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         stop.wait()
     finally:
+        ignore_further_signals()
         bus.close()
     return 0
 
