@@ -449,3 +449,37 @@ _VALIDATORS = {
     ExploreStatus: _v_status,
     SimStatus: _v_sim,
 }
+
+
+class SeqGaps:
+    """Messages lost on the way, by ``header.seq`` (each publisher counts from 0 per key).
+
+    A jump forward counts the messages skipped (``gaps``): dropped under congestion, too big
+    for the transport, or lost while a link was down. A seq back to 0 is a restarted publisher
+    (``restarts``); any other step back (a second publisher on the key, a resumed one) starts
+    the count again. The first message of a key is not a gap: what came before it was sent
+    before this reader listened (``first_seq``).
+    """
+
+    def __init__(self) -> None:
+        self._next: dict[str, int] = {}
+        self.gaps: dict[str, int] = {}
+        self.restarts: dict[str, int] = {}
+        self.first_seq: dict[str, int] = {}
+
+    def check(self, key: str, seq: int) -> int:
+        """Record one message; returns how many it shows lost just before it."""
+        want = self._next.get(key)
+        self._next[key] = seq + 1
+        if want is None:
+            self.first_seq[key] = seq
+        elif seq > want:
+            self.gaps[key] = self.gaps.get(key, 0) + seq - want
+            return seq - want
+        elif seq == 0 and want > 0:
+            self.restarts[key] = self.restarts.get(key, 0) + 1
+        return 0
+
+    @property
+    def total(self) -> int:
+        return sum(self.gaps.values())

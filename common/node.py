@@ -136,7 +136,8 @@ class Inbox:
         self.latest: dict[str, Any] = {}
         self.received: dict[str, int] = {}
         self._queues: dict[str, deque] = {}
-        self.dropped: dict[str, int] = {}
+        self.dropped: dict[str, int] = {}  # conflated: a newer message replaced it unread
+        self.seqs = m.SeqGaps()  # lost on the way (by header.seq), publisher restarts
 
     def make_queue(self, topic: str, maxlen: int) -> None:
         with self.cv:
@@ -146,12 +147,20 @@ class Inbox:
         with self.cv:
             self.latest[topic] = msg
             self.received[topic] = self.received.get(topic, 0) + 1
+            hdr = getattr(msg, "header", None)
+            if hdr is not None:
+                self.seqs.check(topic, hdr.seq)
             q = self._queues.get(topic)
             if q is not None:
                 if q.maxlen is not None and len(q) == q.maxlen:
                     self.dropped[topic] = self.dropped.get(topic, 0) + 1
                 q.append(msg)
             self.cv.notify_all()
+
+    def seq_counts(self) -> dict[str, Any]:
+        with self.cv:
+            return {"lost": dict(self.seqs.gaps), "lost_total": self.seqs.total,
+                    "publisher_restarts": dict(self.seqs.restarts)}
 
     def notify(self) -> None:
         with self.cv:
@@ -376,6 +385,9 @@ class Node:
             "callback_errors": self.bus.callback_errors,
             "received": dict(self.inbox.received),
             "dropped": dict(self.inbox.dropped),
+            # messages that never arrived, by header.seq (congestion drops, a link down, a
+            # payload the transport refused), and publishers seen restarting
+            **self.inbox.seq_counts(),
             "params": params_to_dict(self.params),
         }
         for fn in self._state_fns:

@@ -7,6 +7,7 @@ import time
 import msgpack
 import pytest
 
+from topoexplore.common import messages as m
 from topoexplore.common.bus import Bus
 from topoexplore.common.keys import Keys
 from topoexplore.tools.livestate import fetch_state
@@ -58,3 +59,32 @@ def test_garbage_on_every_key_is_counted_and_survived(procs, endpoint, namespace
         assert state["last_bad_message"]
         assert state["pid"] == before["pid"] and p.poll() is None  # still the same process
         assert state["callback_errors"] == 0
+
+
+def test_messages_lost_on_the_way_are_counted_by_seq(procs, endpoint, namespace):
+    """A service counts the messages that never reached it (header.seq jumps) per topic and
+    reports them in its state; a restarted publisher (seq back to 0) is not a loss."""
+    procs.router(endpoint)
+    p = procs.python("-m", "topoexplore.services.mapper.service", "--connect", endpoint,
+                     "--namespace", namespace)
+    keys = Keys(namespace, "robot1")
+    with Bus.client(endpoint, wait_for_router=True) as bus:
+        deadline = time.monotonic() + 60
+        while keys.alive("mapper") not in bus.alive(keys.alive_all()):
+            assert p.poll() is None, p.stdout.read()
+            assert time.monotonic() < deadline, "service did not come up"
+            time.sleep(0.05)
+        pub = bus.publisher(keys.topic("odom"), reliable=True)
+        for seq in (0, 1, 2, 6, 7, 0, 1):  # 3, 4, 5 lost; then the publisher restarted
+            pub.put(m.Odometry(header=m.Header(seq=seq, stamp=0.1 * seq, frame="odom",
+                                               src_seq=-1),
+                               pose=m.Pose2D(x=0.0, y=0.0, theta=0.0)))
+        deadline = time.monotonic() + 10
+        while True:
+            state = fetch_state(bus, keys, "mapper")
+            if state["received"].get("odom", 0) >= 7 or time.monotonic() > deadline:
+                break
+            time.sleep(0.1)
+        assert state["lost"] == {"odom": 3} and state["lost_total"] == 3, state
+        assert state["publisher_restarts"] == {"odom": 1}
+        assert state["bad_messages_total"] == 0 and p.poll() is None

@@ -140,3 +140,16 @@ def test_a_bad_polyline_names_its_edge():
         raw = m.encode(_mut(S["TopoGraph"], edges=[good, bad, good]))
         with pytest.raises(m.MessageError, match=text):
             m.decode(raw, m.TopoGraph)
+
+
+def test_seq_gaps_counts_jumps_restarts_and_not_the_first_message():
+    g = m.SeqGaps()
+    for seq in (7, 8, 9, 12, 13):  # joined at 7: not lost; 10 and 11 lost
+        g.check("scan", seq)
+    assert g.gaps == {"scan": 2} and g.first_seq == {"scan": 7} and g.total == 2
+    assert g.check("scan", 0) == 0 and g.restarts == {"scan": 1}  # restarted publisher
+    assert g.check("scan", 3) == 2 and g.total == 4
+    g.check("scan", 1)  # another step back (a second publisher): the count starts again
+    assert g.check("scan", 2) == 0 and g.total == 4
+    g.check("odom", 0)
+    assert g.gaps.get("odom") is None

@@ -112,13 +112,10 @@ class Recorder:
         self._scene = FoxScene(laser_offset, p_reliable) if foxglove else None
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
-        self._seq: dict[str, int] = {}  # next expected header.seq per raw key
+        self.seqs = m.SeqGaps()  # messages missing by header.seq, publisher restarts
         self._q: queue.SimpleQueue[tuple[str, bytes, int] | None] = queue.SimpleQueue()
         self.counts: Counter[str] = Counter()  # raw messages written per key
         self.fox_counts: Counter[str] = Counter()
-        self.gaps: Counter[str] = Counter()  # messages missing by header.seq
-        self.restarts: Counter[str] = Counter()
-        self.first_seq: dict[str, int] = {}  # header.seq of each key's first message
         self.bad: Counter[str] = Counter()  # raw messages that failed validation (kept raw)
         self.errors = 0  # conversion failures (logged once each kind)
         self.last_error = ""
@@ -161,8 +158,8 @@ class Recorder:
         return {"path": str(self.path), "messages": sum(self.counts.values()),
                 "per_key": dict(sorted(self.counts.items())),
                 "foxglove": dict(sorted(self.fox_counts.items())),
-                "gaps": sum(self.gaps.values()), "gaps_per_key": dict(self.gaps),
-                "restarts": dict(self.restarts), "first_seq": dict(self.first_seq),
+                "gaps": self.seqs.total, "gaps_per_key": dict(self.seqs.gaps),
+                "restarts": dict(self.seqs.restarts), "first_seq": dict(self.seqs.first_seq),
                 "bad": dict(self.bad),
                 "errors": self.errors, "last_error": self.last_error, "bytes": self.bytes,
                 "max_backlog": self.max_backlog}
@@ -209,7 +206,7 @@ class Recorder:
         self.counts[key] += 1
         self.bytes += len(payload)
         if hdr is not None:
-            self._check_seq(key, hdr.seq)
+            self.seqs.check(key, hdr.seq)
         topic = topic_of(key, self.prefix)
         if self._scene is None or msg_type is None or topic is None:
             return
@@ -228,16 +225,6 @@ class Recorder:
                     else fmsg.encode())
             self._w.add_message(fcid, log_time=log_ns, data=data, publish_time=pub_ns)
             self.fox_counts[fox_topic] += 1
-
-    def _check_seq(self, key: str, seq: int) -> None:
-        want = self._seq.get(key)
-        if want is None:  # the first message of a key: what came before was not recorded,
-            self.first_seq[key] = seq  # not lost (a recorder may join a running stack)
-        elif seq == 0 and want > 0:
-            self.restarts[key] += 1
-        elif seq > want:
-            self.gaps[key] += seq - want
-        self._seq[key] = seq + 1
 
 
 # --- reading back ---------------------------------------------------------------------------

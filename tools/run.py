@@ -241,6 +241,7 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
                 mon: Monitor, sim: m.SimStatus | None, wall: float, startup: float,
                 coverage: float, coverage_free: float, accuracy: float, restarts: int,
                 bad_messages: int, p_reliable: float, lockstep: bool,
+                lost_messages: dict | None = None,
                 planner: dict | None = None, warmup: float | None = None,
                 first_motion: float | None = None,
                 memory: dict | None = None, cpu: dict | None = None,
@@ -279,6 +280,11 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
         "targets": len(mon.targets),
         "restarts": restarts,
         "bad_messages": bad_messages,
+        # messages that never reached a service, by header.seq ({service: {topic: n}}):
+        # dropped under congestion (real time only: lockstep publishers block instead), lost
+        # while a link or the router was down, refused by the transport
+        "lost_messages": lost_messages or {},
+        "lost_messages_total": sum(sum(v.values()) for v in (lost_messages or {}).values()),
         "lockstep_timeouts": sim.lockstep_timeouts if sim else 0,
         "watchdog_stops": sim.watchdog_stops if sim else 0,
         # cmd_vel the sim dropped as stale by stamp / clipped to the robot's limits
@@ -360,18 +366,23 @@ def _checkpoints(bus: Bus, keys: Keys) -> dict:
     return out
 
 
-def _bad_message_total(bus: Bus, keys: Keys) -> int:
+def _message_counts(bus: Bus, keys: Keys) -> tuple[int, dict[str, dict[str, int]]]:
+    """The services' bad messages (total) and messages lost on the way to each service, by
+    header.seq ({service: {topic: n}}, only where some were lost)."""
     from topoexplore.common.keys import SERVICES
     from topoexplore.tools.livestate import StateError, fetch_state
 
-    total = 0
+    total, lost = 0, {}
     for s in SERVICES:
         try:
             st = fetch_state(bus, keys, s, timeout=1.0)
-            total += int(st.get("bad_messages_total", 0))
         except StateError:
-            pass
-    return total
+            continue
+        total += int(st.get("bad_messages_total", 0))
+        per = {k: int(v) for k, v in (st.get("lost") or {}).items() if v}
+        if per:
+            lost[s] = per
+    return total, lost
 
 
 def write_outputs(out: Path, report: dict, mon: Monitor, truth: Truth, p: Params,
@@ -602,6 +613,7 @@ class Outcome:
     sim: m.SimStatus | None = None  # the last sim status (the one of the final scan if done)
     restarts: int = 0
     bad: int = 0  # bad messages counted by the services
+    lost: dict | None = None  # messages lost on the way to each service, by header.seq
     planner: dict | None = None  # the planner's robustness counters (planner_robustness)
     warmup: float | None = None  # [s] wall time of the kernel warm-up step (topoexplore warmup)
     first_motion: float | None = None  # [s] wall time from the command's start to first motion
@@ -764,7 +776,8 @@ class StackRun:
         out.warmup = self.sup.warm_s
         out.memory = self.sup.memory() or None
         out.cpu = self.sup.cpu() or None
-        out.bad = _bad_message_total(self.bus, self.setup.keys) if out.startup else 0
+        if out.startup:
+            out.bad, out.lost = _message_counts(self.bus, self.setup.keys)
         out.planner = _planner_robustness(self.bus, self.setup.keys) if out.startup else None
         out.checkpoints = _checkpoints(self.bus, self.setup.keys) if out.startup else None
 
@@ -787,6 +800,7 @@ def write_results(args: argparse.Namespace, setup: Setup, truth: Truth, mon: Mon
                              sim=sim, wall=outcome.wall, startup=outcome.startup,
                              coverage=coverage, coverage_free=coverage_free, accuracy=accuracy,
                              restarts=outcome.restarts, bad_messages=outcome.bad,
+                             lost_messages=outcome.lost,
                              p_reliable=params.reliability.p_reliable, lockstep=args.lockstep,
                              planner=outcome.planner, warmup=outcome.warmup,
                              first_motion=outcome.first_motion, memory=outcome.memory,
