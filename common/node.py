@@ -15,9 +15,11 @@ from __future__ import annotations
 import argparse
 import bisect
 import gc
+import heapq
 import logging
 import math
 import os
+import random
 import signal
 import sys
 import threading
@@ -37,6 +39,7 @@ from topoexplore.common.keys import DEFAULT_ENDPOINT, TOPICS, Keys
 from topoexplore.common.params import (
     ParamError,
     Params,
+    RuntimeParams,
     load_params,
     params_to_dict,
     with_override,
@@ -48,6 +51,9 @@ log = logging.getLogger("topoexplore")
 LOG_FORMAT = "%(asctime)s.%(msecs)03d %(levelname)s %(name)s: %(message)s"
 LOG_DATEFMT = "%Y-%m-%dT%H:%M:%S"
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
+# fault injection on a service's inputs, settable while it runs (``keys set``, bench faults)
+CHAOS_LIVE = ("runtime.chaos_topics", "runtime.chaos_drop", "runtime.chaos_delay",
+              "runtime.chaos_seed")
 
 
 # --- pure helpers (unit-tested without a bus) ------------------------------------------------
@@ -189,6 +195,79 @@ class Inbox:
         return msg.header.src_seq if msg is not None else -2
 
 
+class Chaos:
+    """Fault injection on a service's inputs (``runtime.chaos_*``, ``bench faults``): drops
+    a share of the incoming messages of chosen topics (seeded) and holds the others back for
+    a delay, in their order, on a thread of its own. A dropped message is never delivered,
+    so the service counts it as lost by seq like any loss on the way."""
+
+    def __init__(self, rt: RuntimeParams):
+        self.dropped: dict[str, int] = {}
+        self.delayed: dict[str, int] = {}
+        self._cv = threading.Condition()
+        self._heap: list[tuple[float, int, Callable[[], None]]] = []
+        self._n = 0
+        self._thread: threading.Thread | None = None
+        self._closed = False
+        self.configure(rt)
+
+    def configure(self, rt: RuntimeParams) -> None:
+        with self._cv:
+            self.topics = frozenset(rt.chaos_topics)
+            self.drop, self.delay = rt.chaos_drop, rt.chaos_delay
+            self._rng = random.Random(rt.chaos_seed)
+        if self.topics:
+            log.warning("chaos on %s: drop %.0f %%, delay %.3f s", ",".join(sorted(self.topics)),
+                        100 * self.drop, self.delay)
+        elif self.dropped or self.delayed:
+            log.warning("chaos off")
+
+    def admit(self, topic: str, deliver: Callable[[], None]) -> None:
+        """Deliver now, later or never."""
+        if topic not in self.topics:
+            deliver()
+            return
+        with self._cv:
+            if self._rng.random() < self.drop:
+                self.dropped[topic] = self.dropped.get(topic, 0) + 1
+                return
+            if self.delay <= 0.0:
+                now = True
+            else:
+                now = False
+                self.delayed[topic] = self.delayed.get(topic, 0) + 1
+                self._n += 1
+                heapq.heappush(self._heap, (time.monotonic() + self.delay, self._n, deliver))
+                if self._thread is None:
+                    self._thread = threading.Thread(target=self._loop, name="chaos", daemon=True)
+                    self._thread.start()
+                self._cv.notify()
+        if now:
+            deliver()
+
+    def _loop(self) -> None:
+        while True:
+            with self._cv:
+                while not self._closed and (
+                        not self._heap or self._heap[0][0] > time.monotonic()):
+                    self._cv.wait(self._heap[0][0] - time.monotonic() if self._heap else None)
+                if self._closed:
+                    return
+                deliver = heapq.heappop(self._heap)[2]
+            deliver()
+
+    def counts(self) -> dict[str, Any]:
+        with self._cv:
+            return {"chaos": {"topics": sorted(self.topics), "dropped": dict(self.dropped),
+                              "delayed": dict(self.delayed)}} if (
+                self.topics or self.dropped or self.delayed) else {}
+
+    def close(self) -> None:
+        with self._cv:
+            self._closed = True
+            self._cv.notify_all()
+
+
 # --- the node ----------------------------------------------------------------------------------
 
 
@@ -242,6 +321,8 @@ class Node:
         self.bus = Bus.client(params.bus.connect, name=service, config_file=zenoh_config,
                               wait_for_router=True)
         self._seq: dict[str, int] = {}
+        self.chaos = Chaos(params.runtime)
+        self.add_live(CHAOS_LIVE, lambda p: self.chaos.configure(p.runtime))
 
     # -- wiring ---------------------------------------------------------------------------
     def publisher(self, topic: str, reliable: bool | None = None) -> Publisher:
@@ -255,10 +336,13 @@ class Node:
         if queue:
             self.inbox.make_queue(topic, 10_000 if self.lockstep else 1)
 
-        def cb(msg: Any, key: str) -> None:
+        def deliver(msg: Any) -> None:
             if on_msg is not None:
                 on_msg(msg)
             self.inbox.put(topic, msg)
+
+        def cb(msg: Any, key: str) -> None:
+            self.chaos.admit(topic, lambda: deliver(msg))
 
         self.bus.subscribe(self.keys.topic(topic), TOPICS[topic], cb)
 
@@ -388,6 +472,7 @@ class Node:
             # messages that never arrived, by header.seq (congestion drops, a link down, a
             # payload the transport refused), and publishers seen restarting
             **self.inbox.seq_counts(),
+            **self.chaos.counts(),
             "params": params_to_dict(self.params),
         }
         for fn in self._state_fns:
@@ -405,6 +490,7 @@ class Node:
     def close(self) -> None:
         self.stop.set()
         self.inbox.notify()
+        self.chaos.close()
         self.bus.close()
 
 

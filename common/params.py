@@ -28,6 +28,7 @@ from topoexplore.common.keys import (
     DEFAULT_ENDPOINT,
     DEFAULT_NAMESPACE,
     DEFAULT_ROBOT,
+    TOPICS,
     check_endpoint,
     check_segment,
 )
@@ -153,6 +154,18 @@ class RuntimeParams(_P):
     checkpoint_max_age: Pos = 300.0  # [s] an older checkpoint is an earlier session's: ignored
     resume_from_peers: bool = True  # a restarted mapper takes its last map back from a peer
     #   that kept it (planner, reliability): the cells after its checkpoint, or all of them
+    # fault injection on this service's inputs (``bench faults``; can change while it runs):
+    chaos_topics: list[str] = msgspec.field(default_factory=list)  # topics whose incoming
+    #   messages are dropped / delayed ([]: none)
+    chaos_drop: Annotated[float, Meta(ge=0.0, le=1.0)] = 0.0  # share of them dropped (seeded)
+    chaos_delay: Annotated[float, Meta(ge=0.0, le=60.0)] = 0.0  # [s] wall time each of the
+    #   others is held back (order kept)
+    chaos_seed: Annotated[int, Meta(ge=0, le=2**63 - 1)] = 0
+
+    def __post_init__(self) -> None:
+        _need(len(self.chaos_topics) <= 32, "at most 32 chaos_topics")
+        for t in self.chaos_topics:
+            _need(t in TOPICS, f"chaos_topics: {t!r} is not a topic ({', '.join(TOPICS)})")
 
 
 class BusParams(_P):

@@ -88,3 +88,59 @@ def test_messages_lost_on_the_way_are_counted_by_seq(procs, endpoint, namespace)
         assert state["lost"] == {"odom": 3} and state["lost_total"] == 3, state
         assert state["publisher_restarts"] == {"odom": 1}
         assert state["bad_messages_total"] == 0 and p.poll() is None
+
+
+def test_chaos_set_live_drops_inputs_that_then_count_as_lost(procs, endpoint, namespace):
+    """runtime.chaos_* set through the params queryable while the service runs (as bench
+    faults does): the dropped messages are counted by the chaos and, by seq, as lost."""
+    from topoexplore.tools.bench.faults import set_param
+
+    procs.router(endpoint)
+    p = procs.python("-m", "topoexplore.services.mapper.service", "--connect", endpoint,
+                     "--namespace", namespace)
+    keys = Keys(namespace, "robot1")
+
+    def odom(seq: int) -> m.Odometry:
+        return m.Odometry(header=m.Header(seq=seq, stamp=0.1 * seq, frame="odom", src_seq=-1),
+                          pose=m.Pose2D(x=0.0, y=0.0, theta=0.0))
+
+    def wait_received(n: int) -> dict:
+        deadline = time.monotonic() + 10
+        while True:
+            st = fetch_state(bus, keys, "mapper")
+            if st["received"].get("odom", 0) >= n or time.monotonic() > deadline:
+                return st
+            time.sleep(0.1)
+
+    with Bus.client(endpoint, wait_for_router=True) as bus:
+        deadline = time.monotonic() + 60
+        while keys.alive("mapper") not in bus.alive(keys.alive_all()):
+            assert p.poll() is None, p.stdout.read()
+            assert time.monotonic() < deadline, "service did not come up"
+            time.sleep(0.05)
+        pub = bus.publisher(keys.topic("odom"), reliable=True)
+        for seq in (0, 1):
+            pub.put(odom(seq))
+        wait_received(2)
+        assert set_param(bus, keys, "mapper", 'runtime.chaos_topics=["odom"]') is None
+        assert set_param(bus, keys, "mapper", "runtime.chaos_drop=1.0") is None
+        assert "not a topic" in set_param(bus, keys, "mapper", 'runtime.chaos_topics=["x"]')
+        deadline = time.monotonic() + 10  # applied by the worker between two steps
+        while fetch_state(bus, keys, "mapper")["params"]["runtime"]["chaos_drop"] != 1.0:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        for seq in (2, 3, 4):
+            pub.put(odom(seq))
+        deadline = time.monotonic() + 10
+        while fetch_state(bus, keys, "mapper").get("chaos", {}).get("dropped") != {"odom": 3}:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        assert set_param(bus, keys, "mapper", "runtime.chaos_topics=[]") is None
+        deadline = time.monotonic() + 10
+        while fetch_state(bus, keys, "mapper")["params"]["runtime"]["chaos_topics"]:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        pub.put(odom(5))
+        st = wait_received(3)
+        assert st["received"]["odom"] == 3 and st["lost"] == {"odom": 3}, st
+        assert p.poll() is None

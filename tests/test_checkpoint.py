@@ -234,3 +234,14 @@ def test_a_service_killed_mid_run_resumes(tmp_path, endpoint, namespace, service
         # one clock and one path: at most checkpoint_every (1 s of sim time) of motion lost
         assert report["path_length_m"] >= st["path_length"] - 0.3, (report, st)
         assert report["sim_time_s"] > st["sim_time"]
+
+
+def test_bench_faults_parses_chaos_faults():
+    from topoexplore.tools.bench.faults import DEFAULT_FAULTS, parse_fault
+
+    assert all(parse_fault(f) is None for f in DEFAULT_FAULTS)
+    assert parse_fault("drop:mapper:scan:0.3") is None
+    assert parse_fault("delay:controller:explore/status:0.5") is None  # a topic with a slash
+    for bad in ("drop:mapper:scan:0", "drop:mapper:scan:1.5", "drop:mapper:nope:0.3",
+                "delay:nobody:plan:0.3", "delay:controller:plan:x", "drop:mapper"):
+        assert parse_fault(bad), bad

@@ -78,3 +78,48 @@ def test_a_restarted_publisher_replaces_the_history():
     b.add(0.3, (5.0, 5.0, 0.0), seq=0)  # the resumed one, elsewhere
     b.add(0.4, (5.0, 5.1, 0.0), seq=1)
     assert b.newest == 0.4 and b.pose_at(0.35) == pytest.approx((5.0, 5.05, 0.0))
+
+
+def _rt(**kw):
+    from topoexplore.common.params import RuntimeParams
+
+    return RuntimeParams(**kw)
+
+
+def test_chaos_drops_a_seeded_share_of_chosen_topics_only():
+    from topoexplore.common.node import Chaos
+
+    c = Chaos(_rt(chaos_topics=["scan"], chaos_drop=0.3, chaos_seed=4))
+    got = []
+    for i in range(1000):
+        c.admit("scan", lambda i=i: got.append(("scan", i)))
+        c.admit("odom", lambda i=i: got.append(("odom", i)))
+    scans = [i for t, i in got if t == "scan"]
+    assert sum(1 for t, _ in got if t == "odom") == 1000  # other topics untouched
+    assert 250 <= c.dropped["scan"] == 1000 - len(scans) <= 350
+    assert scans == sorted(scans)
+    again = Chaos(_rt(chaos_topics=["scan"], chaos_drop=0.3, chaos_seed=4))
+    kept = []
+    for i in range(1000):
+        again.admit("scan", lambda i=i: kept.append(i))
+    assert kept == scans  # the same seed drops the same messages
+    c.configure(_rt())  # off
+    c.admit("scan", lambda: got.append(("scan", -1)))
+    assert got[-1] == ("scan", -1)
+
+
+def test_chaos_delays_in_order():
+    import time
+
+    from topoexplore.common.node import Chaos
+
+    c = Chaos(_rt(chaos_topics=["plan"], chaos_delay=0.2))
+    got, t0 = [], time.monotonic()
+    done = threading.Event()
+    for i in range(20):
+        c.admit("plan", lambda i=i: (got.append((i, time.monotonic() - t0)),
+                                      i == 19 and done.set()))
+    assert got == [] and c.delayed["plan"] == 20
+    assert done.wait(5.0)
+    assert [i for i, _ in got] == list(range(20)) and all(dt >= 0.2 for _, dt in got)
+    c.close()

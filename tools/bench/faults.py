@@ -16,6 +16,11 @@ in 15-45 % of the fault-free run's, from ``--seed``):
   (None: it did not stop).
 - ``router``: SIGKILL of the router; the supervisor restarts it. Recovery: wall time until
   every service is up again and the sim time moves on.
+- ``drop:SERVICE:TOPIC:SHARE`` and ``delay:SERVICE:TOPIC:SECONDS``: for ``--chaos-for`` s
+  (wall) SERVICE drops that share of its incoming TOPIC messages, or holds each back for that
+  long (``runtime.chaos_*``, set live through its params queryable), then the chaos is
+  switched off. The row says how many were dropped or delayed, and the run's messages lost
+  by seq (report.json ``lost_messages_total``).
 
 For each run: finished, coverage, collisions, restarts, recovery, stand-still, cells lost, the
 path against the fault-free run's. ``--doc`` writes the table into a Markdown file.
@@ -36,17 +41,50 @@ import threading
 import time
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
+import msgspec
 import numpy as np
 
 from topoexplore.common import messages as m
 from topoexplore.common.bus import Bus, BusError
-from topoexplore.common.keys import Keys
+from topoexplore.common.keys import TOPICS, Keys
 from topoexplore.tools.launch.supervisor import free_port
 from topoexplore.tools.livestate import StateError, fetch_state
 
 SERVICES = ("sim", "mapper", "topology", "reliability", "planner", "controller")
-DEFAULT_FAULTS = (*(f"kill:{s}" for s in SERVICES), "stop:controller", "stop:planner", "router")
+DEFAULT_FAULTS = (*(f"kill:{s}" for s in SERVICES), "stop:controller", "stop:planner", "router",
+                  "drop:mapper:scan:0.3", "delay:controller:plan:0.3")
+
+
+def parse_fault(f: str) -> str | None:
+    """None when f is a fault this bench knows, else what is wrong with it."""
+    kind, _, rest = f.partition(":")
+    if f == "router" or (kind in ("kill", "stop") and rest in SERVICES):
+        return None
+    if kind in ("drop", "delay"):
+        svc, _, rest = rest.partition(":")
+        topic, _, value = rest.rpartition(":")
+        try:
+            v = float(value)
+        except ValueError:
+            v = math.nan
+        limit = 1.0 if kind == "drop" else 60.0
+        if svc in SERVICES and topic in TOPICS and 0.0 < v <= limit:
+            return None
+        return f"{kind}:SERVICE:TOPIC:{'SHARE (0-1]' if kind == 'drop' else 'SECONDS (0-60]'}"
+    return "kill:SERVICE, stop:SERVICE, router, drop:SERVICE:TOPIC:SHARE, delay:SERVICE:TOPIC:S"
+
+
+def set_param(bus: Bus, keys: Keys, service: str, assignment: str) -> str | None:
+    """Set a live parameter of a running service; None, or the error."""
+    sel = f"{keys.params(service)}?set={quote(assignment, safe='')}"
+    for _k, payload, err in bus.get(sel, timeout=3.0):
+        if payload is None:
+            return err or "no payload"
+        ans = msgspec.msgpack.decode(payload)
+        return ans.get("error") if isinstance(ans, dict) else "bad reply"
+    return f"no reply from {service}"
 
 
 class Watch:
@@ -131,7 +169,27 @@ def _wait(cond, timeout: float, poll: float = 0.1) -> bool:
     return False
 
 
-def inject(fault: str, bus: Bus, keys: Keys, watch: Watch, stop_for: float) -> dict[str, Any]:
+def chaos(bus: Bus, keys: Keys, fault: str, chaos_for: float) -> dict[str, Any]:
+    """drop:/delay: on one service's input for chaos_for s of wall time, then off."""
+    kind, svc, rest = fault.split(":", 2)
+    topic, _, value = rest.rpartition(":")
+    sets = [f'runtime.chaos_topics=["{topic}"]',
+            f"runtime.chaos_drop={value}" if kind == "drop" else f"runtime.chaos_delay={value}"]
+    for a in sets:
+        err = set_param(bus, keys, svc, a)
+        if err:
+            return {"error": f"{svc}: {err}"}
+    time.sleep(chaos_for)
+    st = _state(bus, keys, svc) or {}
+    for a in ("runtime.chaos_topics=[]", "runtime.chaos_drop=0.0", "runtime.chaos_delay=0.0"):
+        set_param(bus, keys, svc, a)
+    c = st.get("chaos") or {}
+    return {"chaos_dropped": sum((c.get("dropped") or {}).values()),
+            "chaos_delayed": sum((c.get("delayed") or {}).values())}
+
+
+def inject(fault: str, bus: Bus, keys: Keys, watch: Watch, stop_for: float,
+           chaos_for: float = 60.0) -> dict[str, Any]:
     """Inject one fault into the running stack; what it cost (see the module doc)."""
     sup = _state(bus, keys, "supervisor") or {}
     out: dict[str, Any] = {"at_sim_s": round(watch.sim_time, 1)}
@@ -148,6 +206,8 @@ def inject(fault: str, bus: Bus, keys: Keys, watch: Watch, stop_for: float) -> d
         ok = ok and _wait(lambda: watch.sim_time > t_sim + 1.0, 120)
         out["recovery_s"] = round(time.monotonic() - t0, 2) if ok else None
         return out
+    if kind in ("drop", "delay"):
+        return {**out, **chaos(bus, keys, fault, chaos_for)}
     proc = (sup.get("processes") or {}).get(name) or {}
     pid = proc.get("pid")
     if not pid:
@@ -179,7 +239,7 @@ def inject(fault: str, bus: Bus, keys: Keys, watch: Watch, stop_for: float) -> d
 
 
 def one_run(world: str, speed: float, fault: str | None, fault_at: float, stop_for: float,
-            out: Path, max_sim: float) -> dict[str, Any]:
+            out: Path, max_sim: float, chaos_for: float = 60.0) -> dict[str, Any]:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     ns = f"benchfault{os.getpid()}"
     keys = Keys(ns, "robot1")
@@ -196,7 +256,7 @@ def one_run(world: str, speed: float, fault: str | None, fault_at: float, stop_f
                     watch = Watch(bus, keys)
                     if _wait(lambda: watch.sim_time >= fault_at or proc.poll() is not None,
                              max_sim / speed + 300, 0.05) and proc.poll() is None:
-                        row.update(inject(fault, bus, keys, watch, stop_for))
+                        row.update(inject(fault, bus, keys, watch, stop_for, chaos_for))
                     else:
                         row["error"] = "the run ended before the fault"
             except BusError as exc:
@@ -213,7 +273,8 @@ def one_run(world: str, speed: float, fault: str | None, fault_at: float, stop_f
     row.update(finished=rep["finished"], coverage=rep["coverage"],
                collisions=rep["collisions"], restarts=rep["restarts"],
                path_m=rep["path_length_m"], sim_s=rep["sim_time_s"],
-               stale_cmds=rep.get("stale_cmds", 0), watchdog_stops=rep.get("watchdog_stops", 0))
+               stale_cmds=rep.get("stale_cmds", 0), watchdog_stops=rep.get("watchdog_stops", 0),
+               lost=rep.get("lost_messages_total"))
     return row
 
 
@@ -222,8 +283,9 @@ def table(rows: list[dict], world: str, speed: float) -> str:
     lines = [f"{world}, real time x{speed:g}; fault at a random sim time (15-45 % of the "
              f"fault-free run)", "",
              "| fault | at [sim s] | finished | coverage | collisions | restarts | recovery "
-             "[wall s] | stood still after [sim s] | cells lost / known | path [m] (x none) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "[wall s] | stood still after [sim s] | cells lost / known | messages lost | "
+             "path [m] (x none) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
 
     def f(v: Any, fmt: str = "{}") -> str:
         return "–" if v is None else fmt.format(v)
@@ -237,8 +299,10 @@ def table(rows: list[dict], world: str, speed: float) -> str:
             f"| {r['fault']} | {f(r.get('at_sim_s'))} | {'yes' if r.get('finished') else 'NO'} "
             f"| {f(r.get('coverage'), '{:.3f}')} | {f(r.get('collisions'))} "
             f"| {f(r.get('restarts'))} | {f(r.get('recovery_s'))} "
-            f"| {f(r.get('stood_still_sim_s'), '{:.2f}')} | {lost} "
+            f"| {f(r.get('stood_still_sim_s'), '{:.2f}')} | {lost} | {f(r.get('lost'))} "
             f"| {f(r.get('path_m'), '{:.1f}')}{ratio} |"
+            + (f" chaos: {r.get('chaos_dropped', 0)} dropped, {r.get('chaos_delayed', 0)} "
+               f"delayed" if "chaos_dropped" in r else "")
             + (f" {r['error']}" if r.get("error") else ""))
     return "\n".join(lines) + "\n"
 
@@ -249,8 +313,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--world", default="office")
     ap.add_argument("--speed", type=float, default=4.0, help="real-time factor (default 4)")
     ap.add_argument("--faults", default=",".join(DEFAULT_FAULTS),
-                    help="comma separated: kill:SERVICE, stop:SERVICE, router")
+                    help="comma separated: kill:SERVICE, stop:SERVICE, router, "
+                    "drop:SERVICE:TOPIC:SHARE, delay:SERVICE:TOPIC:SECONDS")
     ap.add_argument("--stop-for", type=float, default=5.0, help="[wall s] of SIGSTOP")
+    ap.add_argument("--chaos-for", type=float, default=60.0,
+                    help="[wall s] of a drop: or delay: fault")
     ap.add_argument("--seed", type=int, default=0, help="draws the fault moments")
     ap.add_argument("--max-sim-time", type=float, default=3000.0)
     ap.add_argument("--json", default=None, help="write the rows here")
@@ -258,14 +325,14 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     faults = [f.strip() for f in a.faults.split(",") if f.strip()]
     for f in faults:
-        kind, _, name = f.partition(":")
-        if not ((kind in ("kill", "stop") and name in SERVICES) or f == "router"):
-            print(f"topoexplore bench faults: unknown fault {f!r} (kill:SERVICE, stop:SERVICE, "
-                  f"router; services {', '.join(SERVICES)})", file=sys.stderr)
+        why = parse_fault(f)
+        if why:
+            print(f"topoexplore bench faults: unknown fault {f!r} (expected {why}; services "
+                  f"{', '.join(SERVICES)})", file=sys.stderr)
             return 2
-    if not (a.speed > 0 and a.stop_for > 0 and a.max_sim_time > 0):
-        print("topoexplore bench faults: --speed, --stop-for, --max-sim-time must be > 0",
-              file=sys.stderr)
+    if not (a.speed > 0 and a.stop_for > 0 and a.chaos_for > 0 and a.max_sim_time > 0):
+        print("topoexplore bench faults: --speed, --stop-for, --chaos-for, --max-sim-time must "
+              "be > 0", file=sys.stderr)
         return 2
     rng = random.Random(a.seed)
     rows = []
@@ -278,7 +345,7 @@ def main(argv: list[str] | None = None) -> int:
         for i, fault in enumerate(faults):
             at = rng.uniform(0.15, 0.45) * span
             r = one_run(a.world, a.speed, fault, at, a.stop_for, Path(tmp) / str(i),
-                        a.max_sim_time)
+                        a.max_sim_time, a.chaos_for)
             rows.append(r)
             print(json.dumps(r), flush=True)
     text = table(rows, a.world, a.speed)
