@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import logging
 import math
+import time
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
@@ -25,6 +26,23 @@ _META = "_checkpoint"  # [format, written_at [s since the epoch]]
 
 class CheckpointError(ValueError):
     """A checkpoint file that cannot be read (one line, for the log)."""
+
+
+def checked(arrays: dict[str, np.ndarray], name: str, kind: str, shape: tuple) -> np.ndarray:
+    """``arrays[name]`` checked: numpy dtype kind ("f" float, "i" integer, "b" bool, "U"
+    text) and shape (None: any length along that axis); floats must not be NaN (inf is
+    allowed where a core stores "none yet" as inf). CheckpointError otherwise."""
+    a = arrays.get(name)
+    if a is None:
+        raise CheckpointError(f"no {name!r} in the checkpoint")
+    ok_kind = a.dtype.kind == kind or (kind == "i" and a.dtype.kind == "u") \
+        or (kind == "f" and a.dtype.kind in "iu")
+    if not ok_kind or a.ndim != len(shape) or any(
+            want is not None and got != want for got, want in zip(a.shape, shape, strict=True)):
+        raise CheckpointError(f"{name!r}: {a.dtype} {a.shape}, expected {kind} {shape}")
+    if kind == "f" and np.isnan(a).any():
+        raise CheckpointError(f"{name!r} holds NaN")
+    return a
 
 
 def checkpoint_path(state_dir: str, service: str) -> Path | None:
@@ -125,6 +143,27 @@ class Checkpointer:
         arrays, age = got
         self.stats["resumed_age_s"] = round(age, 3)
         return arrays
+
+    def resume(self, restore: Callable[[dict[str, np.ndarray]], None], now: float) -> bool:
+        """Load this service's checkpoint and hand it to ``restore`` (a core's; it raises
+        CheckpointError for arrays it cannot use). True when a checkpoint was restored; a
+        checkpoint that cannot be used is logged and the service starts afresh."""
+        arrays = self.load(now)
+        if arrays is None:
+            return False
+        try:
+            restore(arrays)
+        except CheckpointError as exc:
+            self.log.error("checkpoint not used: %s", exc)
+            self.stats["resumed_age_s"] = None
+            return False
+        return True
+
+    def save_if_due(self, make: Callable[[], dict[str, np.ndarray]]) -> None:
+        """Write ``make()`` when a checkpoint is due on the wall clock (every ``every`` s)."""
+        t0 = time.monotonic()
+        if self.due(t0):
+            self.save(make(), t0, time.time(), lambda: time.monotonic() - t0)
 
     def due(self, clock: float) -> bool:
         """A checkpoint is due at ``clock`` [s] (the service's choice of clock: wall for the

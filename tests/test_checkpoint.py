@@ -245,3 +245,162 @@ def test_bench_faults_parses_chaos_faults():
     for bad in ("drop:mapper:scan:0", "drop:mapper:scan:1.5", "drop:mapper:nope:0.3",
                 "delay:nobody:plan:0.3", "delay:controller:plan:x", "drop:mapper"):
         assert parse_fault(bad), bad
+
+
+# --- topology, reliability and planner: the memory a restart keeps -----------------------------
+
+
+class _Enough(Exception):
+    pass
+
+
+@pytest.fixture(scope="module")
+def updates():
+    """The inputs of the first 200 topology / reliability / planner updates of an in-process
+    paper-room exploration: (t, pose, grid)."""
+    from topoexplore.tools.bench.inproc import run
+
+    got = []
+
+    def keep(t, pose, graph, beliefs, plan, grid):
+        got.append((t, pose, grid))
+        if len(got) >= 200:
+            raise _Enough
+
+    with pytest.raises(_Enough):
+        run("paper-room", on_update=keep)
+    return got
+
+
+def _cores():
+    from topoexplore.common.params import Params
+    from topoexplore.services.planner.core import PlannerCore
+    from topoexplore.services.reliability.core import ReliabilityCore
+    from topoexplore.services.topology.core import TopologyCore
+
+    P = Params()
+    occ = P.mapper.occupancy
+    return (TopologyCore(P.topology, occ), ReliabilityCore(P.reliability, P.laser, occ),
+            PlannerCore(P.planner, P.robot, P.reliability.p_reliable, occ))
+
+
+def _through_disk(arrays, tmp_path, name):
+    path = tmp_path / f"{name}.npz"
+    ck.write_checkpoint(path, arrays, time.time())
+    return ck.read_checkpoint(path, time.time(), 300.0)[0]
+
+
+def _step(cores, t, pose, grid):
+    topo, rel, plan = cores
+    graph = topo.update(grid, (pose.x, pose.y)).graph
+    beliefs = rel.update(graph, pose, grid)
+    return graph, beliefs, plan.update(t, pose, graph, beliefs, grid)
+
+
+def test_restarted_topology_reliability_planner_keep_ids_beliefs_and_memory(updates, tmp_path):
+    """Cores restored from a checkpoint taken at update 150 (through the file) give the same
+    node ids and the same beliefs as cores that ran on, and keep the planner's memory."""
+    a = _cores()
+    for u in updates[:150]:
+        _step(a, *u)
+    assert any(n["p"] > 0.5 for n in a[1].snapshot()["nodes"].values())  # beliefs have grown
+    b = _cores()
+    for core, name in zip(b, ("topology", "reliability", "planner"), strict=True):
+        core.restore(_through_disk(a[b.index(core)].checkpoint(), tmp_path, name))
+    assert b[1].snapshot() == a[1].snapshot() and b[1].snapshot()["end_nodes"] > 0
+    for part in ("blacklist", "failures", "blocked", "examined", "plan_id", "replans"):
+        assert b[2].snapshot()[part] == a[2].snapshot()[part], part
+    for u in updates[150:]:
+        ga, ba, _ = _step(a, *u)
+        gb, bb, _ = _step(b, *u)
+        ends_a = {n.id: (n.x, n.y) for n in ga.end_nodes()}
+        ends_b = {n.id: (n.x, n.y) for n in gb.end_nodes()}
+        assert ends_a == ends_b  # the same places keep the same ids
+        assert [(x.id, x.p, x.n_obs) for x in ba] == [(x.id, x.p, x.n_obs) for x in bb]
+
+
+def test_fresh_cores_without_a_checkpoint_start_new_ids(updates):
+    """What the checkpoint buys: a topology started afresh mid-run gives new ids."""
+    a = _cores()
+    for u in updates[:40]:
+        _step(a, *u)
+    fresh = _cores()
+    ga, _, _ = _step(a, *updates[40])
+    gf, _, _ = _step(fresh, *updates[40])
+    assert {n.id for n in ga.end_nodes()} != {n.id for n in gf.end_nodes()}
+
+
+@pytest.mark.parametrize("name", ["topology", "reliability", "planner"])
+def test_checkpoints_that_do_not_fit_are_refused(updates, name):
+    cores = _cores()
+    for u in updates[:20]:
+        _step(cores, *u)
+    core = cores[("topology", "reliability", "planner").index(name)]
+    good = core.checkpoint()
+    for key, arr in good.items():
+        nan_ok = key == "bins"  # NaN marks an empty bearing bin
+        for bad in (arr[..., :0] if arr.ndim and arr.shape[-1] else None,
+                    arr * np.nan if arr.dtype.kind == "f" and arr.size and not nan_ok else None):
+            if bad is None:
+                continue
+            with pytest.raises(ck.CheckpointError, match="."):
+                _cores()[("topology", "reliability", "planner").index(name)].restore(
+                    {**good, key: bad})
+        with pytest.raises(ck.CheckpointError):
+            _cores()[("topology", "reliability", "planner").index(name)].restore(
+                {k: v for k, v in good.items() if k != key})
+
+
+def test_topology_reliability_planner_killed_together_resume(tmp_path, endpoint, namespace):
+    """SIGKILL topology, reliability and the planner at once in a lockstep office run: each
+    restarts from its checkpoint (node ids, beliefs, the planner's memory) and the run
+    finishes. Right after the restart, reliability still knows the places that were
+    reliable, under the same ids."""
+    out = tmp_path / "run"
+    keys = Keys(namespace, "robot1")
+    victims = ("topology", "reliability", "planner")
+    run = subprocess.Popen([sys.executable, "-m", "topoexplore.tools.cli", "run", "--world",
+                            "office", "--lockstep", "--quiet", "--out", str(out), "--connect",
+                            endpoint, "--namespace", namespace, "--max-sim-time", "2000"],
+                           cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                           text=True, start_new_session=True)
+
+    def reliable(st: dict) -> set[int]:
+        return {int(k) for k, v in st["nodes"]["nodes"].items() if v["reliable"]}
+
+    try:
+        with Bus.client(endpoint, wait_for_router=True) as bus:
+            deadline, sts = time.monotonic() + 120, {}
+            while time.monotonic() < deadline:
+                sts = {s: _state(bus, keys, s) for s in victims}
+                if all(sts.values()) and all(st["checkpoint"]["written"] >= 3
+                                             for st in sts.values()) \
+                        and len(reliable(sts["reliability"])) >= 2:
+                    break
+                time.sleep(0.2)
+            assert all(sts.values()) and len(reliable(sts["reliability"])) >= 2, sts
+            for s in victims:
+                os.kill(sts[s]["pid"], signal.SIGKILL)
+            before = reliable(sts["reliability"])
+            deadline, after = time.monotonic() + 60, None
+            while time.monotonic() < deadline:
+                st = _state(bus, keys, "reliability")
+                if st and st["pid"] != sts["reliability"]["pid"]:
+                    after = st
+                    break
+                time.sleep(0.05)
+            assert after is not None and after["checkpoint"]["resumed_age_s"] is not None
+            # the checkpoint is at most checkpoint_every (1 s) older than the state read
+            # before the kill: nearly every reliable place is still reliable, same id
+            assert len(reliable(after) & before) >= len(before) - 1, (before, reliable(after))
+        stdout, _ = run.communicate(timeout=400)
+    finally:
+        if run.poll() is None:
+            os.killpg(run.pid, signal.SIGKILL)
+            run.wait(timeout=10)
+    report = json.loads(Path(out / "report.json").read_text())
+    assert report["finished"] and report["restarts"] >= 3, stdout[-2000:]
+    assert report["coverage"] >= 0.95 and report["collisions"] == 0
+    for s in victims:
+        c = report["checkpoints"][s]
+        assert c["failed"] == 0 and c["resumed_age_s"] is not None, (s, c)

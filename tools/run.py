@@ -356,7 +356,7 @@ def _checkpoints(bus: Bus, keys: Keys) -> dict:
     from topoexplore.tools.livestate import StateError, fetch_state
 
     out = {}
-    for s in ("mapper", "sim"):
+    for s in ("sim", "mapper", "topology", "reliability", "planner"):
         try:
             ck = fetch_state(bus, keys, s, timeout=1.0).get("checkpoint")
         except StateError:

@@ -26,6 +26,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
+
+from topoexplore.common.checkpoint import CheckpointError, checked
+
 STILL_DISTANCE = 0.05  # [m] moving less than this ...
 STILL_ANGLE = 0.3  # [rad] ... and turning less than this counts as standing still
 MARK_LIMIT = 200  # marks kept (the oldest go first)
@@ -95,6 +99,25 @@ class Blockages:
 
     def _confirmed(self, m: Mark) -> bool:
         return any(math.hypot(m.x - x, m.y - y) <= max(m.r, r) for x, y, r in self._dropped)
+
+    def checkpoint(self) -> dict[str, np.ndarray]:
+        return {"blocked_marks": np.array([[m.x, m.y, m.r, m.t] for m in self.marks],
+                                          np.float64).reshape(len(self.marks), 4),
+                "blocked_dropped": np.array(self._dropped, np.float64).reshape(
+                    len(self._dropped), 3),
+                "blocked_counts": np.array([self.made, self.forgotten], np.int64)}
+
+    def restore(self, arrays: dict[str, np.ndarray]) -> None:
+        marks = checked(arrays, "blocked_marks", "f", (None, 4))
+        dropped = checked(arrays, "blocked_dropped", "f", (None, 3))
+        counts = checked(arrays, "blocked_counts", "i", (2,))
+        if not (np.isfinite(marks).all() and np.isfinite(dropped).all()) \
+                or len(marks) > MARK_LIMIT or len(dropped) > MARK_LIMIT or (counts < 0).any():
+            raise CheckpointError("planner checkpoint: blockage marks out of range")
+        self.marks = [Mark(*(float(v) for v in row)) for row in marks]
+        self._dropped = [tuple(float(v) for v in row) for row in dropped]
+        self.made, self.forgotten = (int(v) for v in counts)
+        self._anchor = None
 
     def snapshot(self) -> dict:
         return {"made": self.made, "forgotten": self.forgotten,

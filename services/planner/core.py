@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from topoexplore.common.checkpoint import CheckpointError, checked
 from topoexplore.common.domain import (
     Belief,
     ExploreState,
@@ -193,6 +194,26 @@ class PlannerCore:
                    if self._watchdog.log else "watchdog: nothing helped")
             return dataclasses.replace(ev, cands=[], failed=why)
         return ev
+
+    def checkpoint(self) -> dict[str, np.ndarray]:
+        """The planner's memory of the exploration: the targets it gave up on (blacklist and
+        failure counts), the learned blockages, the examined frontier cells and its counters.
+        The target, its path and the timers are not kept: a restarted planner chooses again
+        from the next update."""
+        return {**self._blacklist.checkpoint(), **self._blockages.checkpoint(),
+                **self._examined.checkpoint(),
+                "planner_counts": np.array([self._plan_id, self._replans, self._updates],
+                                           np.int64)}
+
+    def restore(self, arrays: dict[str, np.ndarray]) -> None:
+        """Take back :meth:`checkpoint`'s memory (CheckpointError if it does not fit)."""
+        counts = checked(arrays, "planner_counts", "i", (3,))
+        if (counts < 0).any():
+            raise CheckpointError("planner checkpoint: counters out of range")
+        self._blacklist.restore(arrays)
+        self._blockages.restore(arrays)
+        self._examined.restore(arrays)
+        self._plan_id, self._replans, self._updates = (int(v) for v in counts)
 
     def snapshot(self) -> dict[str, Any]:
         """JSON-friendly state for the service's state queryable."""

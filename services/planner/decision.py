@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from topoexplore.common.checkpoint import CheckpointError, checked
 from topoexplore.services.planner.strategies.base import Candidate
 
 REMAINING_WINDOW = 1.5  # [m] the robot is located on the path within this arc ahead of it
@@ -98,6 +99,10 @@ class Target:
         return math.atan2(face[1] - ey, face[0] - ex)
 
 
+REASON_CHARS = 200  # a blacklist reason kept in a checkpoint is cut to this length
+MAX_MARKS = 100_000  # a checkpoint with more blacklist marks is not ours
+
+
 @dataclass
 class Mark:
     """A blacklisted target or a failure count, by id and position."""
@@ -139,6 +144,31 @@ class Blacklist:
         bid = c.id if c.id >= 0 else len(self.marks)
         self.marks.append(Mark(bid, c.x, c.y, reason=reason, t=t))
         return f"blacklisted {c.label}: {reason}"
+
+    def checkpoint(self) -> dict[str, np.ndarray]:
+        out = {}
+        for name, marks in (("blacklist", self.marks), ("failures", self.failures)):
+            out[f"{name}_num"] = np.array([[b.x, b.y, b.t] for b in marks],
+                                          np.float64).reshape(len(marks), 3)
+            out[f"{name}_int"] = np.array([[b.id, b.count] for b in marks],
+                                          np.int64).reshape(len(marks), 2)
+            out[f"{name}_why"] = np.array([b.reason[:REASON_CHARS] for b in marks], f"<U{REASON_CHARS}")
+        return out
+
+    def restore(self, arrays: dict[str, np.ndarray]) -> None:
+        for name in ("blacklist", "failures"):
+            num = checked(arrays, f"{name}_num", "f", (None, 3))
+            n = len(num)
+            ints = checked(arrays, f"{name}_int", "i", (n, 2))
+            why = checked(arrays, f"{name}_why", "U", (n,))
+            if not np.isfinite(num).all() or n > MAX_MARKS:
+                raise CheckpointError(f"planner checkpoint: {name} out of range")
+            marks = [Mark(int(i[0]), float(v[0]), float(v[1]), count=int(i[1]), reason=str(r),
+                          t=float(v[2])) for v, i, r in zip(num, ints, why, strict=True)]
+            if name == "blacklist":
+                self.marks = marks
+            else:
+                self.failures = marks
 
     def count_failure(self, c: Candidate) -> int:
         """One more failure of c; the number so far."""

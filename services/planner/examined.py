@@ -31,6 +31,7 @@ import math
 
 import numpy as np
 
+from topoexplore.common.checkpoint import CheckpointError, checked
 from topoexplore.common.grid import FREE, UNKNOWN, GridGeometry
 
 _DIRS = ((1, 0), (-1, 0), (0, 1), (0, -1))  # (d_row, d_col) of the 4-neighbours
@@ -128,6 +129,20 @@ class Examined:
         out = np.zeros((geom.height, geom.width), dtype=bool)
         out[rows[inside], cols[inside]] = True
         return out
+
+    def checkpoint(self) -> dict[str, np.ndarray]:
+        return {"examined_closed": self._closed_arr.copy(),
+                "examined_count": np.array(sorted(self._count.items()), np.int64).reshape(
+                    len(self._count), 2)}
+
+    def restore(self, arrays: dict[str, np.ndarray]) -> None:
+        closed = checked(arrays, "examined_closed", "i", (None,)).astype(np.int64)
+        count = checked(arrays, "examined_count", "i", (None, 2)).astype(np.int64)
+        if (count[:, 1] < 0).any():
+            raise CheckpointError("planner checkpoint: examined counts out of range")
+        self._closed = set(closed.tolist())
+        self._closed_arr = np.fromiter(self._closed, dtype=np.int64, count=len(self._closed))
+        self._count = {int(k): int(v) for k, v in count}
 
     def snapshot(self) -> dict[str, int]:
         return {"examined": len(self._closed), "viewed": len(self._count)}

@@ -2,6 +2,8 @@
 
 One plan per reliability update (so lockstep can wait for it by ``src_seq``); the status is
 published with every plan in lockstep and at ``planner.status_hz`` or on change in real time.
+With ``runtime.state_dir`` set, the planner's memory (blacklists, learned blockages, examined
+cells) is checkpointed and a restarted planner takes it back.
 """
 
 from __future__ import annotations
@@ -9,8 +11,11 @@ from __future__ import annotations
 import logging
 import time
 
+import msgspec
+
 from topoexplore.common import convert
 from topoexplore.common import messages as m
+from topoexplore.common.checkpoint import Checkpointer
 from topoexplore.common.node import Node, OdomBuffer, run_service
 from topoexplore.services.planner.core import WARM_MODULES, PlannerCore
 
@@ -36,6 +41,14 @@ class PlannerService:
         self.last_key: tuple = ()
         self.last_decision: tuple = ()
         self.plan = None
+        rt = P.runtime  # blacklists, blockages, examined cells survive a restart
+        self.ckpt = Checkpointer(rt.state_dir, "planner", rt.checkpoint_every,
+                                 rt.checkpoint_max_age, log)
+        if self.ckpt.resume(self.core.restore, time.time()):
+            snap = self.core.snapshot()
+            log.info("resumed from the checkpoint: %d blacklisted, %d blockage marks, %d "
+                     "examined cells", len(snap["blacklist"]), snap["blocked"]["made"],
+                     snap["examined"]["examined"])
         node.add_state(self.state)
 
     def ready(self, rel: m.Reliability) -> bool:
@@ -63,8 +76,8 @@ class PlannerService:
         self.plan = plan
         stamp, k = rel.header.stamp, rel.header.src_seq
         self.pub_plan.put(convert.route_to_msg(plan.route, self.node.header("plan", stamp, k)))
-        self.last_status = convert.status_to_msg(
-            plan.status, self.node.header("explore/status", stamp, k))
+        self.last_status = convert.status_to_msg(  # its seq is given when it goes out
+            plan.status, m.Header(seq=0, stamp=stamp, frame="map", src_seq=k))
         self.node.processed += 1
         st = plan.status
         key = (st.state, st.target_id, st.reason, st.blacklisted)
@@ -74,6 +87,7 @@ class PlannerService:
             self.last_decision = decision
         self.maybe_status(force=self.node.lockstep or key != self.last_key)
         self.last_key = key
+        self.ckpt.save_if_due(self.core.checkpoint)  # after the plan and status went out
 
     def maybe_status(self, force: bool) -> None:
         now = time.monotonic()
@@ -81,10 +95,14 @@ class PlannerService:
             return
         if force or now - self.last_status_wall >= 1.0 / self.p.status_hz:
             self.last_status_wall = now
+            h = self.last_status.header  # one seq per message sent: a gap is a loss
+            self.last_status = msgspec.structs.replace(self.last_status, header=self.node.header(
+                "explore/status", h.stamp, h.src_seq))
             self.pub_status.put(self.last_status)
 
     def state(self) -> dict:
-        return {"status": self.last_status, "core": self.core.snapshot()}
+        return {"status": self.last_status, "core": self.core.snapshot(),
+                "checkpoint": dict(self.ckpt.stats)}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from topoexplore.common.checkpoint import CheckpointError, checked
 from topoexplore.common.domain import Belief, Graph, GridMap, Pose
 from topoexplore.common.grid import (
     GridGeometry,
@@ -554,6 +555,70 @@ class ReliabilityCore:
                               visited=tr.visited, frontier=owned.get(nid, 0)))
         self._updates += 1
         return out
+
+    # the float fields of a track, in the order of the checkpoint's columns
+    _F = ("anchor_x", "anchor_y", "x", "y", "p", "r_min", "d", "a", "alpha_max")
+    _I = ("n_obs", "n_bearings", "resets")
+    _B = ("visited", "visible", "examined")
+
+    def checkpoint(self) -> dict[str, np.ndarray]:
+        """Every end node's history and P, the places found reliable and the counters: what
+        a restarted reliability needs to go on where it stood (the ids are topology's, kept
+        by its own checkpoint)."""
+        tracks = [self._tracks[k] for k in sorted(self._tracks)]
+        n = len(tracks)
+        views = np.full((n, 3), np.inf)
+        for i, t in enumerate(tracks):
+            if t.view is not None:
+                views[i] = t.view
+        return {
+            "ids": np.array(sorted(self._tracks), np.int64),
+            "f": np.array([[getattr(t, a) for a in self._F] for t in tracks],
+                          np.float64).reshape(n, len(self._F)),
+            "i": np.array([[getattr(t, a) for a in self._I] for t in tracks],
+                          np.int64).reshape(n, len(self._I)),
+            "b": np.array([[getattr(t, a) for a in self._B] for t in tracks],
+                          bool).reshape(n, len(self._B)),
+            "bins": np.array([t.bins for t in tracks], np.float64).reshape(n, self._nbins),
+            "views": views,  # robot x, y, bearing last counted; inf: none
+            "places": np.array(self._places, np.float64).reshape(len(self._places), 3),
+            "counters": np.array([self._updates, self._resets, self._dropped], np.int64),
+        }
+
+    def restore(self, arrays: dict[str, np.ndarray]) -> None:
+        """Take back :meth:`checkpoint`'s histories. CheckpointError if they do not fit these
+        parameters (another bearing bin width) or hold values out of range."""
+        ids = checked(arrays, "ids", "i", (None,))
+        n = len(ids)
+        f = checked(arrays, "f", "f", (n, len(self._F)))
+        i = checked(arrays, "i", "i", (n, len(self._I)))
+        b = checked(arrays, "b", "b", (n, len(self._B)))
+        views = checked(arrays, "views", "f", (n, 3))
+        places = checked(arrays, "places", "f", (None, 3))
+        counters = checked(arrays, "counters", "i", (3,))
+        bins = arrays.get("bins")  # NaN marks an empty bin
+        if bins is None or bins.dtype.kind != "f" or bins.shape != (n, self._nbins):
+            raise CheckpointError(f"reliability checkpoint: bearing bins {getattr(bins, 'shape', None)}"
+                                  f", expected ({n}, {self._nbins})")
+        p = f[:, self._F.index("p")]
+        finite = np.delete(f, self._F.index("r_min"), axis=1)
+        if len(np.unique(ids)) != n or not np.isfinite(finite).all() \
+                or ((p < 0) | (p > 1)).any() or (i < 0).any() or (counters < 0).any() \
+                or not np.isfinite(places).all() or np.isinf(bins).any():
+            raise CheckpointError("reliability checkpoint: values out of range")
+        tracks = {}
+        for k in range(n):
+            tr = _Track(**{a: float(v) for a, v in zip(self._F, f[k], strict=True)},
+                        bins=bins[k].astype(np.float64).copy())
+            for a, v in zip(self._I, i[k], strict=True):
+                setattr(tr, a, int(v))
+            for a, v in zip(self._B, b[k], strict=True):
+                setattr(tr, a, bool(v))
+            tr.view = tuple(float(v) for v in views[k]) if np.isfinite(views[k]).all() else None
+            tracks[int(ids[k])] = tr
+        self._tracks = tracks
+        self._places = [tuple(float(v) for v in row) for row in places]
+        self._updates, self._resets, self._dropped = (int(v) for v in counters)
 
     def snapshot(self) -> dict:
         """JSON-able state: counters and per-node history (r_min None when never observed)."""

@@ -1,15 +1,19 @@
 """Reliability service: topo + map + odom -> per end node position probability -> ``reliability``.
 
 For each topo update k, waits until the map it was derived from (``src_seq >= k``) is here,
-takes the robot pose at the topo stamp, and runs the Bayes update of paper eqs. 1-10.
+takes the robot pose at the topo stamp, and runs the Bayes update of paper eqs. 1-10. With
+``runtime.state_dir`` set, every end node's history and P are checkpointed: a restarted
+reliability does not send the robot back to places already reliable.
 """
 
 from __future__ import annotations
 
 import logging
+import time
 
 from topoexplore.common import convert
 from topoexplore.common import messages as m
+from topoexplore.common.checkpoint import Checkpointer
 from topoexplore.common.node import Node, OdomBuffer, run_service
 from topoexplore.common.params import Params
 from topoexplore.services.reliability.core import WARM_MODULES, ReliabilityCore
@@ -30,6 +34,13 @@ class ReliabilityService:
         node.subscribe("topo", queue=True)
         self.skipped = 0
         self.last: m.Reliability | None = None
+        rt = P.runtime  # P of every end node survives a restart (runtime.state_dir)
+        self.ckpt = Checkpointer(rt.state_dir, "reliability", rt.checkpoint_every,
+                                 rt.checkpoint_max_age, log)
+        if self.ckpt.resume(self.core.restore, time.time()):
+            snap = self.core.snapshot()
+            log.info("resumed %d end node histories (%d reliable) from the checkpoint",
+                     snap["end_nodes"], snap["reliable"])
         node.add_state(self.state)
 
     def ready(self, topo: m.TopoGraph) -> bool:
@@ -54,9 +65,11 @@ class ReliabilityService:
             "reliability", topo.header.stamp, topo.header.src_seq))
         self.pub.put(self.last)
         self.node.processed += 1
+        self.ckpt.save_if_due(self.core.checkpoint)  # after the beliefs went out
 
     def state(self) -> dict:
-        return {"skipped": self.skipped, "nodes": self.core.snapshot(), "last": self.last}
+        return {"skipped": self.skipped, "nodes": self.core.snapshot(), "last": self.last,
+                "checkpoint": dict(self.ckpt.stats)}
 
 
 def main(argv: list[str] | None = None) -> int:

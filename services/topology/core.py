@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from topoexplore.common.checkpoint import CheckpointError, checked
 from topoexplore.common.domain import Graph, GridMap, Node
 from topoexplore.common.grid import (
     GridGeometry,
@@ -172,6 +173,27 @@ class TopologyCore:
             "grid": None if self._geom is None else [self._geom.width, self._geom.height,
                                                      self._geom.resolution],
         }
+
+    def checkpoint(self) -> dict[str, np.ndarray]:
+        """What a restarted topology needs to keep its node ids: the last nodes (id, kind,
+        position) that the next update is associated with, and the next free id."""
+        return {"next_id": np.array([self._next_id], np.int64), "ids": self._prev_ids.copy(),
+                "kind": self._prev_kind.copy(), "xy": np.asarray(self._prev_xy, np.float64)}
+
+    def restore(self, arrays: dict[str, np.ndarray]) -> None:
+        """Take the node ids back from :meth:`checkpoint`; the next update's nodes are matched
+        to them as to the previous update's. CheckpointError if they do not fit together."""
+        ids = checked(arrays, "ids", "i", (None,)).astype(np.int64)
+        n = len(ids)
+        kind = checked(arrays, "kind", "i", (n,)).astype(np.int8)
+        xy = checked(arrays, "xy", "f", (n, 2)).astype(np.float64)
+        next_id = int(checked(arrays, "next_id", "i", (1,))[0])
+        if not np.isfinite(xy).all() or len(np.unique(ids)) != n or (n and ids.min() < 0) \
+                or next_id <= (int(ids.max()) if n else -1) or next_id >= 2**62 \
+                or not np.isin(kind, (g.END, g.BRANCH, g.CORNER)).all():
+            raise CheckpointError("topology checkpoint: ids, kinds or positions out of range")
+        self._prev_ids, self._prev_kind, self._prev_xy = ids, kind, xy
+        self._next_id = next_id
 
     def update(self, grid_map: GridMap, robot_xy: tuple[float, float]) -> TopoResult:
         """One topology update for the current grid (module docstring, steps 1-8); robot_xy

@@ -1,15 +1,19 @@
 """Topology service: map -> thinning-based topological graph -> ``topo``.
 
 The robot position (needed to keep only its connected component) is the odometry pose at the
-map's stamp. Node ids are stable across updates; vanished ids are reported in ``gone``.
+map's stamp. Node ids are stable across updates; vanished ids are reported in ``gone``. With
+``runtime.state_dir`` set, the last nodes and the next free id are checkpointed, so a
+restarted topology gives the same places the same ids.
 """
 
 from __future__ import annotations
 
 import logging
+import time
 
 from topoexplore.common import convert
 from topoexplore.common import messages as m
+from topoexplore.common.checkpoint import Checkpointer
 from topoexplore.common.node import Node, OdomBuffer, run_service
 from topoexplore.services.topology.core import WARM_MODULES, TopologyCore
 
@@ -26,6 +30,12 @@ class TopologyService:
         node.subscribe("map", queue=True)
         self.skipped = 0
         self.last: m.TopoGraph | None = None
+        rt = node.params.runtime  # node ids survive a restart (runtime.state_dir)
+        self.ckpt = Checkpointer(rt.state_dir, "topology", rt.checkpoint_every,
+                                 rt.checkpoint_max_age, log)
+        if self.ckpt.resume(self.core.restore, time.time()):
+            log.info("resumed %d node ids (next id %d) from the checkpoint",
+                     len(self.core.checkpoint()["ids"]), self.core.snapshot()["next_id"])
         node.add_state(self.state)
 
     def step(self) -> None:
@@ -43,9 +53,11 @@ class TopologyService:
             "topo", grid.header.stamp, grid.header.src_seq))
         self.pub.put(self.last)
         self.node.processed += 1
+        self.ckpt.save_if_due(self.core.checkpoint)  # after the graph went out
 
     def state(self) -> dict:
-        out = {"skipped_maps": self.skipped, "core": self.core.snapshot()}
+        out = {"skipped_maps": self.skipped, "core": self.core.snapshot(),
+               "checkpoint": dict(self.ckpt.stats)}
         if self.last is not None:
             kinds: dict[str, int] = {}
             for n in self.last.nodes:
