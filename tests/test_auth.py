@@ -1,5 +1,8 @@
-"""The authenticated, confined deployment (issue 14, item 2): deploy/zenoh/secure-router.json5
-on a loopback address of its own, the stack as user "robot", and strangers.
+"""The authenticated, confined deployment (issue 14, item 2): deploy/zenoh/secure-router.json5,
+the stack as user "robot", and strangers, on three hosts: the router, the robot's services
+and an operator's machine (this test), each in a Linux network namespace of its own joined
+by virtual links (veth); where namespaces cannot be made (not root, no ``ip``), the router
+gets a loopback address of its own instead.
 
 - the exploration runs through the router (the sim's clock moves, the map grows);
 - a client without credentials, or with a wrong password, cannot connect;
@@ -9,8 +12,12 @@ on a loopback address of its own, the stack as user "robot", and strangers.
 
 from __future__ import annotations
 
-import dataclasses
+import os
+import shutil
+import subprocess
+import sys
 import time
+from dataclasses import dataclass, field
 
 import pytest
 
@@ -19,8 +26,7 @@ from tests.test_supervisor import wait_for
 from topoexplore.common import messages as m
 from topoexplore.common.bus import CREDENTIALS_ENV, USERS_ENV, Bus, BusError
 from topoexplore.common.keys import Keys
-from topoexplore.tools.launch.core import load_profile
-from topoexplore.tools.launch.supervisor import Supervisor, free_port, profile_path
+from topoexplore.tools.launch.supervisor import free_port, profile_path
 from topoexplore.tools.livestate import StateError, fetch_state
 
 CONFIG = REPO / "deploy" / "zenoh" / "secure-router.json5"
@@ -41,22 +47,88 @@ def _client(monkeypatch, endpoint: str, cred: str | None) -> Bus:
     return Bus.client(endpoint, name="auth-test")
 
 
-def test_secure_router_keeps_strangers_out(procs, tmp_path, namespace, monkeypatch):
+@dataclass
+class Hosts:
+    """Where the router and the services run, and the endpoints each side uses."""
+
+    router_prefix: list[str]  # command prefix that runs a program on the router's host
+    services_prefix: list[str]
+    listen: str  # the router's listen endpoint
+    services_connect: str  # the endpoint the robot's services connect to
+    client_connect: str  # the endpoint this test (the operator's machine) connects to
+    netns: list[str] = field(default_factory=list)
+
+    def close(self) -> None:
+        for ns in self.netns:
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=30)
+
+
+def _run(*cmd: str) -> None:
+    subprocess.run(cmd, check=True, capture_output=True, timeout=30)
+
+
+def make_hosts(port: int) -> Hosts:
+    """Three hosts in network namespaces (router R, services S, this test in the root
+    namespace): S -- R over one veth pair, the test -- R over another. Loopback addresses
+    where namespaces cannot be made."""
+    tag = os.getpid() % 100_000
+    net = 16 + tag % 200  # 10.231.<net>.0/24: R-S, 10.232.<net>.0/24: R-test
+    r, s_ = f"te{tag}r", f"te{tag}s"
+    if os.geteuid() == 0 and shutil.which("ip"):
+        hosts = Hosts(["ip", "netns", "exec", r], ["ip", "netns", "exec", s_],
+                      f"tcp/0.0.0.0:{port}", f"tcp/10.231.{net}.1:{port}",
+                      f"tcp/10.232.{net}.1:{port}", [r, s_])
+        try:
+            _run("ip", "netns", "add", r)
+            _run("ip", "netns", "add", s_)
+            _run("ip", "link", "add", f"{r}1", "type", "veth", "peer", "name", f"{s_}1")
+            _run("ip", "link", "set", f"{r}1", "netns", r)
+            _run("ip", "link", "set", f"{s_}1", "netns", s_)
+            _run("ip", "link", "add", f"{r}2", "type", "veth", "peer", "name", f"{r}h")
+            _run("ip", "link", "set", f"{r}2", "netns", r)
+            _run("ip", "-n", r, "addr", "add", f"10.231.{net}.1/24", "dev", f"{r}1")
+            _run("ip", "-n", s_, "addr", "add", f"10.231.{net}.2/24", "dev", f"{s_}1")
+            _run("ip", "-n", r, "addr", "add", f"10.232.{net}.1/24", "dev", f"{r}2")
+            _run("ip", "addr", "add", f"10.232.{net}.2/24", "dev", f"{r}h")
+            for ns, dev in ((r, f"{r}1"), (r, f"{r}2"), (r, "lo"), (s_, f"{s_}1"), (s_, "lo")):
+                _run("ip", "-n", ns, "link", "set", dev, "up")
+            _run("ip", "link", "set", f"{r}h", "up")
+            return hosts
+        except (subprocess.SubprocessError, OSError):
+            hosts.close()
+    ep = f"tcp/127.0.0.2:{port}"  # the router on a loopback address of its own
+    return Hosts([], [], ep, ep, ep)
+
+
+@pytest.fixture
+def hosts():
+    h = make_hosts(free_port())
+    yield h
+    h.close()
+
+
+def test_secure_router_keeps_strangers_out(procs, hosts, tmp_path, namespace, monkeypatch):
     users = tmp_path / "users.txt"
     users.write_text("robot:robot-pw\nviewer:viewer-pw\nteleop:teleop-pw\n")
     users.chmod(0o600)
     robot = _creds(tmp_path, "robot", "robot-pw")
-    endpoint = f"tcp/127.0.0.2:{free_port()}"  # the router on a loopback address of its own
+    endpoint = hosts.client_connect
     monkeypatch.setenv(USERS_ENV, str(users))
-    procs.python("-m", "topoexplore.tools.router", "--listen", endpoint, "--zenoh-config",
-                 str(CONFIG))
+    procs.start([*hosts.router_prefix, sys.executable, "-u", "-m", "topoexplore.tools.router",
+                 "--listen", hosts.listen, "--zenoh-config", str(CONFIG)],
+                stdout=(tmp_path / "router.log").open("w"))
     monkeypatch.setenv(CREDENTIALS_ENV, robot)  # the supervisor and its children: "robot"
     keys = Keys(namespace, "robot1")
-    wait_for(lambda: _port_open(endpoint), 30)
-    profile = dataclasses.replace(load_profile(profile_path("sim")), router=False)
-    sup = Supervisor(profile, keys, endpoint, overrides=['sim.world="paper-room"'])
+    assert wait_for(lambda: _port_open(endpoint), 30), (tmp_path / "router.log").read_text()
+    profile = tmp_path / "sim-remote-router.toml"  # the sim profile, on a router elsewhere
+    profile.write_text(profile_path("sim").read_text().replace("router = true",
+                                                                "router = false"))
+    up_log = tmp_path / "up.log"
+    up = procs.start([*hosts.services_prefix, sys.executable, "-u", "-m",
+                      "topoexplore.tools.cli", "up", "--profile", str(profile), "--world",
+                      "paper-room", "--connect", hosts.services_connect, "--namespace",
+                      namespace], stdout=up_log.open("w"))
     try:
-        assert sup.start(ready_timeout=120)
         with _client(monkeypatch, endpoint, robot) as rb:
             cmds: list[bytes] = []
             statuses: list[str] = []
@@ -71,7 +143,9 @@ def test_secure_router_keeps_strangers_out(procs, tmp_path, namespace, monkeypat
                     return 0
                 return st["processed"]
 
-            assert wait_for(lambda: mapped() > 20, 60), "the stack does not run through the router"
+            assert wait_for(lambda: mapped() > 20, 120), \
+                f"the stack does not run through the router: {up_log.read_text()[-3000:]}"
+            assert up.poll() is None
 
             # strangers: no credentials, a wrong password
             for cred in (None, _creds(tmp_path, "viewer", "not-the-password")):
@@ -121,7 +195,8 @@ def test_secure_router_keeps_strangers_out(procs, tmp_path, namespace, monkeypat
                 time.sleep(1.0)
                 assert odoms and not tmaps
     finally:
-        sup.stop()
+        up.terminate()
+        up.wait(timeout=30)
 
 
 def _port_open(endpoint: str) -> bool:
