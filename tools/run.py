@@ -435,10 +435,12 @@ def run(args: argparse.Namespace) -> int:
     outcome = session.execute()
     if session.mon.first_motion is not None:
         outcome.first_motion = session.mon.first_motion - t_cmd
+    from topoexplore.common.mapio import MapIOError
+
     try:
         report = write_results(args, setup, truth, session.mon, outcome)
-    except OSError as exc:  # a full disk or a vanished --out: the stack is stopped already
-        return _fail(f"cannot write the results to {setup.out}: {exc}", 1)
+    except (OSError, MapIOError) as exc:  # a full disk or a vanished --out: the stack is
+        return _fail(f"cannot write the results to {setup.out}: {exc}", 1)  # stopped already
     console.echo(summary_line(report, setup.out))
     if not outcome.finished:
         print(f"topoexplore: exploration did not finish: {outcome.reason}", file=sys.stderr)

@@ -8,6 +8,7 @@
     topoexplore bench record [--world office] [--speed 4] [--sim-time 120] [--repeats 2]
     topoexplore bench faults [--world office] [--speed 4] [--faults kill:mapper,stop:planner,router]
     topoexplore bench fuzz [--per-key 10000] [--rate 2000] [--world paper-room]
+    topoexplore bench hangs [--tries 20] [--cases disk-full,broken-pipe,signals]
 
 ``stages`` (:mod:`.stages`, :mod:`.bus`) times every core and the bus; ``explore``
 (:mod:`.explore`) runs the strategy comparison suite with the real processes; ``inproc``
@@ -15,21 +16,23 @@
 (:mod:`.oracle`) divides their paths by a short tour planned on the true map; ``record``
 (:mod:`.recording`) measures what ``run --record`` costs the services in real time; ``faults``
 (:mod:`.faults`) runs explorations while it kills, freezes and restarts processes; ``fuzz``
-(:mod:`.fuzz`) floods a running stack with malformed messages on every key it subscribes.
+(:mod:`.fuzz`) floods a running stack with malformed messages on every key it subscribes;
+``hangs`` (:mod:`.hangs`) checks that ``run`` comes down, with its children, after a full
+disk, a broken pipe or back-to-back signals.
 """
 
 from __future__ import annotations
 
 import sys
 
-_USAGE = ("usage: topoexplore bench {stages,explore,inproc,robust,oracle,record,faults,fuzz} "
+_USAGE = ("usage: topoexplore bench {stages,explore,inproc,robust,oracle,record,faults,fuzz,hangs} "
           "[options]  (-h for help)")
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] not in ("stages", "explore", "inproc", "robust", "oracle",
-                                   "record", "faults", "fuzz"):
+                                   "record", "faults", "fuzz", "hangs"):
         print(_USAGE, file=sys.stderr)
         return 2
     if argv[0] == "stages":
@@ -52,6 +55,10 @@ def main(argv: list[str] | None = None) -> int:
         from topoexplore.tools.bench import fuzz
 
         return fuzz.main(argv[1:])
+    if argv[0] == "hangs":
+        from topoexplore.tools.bench import hangs
+
+        return hangs.main(argv[1:])
     if argv[0] == "faults":
         from topoexplore.tools.bench import faults
 
