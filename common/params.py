@@ -296,6 +296,10 @@ class PlannerParams(_P):
     potential_scale: Pos = 3.0  # explore_lite default
     gain_scale: NonNeg = 1.0  # explore_lite default
     status_hz: Pos = 1.0  # [Hz]
+    heartbeat: NonNeg = 0.05  # [s] robot time: in real time the planner sends its last plan
+    #   again this often (on odometry, from its receive thread, while its worker loop is
+    #   alive), so the controller tells a stalled planner from one busy with a long update
+    #   (controller.plan_timeout); 0: off (one plan per map)
     tie_tolerance: NonNeg = 0.5  # [m] path costs this close tie -> prefer the target ahead
     target_move: Pos = 0.3  # [m] target moved this far from where the path was made -> new path
     arrival_timeout: Pos = 5.0  # [s] within goal_tolerance of a still-open target -> blacklist
@@ -375,9 +379,10 @@ class ControllerParams(_P):
     slow_min_scale: Fraction = 0.25  # speed factor at safety_distance (1 at slow_distance)
     stuck_distance: Pos = 0.05  # [m] moving less than this ...
     stuck_angle: Pos = 0.2  # [rad] ... and turning less than this for stuck_time = stuck
-    plan_timeout: Pos = 0.5  # [s] robot time without a new plan message (the planner sends
-    #   one per map: a stalled or dead planner) -> stop, mode "stale-plan" (0 such stops in
-    #   office and a 60 x 60 m office at real time x4, tools/bench/faults.py)
+    plan_timeout: Pos = 0.25  # [s] robot time without a new plan message (the planner sends
+    #   one per map and its heartbeat every planner.heartbeat: a stalled or dead planner) ->
+    #   stop, mode "stale-plan". In lockstep, where the controller waits for each map's plan,
+    #   at least two map periods (mapper.map_every / laser.scan_hz each)
 
     def __post_init__(self) -> None:
         _need(self.slow_distance >= self.safety_distance, "need slow_distance >= safety_distance")

@@ -404,3 +404,50 @@ def test_topology_reliability_planner_killed_together_resume(tmp_path, endpoint,
     for s in victims:
         c = report["checkpoints"][s]
         assert c["failed"] == 0 and c["resumed_age_s"] is not None, (s, c)
+
+
+def test_a_frozen_planner_stops_the_robot_and_it_goes_on_after(tmp_path, endpoint, namespace):
+    """Real time: while the planner works it sends its last plan again on odometry
+    (planner.heartbeat), so the controller's short plan_timeout never stops a driving robot;
+    SIGSTOP the planner and the robot stands still within 0.5 s of robot time; SIGCONT and
+    it drives on."""
+    from topoexplore.tools.bench.faults import Watch
+
+    keys = Keys(namespace, "robot1")
+    run = subprocess.Popen([sys.executable, "-m", "topoexplore.tools.cli", "run", "--world",
+                            "office", "--speed", "2", "--quiet", "--out", str(tmp_path / "run"),
+                            "--connect", endpoint, "--namespace", namespace,
+                            "--max-sim-time", "60"],
+                           cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                           start_new_session=True)
+    try:
+        with Bus.client(endpoint, wait_for_router=True) as bus:
+            watch = Watch(bus, keys)
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline and watch.sim_time < 10.0:
+                time.sleep(0.1)
+            pl, ct = _state(bus, keys, "planner"), _state(bus, keys, "controller")
+            assert pl and ct and pl["heartbeats"] > 0, pl
+            assert ct["core"]["stale_plan_steps"] == 0  # no false stop while it works
+            t_sim = watch.sim_time
+            os.kill(pl["pid"], signal.SIGSTOP)
+            try:
+                time.sleep(2.0)
+                still = watch.stood_still_after(t_sim)
+                assert still is not None and still <= 0.5, still
+                assert _state(bus, keys, "controller")["cmd"]["mode"] == "stale-plan"
+            finally:
+                os.kill(pl["pid"], signal.SIGCONT)
+            deadline = time.monotonic() + 10
+            while time.monotonic() < deadline and (
+                    _state(bus, keys, "controller") or {}).get("cmd", {}).get("mode") == "stale-plan":
+                time.sleep(0.1)
+            assert _state(bus, keys, "controller")["cmd"]["mode"] != "stale-plan"
+    finally:
+        if run.poll() is None:
+            os.killpg(run.pid, signal.SIGTERM)
+            try:
+                run.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                os.killpg(run.pid, signal.SIGKILL)
+                run.wait(timeout=10)

@@ -270,6 +270,11 @@ def test_a_stale_plan_stops_the_robot_until_a_new_one_comes():
     cmd = core.update(0.2, Pose(0.0, 0.0, 0.0), route, False, free_scan(), P.plan_timeout + 0.1)
     assert cmd == (0.0, 0.0, "stale-plan") and core.stale_plan_steps == 1
     assert core.update(0.3, Pose(0.0, 0.0, 0.0), route, False, free_scan(), 0.0).mode == "track"
+    # a caller's own limit (the service's, in lockstep: two map periods) replaces the default
+    assert core.update(0.4, Pose(0.0, 0.0, 0.0), route, False, free_scan(), P.plan_timeout + 0.1,
+                       plan_limit=0.8).mode == "track"
+    assert core.update(0.5, Pose(0.0, 0.0, 0.0), route, False, free_scan(), 0.81,
+                       plan_limit=0.8).mode == "stale-plan"
 
 
 def test_empty_path_and_done_stop():

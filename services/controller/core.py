@@ -418,15 +418,17 @@ class ControllerCore:
     # -- public --
 
     def update(self, t: float, pose: Pose, route: Route | None, done: bool,
-               scan: Scan | None, plan_age: float | None = None) -> Command:
+               scan: Scan | None, plan_age: float | None = None,
+               plan_limit: float | None = None) -> Command:
         """One control step at time t [s] for the robot at pose (map frame).
 
         route: the path to follow (None or no waypoints = stop); a new plan_id, changed
         waypoints or a changed goal heading start it anew; at its end the robot turns to the
         route's goal_heading (mode "face", within face_tolerance) before reporting "arrived".
         done: exploration over. scan: the latest scan (robot frame), or None. plan_age: robot
-        time [s] since the last plan message arrived (None: none yet); beyond plan_timeout the
-        planner is taken for stalled and the robot stops (mode "stale-plan") until one comes.
+        time [s] since the last plan message arrived (None: none yet); beyond plan_limit
+        (default params.plan_timeout) the planner is taken for stalled and the robot stops
+        (mode "stale-plan") until one comes.
         """
         if t < self._t_last:  # clock went back (sim restart): forget timers, look again
             self._ref = None
@@ -438,7 +440,8 @@ class ControllerCore:
         self._take_route(route)
         if bool(done):
             return self._out(0.0, 0.0, "done", False, t, pose)
-        if plan_age is not None and plan_age > self.params.plan_timeout:
+        limit = self.params.plan_timeout if plan_limit is None else plan_limit
+        if plan_age is not None and plan_age > limit:
             self.stale_plan_steps += 1
             return self._out(0.0, 0.0, "stale-plan", False, t, pose)
         look = self._look(t, pose)

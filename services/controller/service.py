@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 
 from topoexplore.common import convert
 from topoexplore.common import messages as m
@@ -31,12 +32,15 @@ class ControllerService:
         self.core = ControllerCore(node.params.controller, node.params.robot)
         self.odom = OdomBuffer()
         self.pub = node.publisher("cmd_vel")
-        node.subscribe_odom(self.odom)
-        node.subscribe("plan")
+        self.pub_lock = threading.Lock()  # cmd_vel from the worker and from the odom thread
+        self.plan_came: tuple[int, float] | None = None  # (plan seq, robot time it came)
+        self.early_stops = 0  # stale-plan stops sent on odometry, before the next scan
+        node.subscribe("odom", on_msg=self.on_odom)
+        node.subscribe("plan", on_msg=self.on_plan)
         node.subscribe("explore/status")
         node.subscribe("scan", queue=True)
         self.last_cmd = Command(0.0, 0.0, "idle")
-        self.plan_seen: tuple[int, float] | None = None  # (plan seq, robot time it came)
+        self.last_src = -1  # src_seq of the last scan answered
         node.add_state(self.state)
         node.add_live(LIVE, self.apply_params)
 
@@ -64,39 +68,79 @@ class ControllerService:
             cmd = self.core.update(scan.header.stamp, pose,
                                    convert.route_from_msg(plan) if plan is not None else None,
                                    done, convert.scan_from_msg(scan),
-                                   self.plan_age(plan, scan.header.stamp))
+                                   self.plan_age(scan.header.stamp), self.plan_limit())
         v, w, mode = cmd
         if mode != self.last_cmd.mode and mode == "stale-plan":
             log.warning("t=%.1f s: no new plan for %.1f s: the robot stops until one comes "
                         "(%d stopped steps so far)", scan.header.stamp,
-                        self.plan_age(plan, scan.header.stamp) or 0.0, self.core.stale_plan_steps)
+                        self.plan_age(scan.header.stamp) or 0.0, self.core.stale_plan_steps)
         if mode != self.last_cmd.mode and mode in ("blocked", "recovery") and pose is not None:
             c = self.core  # the safety stop or a stuck recovery took over: say where and why
             log.info("t=%.1f s %s at (%.2f, %.2f, %.2f rad): front %.2f m, heading error "
                      "%.2f rad, lookahead (%.2f, %.2f), recoveries %d", scan.header.stamp, mode,
                      pose[0], pose[1], pose[2], c.front, c.heading_error, *(c.target or (math.nan, math.nan)),
                      c.recoveries)
-        self.last_cmd = cmd
-        self.pub.put(convert.command_to_msg(cmd, self.node.header(
-            "cmd_vel", scan.header.stamp, scan.header.src_seq)))
+        with self.pub_lock:
+            self.last_cmd = cmd
+            self.last_src = scan.header.src_seq
+            self.pub.put(convert.command_to_msg(cmd, self.node.header(
+                "cmd_vel", scan.header.stamp, scan.header.src_seq)))
         self.node.processed += 1
 
-    def plan_age(self, plan: m.Path | None, t: float) -> float | None:
-        """Robot time [s] since a new plan message (another seq) last came; None before the
-        first. A clock that went back (a sim restart) starts the count again."""
-        if plan is None:
+    def on_plan(self, plan: m.Path) -> None:
+        """Receive thread: the robot time (newest odometry) a new plan message came."""
+        came = self.plan_came
+        if came is None or plan.header.seq != came[0]:
+            self.plan_came = (plan.header.seq, self.odom.newest)
+
+    def on_odom(self, o: m.Odometry) -> None:
+        """Receive thread: keep the pose; in real time, stop a moving robot as soon as the
+        plan is stale by odometry time (20 Hz) instead of at the next scan (5 Hz): a frozen
+        planner's robot stands still sooner."""
+        t = o.header.stamp
+        self.odom.add(t, convert.pose_from_msg(o.pose), o.header.seq)
+        if self.node.lockstep:
+            return
+        age = self.plan_age(t)
+        cmd = self.last_cmd
+        if age is None or age <= self.plan_limit() or (cmd.v == 0.0 and cmd.w == 0.0):
+            return
+        with self.pub_lock:
+            if self.last_cmd is not cmd:  # the worker answered a scan meanwhile
+                return
+            self.last_cmd = Command(0.0, 0.0, "stale-plan")
+            self.early_stops += 1
+            self.pub.put(convert.command_to_msg(self.last_cmd, self.node.header(
+                "cmd_vel", t, self.last_src)))
+        log.warning("t=%.1f s: no new plan for %.2f s: the robot stops until one comes", t, age)
+
+    def plan_limit(self) -> float:
+        """[s] robot time without a new plan message before the robot stops: plan_timeout; in
+        lockstep, where plans come once per map and only when they are ready, at least two
+        map periods."""
+        P = self.node.params
+        limit = P.controller.plan_timeout
+        if self.node.lockstep:
+            limit = max(limit, 2.0 * P.mapper.map_every / P.laser.scan_hz)
+        return limit
+
+    def plan_age(self, t: float) -> float | None:
+        """Robot time [s] at t since a new plan message (another seq) last came; None before
+        the first."""
+        came = self.plan_came
+        if came is None:
             return None
-        if self.plan_seen is None or plan.header.seq != self.plan_seen[0] \
-                or t < self.plan_seen[1]:
-            self.plan_seen = (plan.header.seq, t)
-        return t - self.plan_seen[1]
+        if not math.isfinite(came[1]) or t < came[1] - 1.0:  # no odometry yet when it
+            self.plan_came = came = (came[0], t)  # came, or the clock went back (sim restart)
+        return max(0.0, t - came[1])
 
     def apply_params(self, P: Params) -> None:
         self.core.params = P.controller
 
     def state(self) -> dict:
         v, w, mode = self.last_cmd
-        return {"cmd": {"v": v, "w": w, "mode": mode}, "core": self.core.snapshot()}
+        return {"cmd": {"v": v, "w": w, "mode": mode}, "core": self.core.snapshot(),
+                "early_stops": self.early_stops}
 
 
 def main(argv: list[str] | None = None) -> int:

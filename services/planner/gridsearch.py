@@ -146,7 +146,7 @@ def best_clearance_map(occupied: np.ndarray, resolution: float) -> np.ndarray:
     return d.reshape(h, 2, w, 2).max(axis=(1, 3))
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _dijkstra8(passable, mult, seeds, seed_cost, res):  # pragma: no cover - jitted
     """Exact 8-neighbour Dijkstra as Dial's bucket queue (bucket width = res), from several
     seed cells with their starting costs.

@@ -9,6 +9,8 @@ cells) is checkpointed and a restarted planner takes it back.
 from __future__ import annotations
 
 import logging
+import math
+import threading
 import time
 
 import msgspec
@@ -31,7 +33,12 @@ class PlannerService:
         self.odom = OdomBuffer()
         self.pub_plan = node.publisher("plan")
         self.pub_status = node.publisher("explore/status", reliable=True)
-        node.subscribe_odom(self.odom)
+        self.pub_lock = threading.Lock()  # plan and its seq: the worker and the heartbeat
+        self.last_plan: m.Path | None = None
+        self.worker_beat = time.monotonic()  # [wall s] the worker loop's last turn
+        self.beat_stamp = -math.inf  # [s] robot time of the last plan sent
+        self.heartbeats = 0
+        node.subscribe("odom", on_msg=self.on_odom)
         node.subscribe("map")
         node.serve_latest("map")  # a restarted mapper takes its last map back
         node.subscribe("topo")
@@ -57,7 +64,30 @@ class PlannerService:
         return (inbox.src_seq("topo") >= k and inbox.src_seq("map") >= k
                 and self.odom.newest >= rel.header.stamp - 1e-6)
 
+    def on_odom(self, o: m.Odometry) -> None:
+        """Receive thread: keep the pose; in real time, send the last plan again every
+        planner.heartbeat of robot time while the worker loop is alive (it turns at least
+        every 0.2 s; a worker stuck for 2 s gets no heartbeat). A frozen or dead process
+        sends nothing, and the controller stops the robot (controller.plan_timeout)."""
+        self.odom.add(o.header.stamp, convert.pose_from_msg(o.pose), o.header.seq)
+        beat = self.p.heartbeat
+        if beat <= 0.0 or self.node.lockstep or self.last_plan is None \
+                or time.monotonic() - self.worker_beat > 2.0:
+            return
+        with self.pub_lock:
+            last = self.last_plan
+            t = o.header.stamp
+            if t - self.beat_stamp < beat and t >= self.beat_stamp:
+                return
+            h = last.header
+            self.last_plan = msgspec.structs.replace(last, header=self.node.header(
+                "plan", h.stamp, h.src_seq))
+            self.pub_plan.put(self.last_plan)
+            self.beat_stamp = t
+            self.heartbeats += 1
+
     def step(self) -> None:
+        self.worker_beat = time.monotonic()
         got = self.node.take("reliability", self.ready)
         if got is None:
             self.maybe_status(force=False)
@@ -75,7 +105,10 @@ class PlannerService:
             convert.grid_from_msg(grid) if grid is not None else None)
         self.plan = plan
         stamp, k = rel.header.stamp, rel.header.src_seq
-        self.pub_plan.put(convert.route_to_msg(plan.route, self.node.header("plan", stamp, k)))
+        with self.pub_lock:
+            self.last_plan = convert.route_to_msg(plan.route, self.node.header("plan", stamp, k))
+            self.pub_plan.put(self.last_plan)
+            self.beat_stamp = self.odom.newest
         self.last_status = convert.status_to_msg(  # its seq is given when it goes out
             plan.status, m.Header(seq=0, stamp=stamp, frame="map", src_seq=k))
         self.node.processed += 1
@@ -102,6 +135,7 @@ class PlannerService:
 
     def state(self) -> dict:
         return {"status": self.last_status, "core": self.core.snapshot(),
+                "heartbeats": self.heartbeats,
                 "checkpoint": dict(self.ckpt.stats)}
 
 
