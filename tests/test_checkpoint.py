@@ -310,6 +310,8 @@ def test_restarted_topology_reliability_planner_keep_ids_beliefs_and_memory(upda
     assert b[1].snapshot() == a[1].snapshot() and b[1].snapshot()["end_nodes"] > 0
     for part in ("blacklist", "failures", "blocked", "examined", "plan_id", "replans"):
         assert b[2].snapshot()[part] == a[2].snapshot()[part], part
+    for part in ("counts", "approaches", "log"):
+        assert b[2].snapshot()["watchdog"][part] == a[2].snapshot()["watchdog"][part], part
     for u in updates[150:]:
         ga, ba, _ = _step(a, *u)
         gb, bb, _ = _step(b, *u)
@@ -451,3 +453,21 @@ def test_a_frozen_planner_stops_the_robot_and_it_goes_on_after(tmp_path, endpoin
             except subprocess.TimeoutExpired:
                 os.killpg(run.pid, signal.SIGKILL)
                 run.wait(timeout=10)
+
+
+def test_planner_watchdog_counts_and_log_round_trip(tmp_path):
+    from topoexplore.services.planner.watchdog import Event, Watchdog
+
+    w = Watchdog(120.0, 0.5)
+    w.counts["blacklist"] = 2
+    w.approaches = 3
+    w.log = [Event(10.5, "nearest_frontier", "no new information for 120 s"),
+             Event(250.0, "blacklist", "x" * 500)]
+    back = Watchdog(120.0, 0.5)
+    back.restore(_through_disk(w.checkpoint(), tmp_path, "planner"))
+    assert back.counts == w.counts and back.approaches == 3
+    assert [(e.t, e.level) for e in back.log] == [(10.5, "nearest_frontier"), (250.0, "blacklist")]
+    assert back.log[1].why == "x" * 200  # a long reason is cut
+    with pytest.raises(ck.CheckpointError):
+        Watchdog(120.0, 0.5).restore({**w.checkpoint(),
+                                      "watchdog_log_level": np.array(["nope", "blacklist"])})

@@ -197,11 +197,12 @@ class PlannerCore:
 
     def checkpoint(self) -> dict[str, np.ndarray]:
         """The planner's memory of the exploration: the targets it gave up on (blacklist and
-        failure counts), the learned blockages, the examined frontier cells and its counters.
+        failure counts), the learned blockages, the examined frontier cells, its counters and
+        the watchdog's (escalations and their log, for report.json).
         The target, its path and the timers are not kept: a restarted planner chooses again
         from the next update."""
         return {**self._blacklist.checkpoint(), **self._blockages.checkpoint(),
-                **self._examined.checkpoint(),
+                **self._examined.checkpoint(), **self._watchdog.checkpoint(),
                 "planner_counts": np.array([self._plan_id, self._replans, self._updates],
                                            np.int64)}
 
@@ -213,6 +214,7 @@ class PlannerCore:
         self._blacklist.restore(arrays)
         self._blockages.restore(arrays)
         self._examined.restore(arrays)
+        self._watchdog.restore(arrays)
         self._plan_id, self._replans, self._updates = (int(v) for v in counts)
 
     def snapshot(self) -> dict[str, Any]:

@@ -44,6 +44,10 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
+from topoexplore.common.checkpoint import CheckpointError, checked
+
 LEVELS = ("nearest_frontier", "blacklist", "stuck")
 LOG_LIMIT = 50  # escalation events kept in the log (the counts keep the totals)
 WINDOW_LIMIT = 200  # targets remembered since the last new information
@@ -155,6 +159,27 @@ class Watchdog:
         self.travel = 0.0
         self.window.clear()
         self._first, self._first_best = None, math.inf
+
+    def checkpoint(self) -> dict[str, np.ndarray]:
+        """What report.json counts (escalations per level, approaches, the log), kept across
+        a planner restart; the level in force and the timers start again."""
+        return {"watchdog_counts": np.array([self.counts.get(k, 0) for k in LEVELS]
+                                            + [self.approaches], np.int64),
+                "watchdog_log_t": np.array([e.t for e in self.log], np.float64),
+                "watchdog_log_level": np.array([e.level for e in self.log], "<U32"),
+                "watchdog_log_why": np.array([e.why[:200] for e in self.log], "<U200")}
+
+    def restore(self, arrays: dict[str, np.ndarray]) -> None:
+        counts = checked(arrays, "watchdog_counts", "i", (len(LEVELS) + 1,))
+        t = checked(arrays, "watchdog_log_t", "f", (None,))
+        level = checked(arrays, "watchdog_log_level", "U", (len(t),))
+        why = checked(arrays, "watchdog_log_why", "U", (len(t),))
+        if (counts < 0).any() or not np.isfinite(t).all() \
+                or not set(level.tolist()) <= set(LEVELS):
+            raise CheckpointError("planner checkpoint: watchdog counts or log out of range")
+        self.counts = {k: int(v) for k, v in zip(LEVELS, counts[:-1], strict=True)}
+        self.approaches = int(counts[-1])
+        self.log = [Event(float(a), str(b), str(c)) for a, b, c in zip(t, level, why, strict=True)]
 
     def snapshot(self) -> dict:
         return {"level": self.mode, "last_information_t": self.info_t,
