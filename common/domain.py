@@ -66,8 +66,13 @@ class Command(NamedTuple):
 
 @dataclass(frozen=True, eq=False)
 class Scan:
-    """One 2-D laser scan in the laser frame: beam i points at angle_min + i * angle_increment;
-    a range >= range_max is "no return"."""
+    """One 2-D laser scan in the laser frame: beam i points at angle_min + i * angle_increment.
+
+    Ranges as REP-117 reads them: a value in [range_min, range_max) is a return; +Inf, or a
+    value >= range_max, is no return within range_max (free space to range_max: our
+    simulator and many drivers send range_max); -Inf is an object closer than range_min
+    (the mapper cannot place it, the controller's safety stop takes it as an obstacle at the
+    laser); NaN, and a finite value below range_min, is no valid reading (discarded)."""
 
     ranges: np.ndarray  # float64 (n,) [m]
     angle_min: float  # [rad]
@@ -82,6 +87,15 @@ class Scan:
     def angles(self) -> np.ndarray:
         """Beam angles [rad] in the laser frame."""
         return self.angle_min + self.angle_increment * np.arange(self.beams)
+
+    def returns(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ranges [m], angles [rad]) of the beams that saw something: the returns in
+        [range_min, range_max), and the too-close readings (-Inf) at range_min."""
+        r = np.asarray(self.ranges, dtype=np.float64)
+        a = self.angles()
+        close = np.isneginf(r)
+        ok = ((r >= self.range_min) & (r < self.range_max)) | close
+        return np.where(close, self.range_min, r)[ok], a[ok]
 
 
 @dataclass(frozen=True, eq=False)

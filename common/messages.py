@@ -74,7 +74,8 @@ class LaserScan(msgspec.Struct, kw_only=True):
     angle_increment: float  # [rad]
     range_min: float  # [m]
     range_max: float  # [m]
-    ranges: list[float]  # [m]; range_max (or above) means no return
+    ranges: list[float]  # [m]; REP-117: NaN invalid, +Inf or >= range_max no return, -Inf
+    #   too close, < range_min invalid
 
 
 class Pose2D(msgspec.Struct, kw_only=True):
@@ -284,11 +285,10 @@ def _v_scan(m: LaserScan) -> None:
     _finite(m, "range_max", m.range_max, 0.0, 1000.0)
     if m.range_max <= m.range_min:
         _fail(m, "range_max must exceed range_min")
-    r = np.asarray(m.ranges, dtype=np.float64)
-    if not np.all(np.isfinite(r)):
-        _fail(m, f"{int(np.sum(~np.isfinite(r)))} ranges are not finite (use range_max for no return)")
-    if np.any(r < 0.0):
-        _fail(m, "negative range")
+    # ranges as REP-117 reads them, any float goes: NaN (no valid reading), +Inf (no return
+    # within range_max), -Inf (an object closer than range_min), finite values outside
+    # [range_min, range_max] (invalid: discarded); range_max itself is no return too (what
+    # many drivers and our simulator send). common.domain.Scan says what each use makes of them.
 
 
 def _v_odom(m: Odometry) -> None:

@@ -129,7 +129,18 @@ class RobotParams(_P):
     w_limit: Pos = 2.0  # [rad/s]
 
 
+# laser models: the fields a [laser] model = "..." fills in where the section does not set them
+LASER_MODELS: dict[str, dict[str, float]] = {
+    "sick-lms200": {"beams": 181, "fov": math.pi, "range_min": 0.02, "range_max": 8.0,
+                    "scan_hz": 5.0},  # the paper's Pioneer 2DX laser: 180 deg at 1 deg
+    "lidar-360": {"beams": 360, "fov": 2 * math.pi, "range_min": 0.1, "range_max": 12.0,
+                  "scan_hz": 10.0},  # a common 360 deg lidar: 1 deg, 12 m, 10 Hz
+}
+
+
 class LaserParams(_P):
+    model: Literal["sick-lms200", "lidar-360"] = "sick-lms200"  # fills the fields below that
+    #   the section leaves out (LASER_MODELS); a field set explicitly wins
     beams: Annotated[int, Meta(ge=2, le=10_000)] = 181  # paper: SICK LMS200, 181 readings at 1 deg
     fov: Annotated[float, Meta(gt=0.0, le=2 * math.pi)] = math.pi  # [rad] 180 deg, forward
     range_min: NonNeg = 0.02  # [m]
@@ -460,8 +471,21 @@ def _check_moved(data: dict[str, Any]) -> None:
                                      "\"Parameters\")")
 
 
+def _with_laser_model(data: dict[str, Any]) -> dict[str, Any]:
+    """[laser] model = "...": its fields where the section leaves them out."""
+    laser = data.get("laser")
+    if not isinstance(laser, dict):
+        return data
+    model = LASER_MODELS.get(laser.get("model", "sick-lms200")) if isinstance(
+        laser.get("model", "sick-lms200"), str) else None
+    if model is None:  # an unknown model: the validation says so
+        return data
+    return {**data, "laser": {**model, **laser}}
+
+
 def _convert(data: dict[str, Any]) -> Params:
     _check_moved(data)
+    data = _with_laser_model(data)
     try:
         return msgspec.convert(data, Params, strict=False)
     except msgspec.ValidationError as exc:

@@ -43,7 +43,11 @@ def box_vertices(center, size, angle: float) -> list[tuple[float, float]]:
 
 
 def beam_angles(beams: int, fov: float) -> tuple[float, float]:
-    """(angle_min, angle_increment) [rad] of a scan of ``beams`` beams centred on the heading."""
+    """(angle_min, angle_increment) [rad] of a scan of ``beams`` beams centred on the heading:
+    the first and last beams at the edges of the field of view, or, for a full turn, evenly
+    round it (the last beam one step short of the first, as a 360 deg lidar reports)."""
+    if fov >= 2.0 * math.pi - 1e-9:
+        return -math.pi, 2.0 * math.pi / beams
     return -fov / 2.0, fov / (beams - 1)
 
 

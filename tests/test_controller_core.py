@@ -113,19 +113,22 @@ def test_lookahead_point_off_path_goes_back_to_path():
 
 def test_front_distance_sector_and_lateral_offset():
     assert front_distance(None, P, R) == math.inf
-    assert front_distance(free_scan(), P, R) == pytest.approx(8.0)
+    assert front_distance(free_scan(), P, R) == math.inf  # range_max everywhere: no return
     assert front_distance(scan_with([(0.5, 0.0)]), P, R) == pytest.approx(0.5)
     # inside the angular sector but beside the robot's corridor (lateral 0.3 > 0.25): ignored
-    assert front_distance(scan_with([(0.6, 0.3)]), P, R) == pytest.approx(8.0)
+    assert front_distance(scan_with([(0.6, 0.3)]), P, R) == math.inf
     # ahead-left at 45 deg and inside the corridor: in the way (a sofa corner, say)
     assert front_distance(scan_with([(0.2, 0.2)]), P, R) == pytest.approx(math.hypot(0.2, 0.2))
     # outside the angular sector (about 76 deg): beside the robot, not ahead
-    assert front_distance(scan_with([(0.05, 0.2)]), P, R) == pytest.approx(8.0)
-    # zero / non-finite ranges are not returns
+    assert front_distance(scan_with([(0.05, 0.2)]), P, R) == math.inf
+    # REP-117: below range_min, NaN and +Inf are no returns; -Inf is an object too close
     s = free_scan()
     s.ranges[90] = 0.0
     s.ranges[91] = np.nan
-    assert front_distance(s, P, R) == pytest.approx(8.0)
+    s.ranges[89] = np.inf
+    assert front_distance(s, P, R) == math.inf
+    s.ranges[90] = -np.inf
+    assert front_distance(s, P, R) == pytest.approx(s.range_min)
 
 
 def only(points_xy: list[tuple[float, float]]) -> Scan:
@@ -151,6 +154,8 @@ def test_arc_distance_is_the_swept_disc_of_the_body():
     for _ in range(400):
         x, y = rng.uniform(0.0, 1.0), rng.uniform(-0.8, 0.8)
         kappa = 0.0 if rng.random() < 0.2 else rng.uniform(-4.0, 4.0)
+        if math.hypot(x, y) < 0.05:  # below range_min: no valid reading (REP-117)
+            continue
         s = only([(x, y)])
         k = int(np.nonzero(np.isfinite(s.ranges))[0][0])
         a = s.angle_min + k * s.angle_increment  # the beam's own point

@@ -25,12 +25,13 @@ DETERMINISTIC = ["finished", "stop_reason", "sim_time_s", "path_length_m", "cove
 
 
 @cache
-def explore(world: str, strategy: str = "reliability", seed: int = 0, repeat: int = 0) -> dict:
-    out = OUT / f"{world}-{strategy}-{seed}-{repeat}"
+def explore(world: str, strategy: str = "reliability", seed: int = 0, repeat: int = 0,
+            sets: tuple[str, ...] = ()) -> dict:
+    out = OUT / f"{world}-{strategy}-{seed}-{repeat}-{len(sets)}"
     cmd = [sys.executable, "-m", "topoexplore.tools.cli", "run", "--world", world, "--strategy", strategy,
            "--seed", str(seed), "--lockstep", "--quiet", "--out", str(out),
            "--connect", f"tcp/127.0.0.1:{free_port()}", "--namespace", f"e2e{os.getpid()}",
-           "--max-sim-time", "1500"]
+           "--max-sim-time", "1500", *(a for kv in sets for a in ("--set", kv))]
     r = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600,
                        env=dict(os.environ))
     report = json.loads((out / "report.json").read_text())
@@ -75,6 +76,15 @@ def test_explores_world_to_the_end(world):
     for svc in ("sim", "reliability", "controller"):
         assert at(svc, f"{svc}: ") == -1 and at(svc, f"{svc} ready on") >= 0, svc
     assert re.search(rf"^\[supervisor\] {stamp} mapper is up", logs, re.M)
+
+
+def test_a_360_degree_lidar_explores_too():
+    """laser.model = lidar-360: the simulator becomes a 360-beam lidar (12 m, 10 Hz); the
+    mapper takes its scans as they come (no beam-count check against the SICK's 181)."""
+    r = explore("junction", sets=("laser.model=lidar-360",))
+    assert r["_exit"] == 0 and r["finished"] and r["coverage"] >= 0.95, r["_stderr"]
+    assert r["collisions"] == 0
+    assert "[laser] says" not in (Path(r["_out"]) / "logs.txt").read_text()
 
 
 def test_same_seed_gives_same_report():

@@ -503,3 +503,37 @@ def benchmark(n: int = 500) -> None:
 
 if __name__ == "__main__":
     benchmark()
+
+
+def test_rep117_readings():
+    """NaN (no valid reading), -Inf (too close) and values below range_min change nothing;
+    +Inf is no return, like range_max: free space out to range_max."""
+    pose = (0.0, 0.0, 0.0)
+    base = room_ranges(pose)
+    ref = MapperCore(params())
+    scan(ref, pose, base)
+    for bad in (np.nan, -np.inf, 0.01):
+        r = base.copy()
+        r[80:100] = bad  # the beams straight ahead
+        core = MapperCore(params())
+        scan(core, pose, r)
+        wall = core.occupancy()
+        assert (wall != ref.occupancy()).any()  # the beam's ray and its wall are not there
+        assert ((wall >= 0) <= (ref.occupancy() >= 0)).all()  # and nothing else appears
+    inf, at_max = base.copy(), base.copy()
+    inf[80:100], at_max[80:100] = np.inf, 8.0
+    a, b = MapperCore(params()), MapperCore(params())
+    scan(a, pose, inf)
+    scan(b, pose, at_max)
+    assert np.array_equal(a.occupancy(), b.occupancy())
+
+
+def test_any_beam_count_and_a_full_turn():
+    """A 360-beam lidar's scan (another beam count and a full turn) maps a room all round."""
+    n, inc = 360, 2 * math.pi / 360
+    pose = (0.0, 0.0, 0.0)
+    core = MapperCore(params())
+    core.integrate(Pose(*pose), Scan(room_ranges(pose, n=n, amin=-math.pi, inc=inc), -math.pi,
+                                     inc, 0.1, 12.0))
+    occ = core.occupancy()
+    assert (occ >= 0).sum() * params().resolution ** 2 > 0.9 * 6.0 * 4.0  # [m^2] the room

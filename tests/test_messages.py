@@ -82,8 +82,6 @@ BAD = [
     ("string for float", msgpack.packb({"header": {}, "v": "fast", "w": 0.0}), m.Twist),
     ("nan velocity", m.encode(_mut(S["Twist"], v=NAN)), m.Twist),
     ("inf pose", m.encode(_mut(S["Odometry"], pose=m.Pose2D(x=INF, y=0, theta=0))), m.Odometry),
-    ("nan range", m.encode(_mut(S["LaserScan"], ranges=[1.0, NAN, 2.0])), m.LaserScan),
-    ("negative range", m.encode(_mut(S["LaserScan"], ranges=[1.0, -1.0])), m.LaserScan),
     ("no ranges", m.encode(_mut(S["LaserScan"], ranges=[])), m.LaserScan),
     ("too many beams", m.encode(_mut(S["LaserScan"], ranges=[1.0] * 20000)), m.LaserScan),
     ("range_max < min", m.encode(_mut(S["LaserScan"], range_max=0.01)), m.LaserScan),

@@ -300,3 +300,12 @@ def test_odometry_exact_by_default_and_drifts_when_asked():
     assert a.odom_pose() == b.odom_pose()
     err = math.dist(a.odom_pose()[:2], a.truth_pose()[:2])
     assert 0.0 < err < 0.5
+
+
+def test_beam_angles_edge_to_edge_or_evenly_round_a_full_turn():
+    from topoexplore.sim.core import beam_angles
+
+    amin, inc = beam_angles(181, math.pi)  # the SICK: -90 .. +90 deg at 1 deg
+    assert amin == pytest.approx(-math.pi / 2) and inc == pytest.approx(math.radians(1.0))
+    amin, inc = beam_angles(360, 2 * math.pi)  # a 360 deg lidar: no beam twice
+    assert amin == pytest.approx(-math.pi) and inc == pytest.approx(math.radians(1.0))

@@ -155,11 +155,9 @@ def pure_pursuit(pose: tuple[float, float, float], target) -> tuple[float, float
 
 
 def _scan_xy(scan: Scan) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Valid returns of a scan: (r, angle, x, y) in the robot frame."""
-    r = np.asarray(scan.ranges, dtype=np.float64).ravel()
-    a = scan.angles()
-    ok = np.isfinite(r) & (r > 0.0)
-    r, a = r[ok], a[ok]
+    """Returns of a scan (REP-117, :meth:`Scan.returns`: an object too close to measure is
+    one at range_min): (r, angle, x, y) in the robot frame."""
+    r, a = scan.returns()
     return r, a, r * np.cos(a), r * np.sin(a)
 
 

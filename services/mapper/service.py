@@ -16,6 +16,7 @@ and reliability keep (:meth:`MapperService.resume`).
 from __future__ import annotations
 
 import logging
+import math
 import time
 
 import numpy as np
@@ -44,6 +45,7 @@ class MapperService:
         node.subscribe_odom(self.odom)
         node.subscribe("scan", queue=True)
         self.skipped: dict[str, int] = {}
+        self.geometry_said: tuple = ()  # the scan geometry last warned about
         self.last_map: m.OccupancyGrid | None = None
         self.last_block = -1  # src_seq // map_every of the last published map
         node.add_state(self.state)
@@ -93,6 +95,24 @@ class MapperService:
         arrays = {**self.core.checkpoint(), "src_seq": np.array([self.last_src], np.int64)}
         self.ckpt.save(arrays, t0, time.time(), lambda: time.monotonic() - t0)
 
+    def check_geometry(self, scan: m.LaserScan) -> None:
+        """The mapper takes each scan's own beams, angles and range limits; say once when
+        they differ from [laser], which reliability and the planner use for what the robot
+        sees (field of view, range)."""
+        lp = self.node.params.laser
+        n = len(scan.ranges)
+        span = abs(scan.angle_increment) * n if n > 1 else 0.0  # [rad] covered by the beams
+        fov_ok = abs(span - lp.fov) <= 2.0 * abs(scan.angle_increment) + 1e-6
+        geo = (n, round(span, 3), scan.range_max)
+        if fov_ok and abs(scan.range_max - lp.range_max) <= 1e-6 or geo == self.geometry_said:
+            return
+        self.geometry_said = geo
+        log.warning("scans of %d beams over %.0f deg to %.1f m, but [laser] says %d beams, "
+                    "fov %.0f deg, range_max %.1f m: the map takes the scans as they are; "
+                    "reliability and the planner model the laser by [laser] (set laser.model "
+                    "or laser.fov / laser.range_max to match)", n, math.degrees(span),
+                    scan.range_max, lp.beams, math.degrees(lp.fov), lp.range_max)
+
     def skip(self, reason: str, detail: str) -> None:
         self.skipped[reason] = self.skipped.get(reason, 0) + 1
         if self.skipped[reason] in (1, 10, 100) or self.skipped[reason] % 1000 == 0:
@@ -107,10 +127,7 @@ class MapperService:
         if pose is None:
             self.skip("pose_missing", f"no odometry at stamp {scan.header.stamp:.3f}")
             return
-        expected = self.node.params.laser.beams
-        if len(scan.ranges) != expected:
-            self.skip("beam_count", f"{len(scan.ranges)} beams, expected {expected}")
-            return
+        self.check_geometry(scan)
         try:
             self.core.integrate(pose, convert.scan_from_msg(scan))
         except ScanError as exc:
