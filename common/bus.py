@@ -194,11 +194,15 @@ class Publisher:
         self.count = 0
         self._lock = threading.Lock()
 
-    def put(self, msg: Any) -> None:
-        """Publish a message struct (encoded to msgpack) or raw bytes."""
+    def put(self, msg: Any, attachment: bytes | None = None) -> None:
+        """Publish a message struct (encoded to msgpack) or raw bytes (with an attachment,
+        as rmw_zenoh's publications carry one)."""
         payload = msg if isinstance(msg, (bytes, bytearray)) else m.encode(msg)
         with self._lock:
-            self._pub.put(bytes(payload))
+            if attachment is None:
+                self._pub.put(bytes(payload))
+            else:
+                self._pub.put(bytes(payload), attachment=bytes(attachment))
             self.count += 1
 
     @property
@@ -244,10 +248,11 @@ class Bus:
         self.close()
 
     # -- publish --------------------------------------------------------------------------
-    def publisher(self, key: str, msg_type: type | None = None, reliable: bool = False) -> Publisher:
+    def publisher(self, key: str, msg_type: type | None = None, reliable: bool = False,
+                  encoding: str = MSGPACK) -> Publisher:
         """Declare a publisher. reliable=True -> congestion control BLOCK (no loss), else DROP."""
         cc = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
-        zpub = self.session.declare_publisher(key, encoding=MSGPACK, congestion_control=cc)
+        zpub = self.session.declare_publisher(key, encoding=encoding, congestion_control=cc)
         self._decls.append(zpub)
         return Publisher(zpub, key, msg_type)
 

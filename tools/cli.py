@@ -8,6 +8,7 @@
     topoexplore render   make a PNG from a saved run directory or a running stack
     topoexplore bench    benchmarks: stages | explore | inproc | robust | oracle | record | faults | fuzz | hangs
     topoexplore router   run a Zenoh router
+    topoexplore bridge   ros2: a ROS 2 robot's scan and odom in, our cmd_vel and map out (CDR)
     topoexplore warmup   compile the numba kernels once, before the services start
     topoexplore record   record the bus into an MCAP file; play publishes one back
     topoexplore replay   run services on a recording's inputs and compare their outputs
@@ -252,6 +253,8 @@ FORWARD = {
     "keys": ("topoexplore.tools.keys",
              "keys: list | echo KEY | hz KEY | get SERVICE | pub KEY F=V | set SERVICE S.N=V"),
     "router": ("topoexplore.tools.router", "run a Zenoh router"),
+    "bridge": ("topoexplore.tools.bridge",
+               "ros2: a ROS 2 robot's CDR scan/odom in, our cmd_vel/map out (no ROS needed)"),
     "warmup": ("topoexplore.tools.warm",
                "compile the numba kernels once (the supervisor does it too)"),
     "render": ("topoexplore.tools.render", "PNG from a saved run directory or a running stack"),

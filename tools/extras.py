@@ -9,7 +9,7 @@ from __future__ import annotations
 import importlib
 
 EXTRA_OF = {"pymunk": "sim", "tqdm": "sim", "matplotlib": "bench", "skimage": "skimage",
-            "mcap": "record", "foxglove": "record"}
+            "mcap": "record", "foxglove": "record", "rosbags": "ros2"}
 
 
 class ExtraMissing(RuntimeError):
