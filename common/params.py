@@ -46,6 +46,8 @@ __all__ = [
     "BusParams",
     "SimParams",
     "MapperParams",
+    "LocalizerParams",
+    "LASER_MODELS",
     "TopologyParams",
     "ReliabilityParams",
     "PlannerParams",
@@ -399,6 +401,22 @@ class ControllerParams(_P):
         _need(self.slow_distance >= self.safety_distance, "need slow_distance >= safety_distance")
 
 
+class LocalizerParams(_P):
+    """The scan matcher (services/localizer/core.py)."""
+
+    search_xy: Pos = 0.3  # [m] the window round odometry's guess, each way
+    search_theta: Pos = 0.15  # [rad] each way
+    sigma: Pos = 0.1  # [m] the likelihood field's spread round a wall
+    coarse: Annotated[int, Meta(ge=1, le=64)] = 4  # cells per side of a coarse block
+    max_points: Annotated[int, Meta(ge=10, le=10_000)] = 180  # end points matched per scan
+    min_points: Annotated[int, Meta(ge=3, le=10_000)] = 20  # fewer: no match
+    min_score: Fraction = 0.3  # mean likelihood of the end points below this: no match
+    prior: NonNeg = 0.05  # the motion prior's weight: this share of the best possible score
+    #   lost at the window's edge, so ties (as along a corridor) go to odometry's guess. On
+    #   office scans against a mapped grid, guesses off by up to 0.05 m: worst error 0.33 m
+    #   without it, 0.10 m with it (median 0.050 / 0.047 m)
+
+
 class Params(_P):
     robot: RobotParams = msgspec.field(default_factory=RobotParams)
     laser: LaserParams = msgspec.field(default_factory=LaserParams)
@@ -410,6 +428,7 @@ class Params(_P):
     reliability: ReliabilityParams = msgspec.field(default_factory=ReliabilityParams)
     planner: PlannerParams = msgspec.field(default_factory=PlannerParams)
     controller: ControllerParams = msgspec.field(default_factory=ControllerParams)
+    localizer: LocalizerParams = msgspec.field(default_factory=LocalizerParams)
 
     def __post_init__(self) -> None:
         _need(self.laser.scan_hz <= self.sim.physics_hz,

@@ -246,19 +246,23 @@ def stages_main(argv: list[str]) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--json", action="store_true",
                     help="print {stage: {grid: {median_ms, p99_ms}}} (plus 'bus' with --bus)")
+    ap.add_argument("--stages", default=",".join(benchstages.STAGES),
+                    help="comma separated, from " + ", ".join(benchstages.STAGES))
     ap.add_argument("--bus", action="store_true", help="also measure the bus with real processes")
     ap.add_argument("--worlds", default="paper-room,office",
                     help="worlds for the real-time latency and lockstep figures")
     args = ap.parse_args(argv)
+    stages = tuple(s for s in args.stages.split(",") if s)
     try:
         sizes = tuple(int(s) for s in args.sizes.split(","))
-        if not sizes or min(sizes) < 20 or max(sizes) > 4000 or args.repeats < 1:
+        if not sizes or min(sizes) < 20 or max(sizes) > 4000 or args.repeats < 1 \
+                or not stages or set(stages) - set(benchstages.STAGES):
             raise ValueError
     except ValueError:
-        print("topoexplore bench: --sizes must be integers in 20..4000, --repeats >= 1",
-              file=sys.stderr)
+        print("topoexplore bench: --sizes must be integers in 20..4000, --repeats >= 1, "
+              f"--stages from {', '.join(benchstages.STAGES)}", file=sys.stderr)
         return 2
-    results = benchstages.bench_stages(sizes=sizes, repeats=args.repeats)
+    results = benchstages.bench_stages(sizes=sizes, repeats=args.repeats, stages=stages)
     if not args.json:
         print(benchstages.format_table(results), flush=True)
     if args.bus:

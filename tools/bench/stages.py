@@ -166,7 +166,8 @@ def _stats(samples: list[float]) -> dict[str, float]:
     return {"median_ms": float(np.median(a)), "p99_ms": float(np.percentile(a, 99))}
 
 
-STAGES = ("mapper", "topology", "reliability", "planner", "planner-frontier", "controller")
+STAGES = ("mapper", "topology", "reliability", "planner", "planner-frontier", "controller",
+          "localizer", "localizer-360")
 
 
 def _scan(occ: np.ndarray, pose, rng) -> Scan:
@@ -176,6 +177,7 @@ def _scan(occ: np.ndarray, pose, rng) -> Scan:
 def _cores(strategy: str = "reliability") -> SimpleNamespace:
     """The stage cores with default parameters."""
     from topoexplore.services.controller.core import ControllerCore
+    from topoexplore.services.localizer.core import LocalizerCore
     from topoexplore.services.planner.core import PlannerCore
     from topoexplore.services.reliability.core import ReliabilityCore
 
@@ -186,7 +188,8 @@ def _cores(strategy: str = "reliability") -> SimpleNamespace:
         planner=PlannerCore(P.planner, P.robot, P.reliability.p_reliable, occ),
         frontier=PlannerCore(msgspec.structs.replace(P.planner, strategy="frontier"), P.robot,
                              P.reliability.p_reliable, occ),
-        controller=ControllerCore(P.controller, P.robot))
+        controller=ControllerCore(P.controller, P.robot),
+        localizer=LocalizerCore(P.localizer, P.laser.offset, P.mapper.p_occ))
 
 
 def _topology_cold(grid: GridMap, clean: GridMap, start, repeats: int) -> dict[str, float]:
@@ -221,6 +224,7 @@ def _drive(mapper, topo, cores, occ, seq, rng, stages, times) -> SimpleNamespace
     for k, pose in enumerate(seq):
         t, pose = 0.2 * k, Pose(float(pose[0]), float(pose[1]), float(pose[2]))  # [s] 5 Hz
         scan = _scan(occ, pose, rng)
+        _localize(cores.localizer, mapper, occ, pose, scan, rng, stages, times)
         _timed(times, "mapper", mapper.integrate, pose, scan)
         if "topology" not in stages:
             continue
@@ -232,6 +236,29 @@ def _drive(mapper, topo, cores, occ, seq, rng, stages, times) -> SimpleNamespace
             _timed(times, "planner-frontier", cores.frontier.update, t, pose, graph, None, grid)
         _timed(times, "controller", cores.controller.update, t, pose, plan.route, False, scan)
     return SimpleNamespace(graph=graph, beliefs=beliefs)
+
+
+def _localize(loc, mapper, occ, pose, scan, rng, stages, times) -> None:
+    """The localizer on this scan (and on a 360-beam scan from the same pose) against the map
+    so far, from a guess off by up to 0.1 m and 0.05 rad: time per match, and the error."""
+    if "localizer" not in stages and "localizer-360" not in stages:
+        return
+    _timed(times, "localizer-map", loc.set_map, mapper.grid())
+    guess = Pose(pose.x + rng.uniform(-0.1, 0.1), pose.y + rng.uniform(-0.1, 0.1),
+                 pose.theta + rng.uniform(-0.05, 0.05))
+    for stage, s in (("localizer", scan), ("localizer-360", None)):
+        if stage not in stages:
+            continue
+        if s is None:
+            inc = 2 * math.pi / 360
+            r = _raycast(occ, RES, pose.x, pose.y, pose.theta - math.pi + inc * np.arange(360),
+                         8.0)
+            hit = r < 8.0
+            r[hit] += rng.normal(0.0, 0.01, int(hit.sum()))
+            s = Scan(r, -math.pi, inc, 0.02, 8.0)
+        m = _timed(times, stage, loc.match, s, guess)
+        times.setdefault(f"{stage}-error", []).append(math.hypot(m.pose.x - pose.x,
+                                                                 m.pose.y - pose.y))
 
 
 def _bench_size(n: int, repeats: int, stages: tuple[str, ...], seed: int) -> dict[str, dict]:
@@ -263,6 +290,11 @@ def _bench_size(n: int, repeats: int, stages: tuple[str, ...], seed: int) -> dic
     for s in STAGES:
         if s in stages and times.get(s):
             out[s] = _stats(times[s]) | {"scans": len(times[s])}
+        if s.startswith("localizer") and s in out:
+            err = np.asarray(times[f"{s}-error"])
+            out[s] |= {"set_map_median_ms": float(np.median(times["localizer-map"]) * 1000),
+                       "error_median_m": float(np.median(err)),
+                       "error_p90_m": float(np.percentile(err, 90))}
     if "topology" in out:
         g = last.graph
         out["topology"] |= res_topo | {"nodes": len(g.nodes) if g else 0,
