@@ -14,6 +14,7 @@ structural: a :class:`GridMap` checks its array against its geometry (the one gr
 from __future__ import annotations
 
 import enum
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -96,6 +97,20 @@ class Scan:
         close = np.isneginf(r)
         ok = ((r >= self.range_min) & (r < self.range_max)) | close
         return np.where(close, self.range_min, r)[ok], a[ok]
+
+
+def compose(a: Pose, b: Pose) -> Pose:
+    """a ∘ b: the pose b given in a's frame, in the frame a is given in (e.g. the map ->
+    odom correction composed with an odometry pose gives the pose on the map)."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return Pose(a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1],
+                math.remainder(a[2] + b[2], 2 * math.pi))
+
+
+def inverse(a: Pose) -> Pose:
+    """The pose ``a⁻¹`` with ``compose(a, inverse(a))`` the identity."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return Pose(-c * a[0] - s * a[1], s * a[0] - c * a[1], math.remainder(-a[2], 2 * math.pi))
 
 
 @dataclass(frozen=True, eq=False)

@@ -28,6 +28,7 @@ TOPICS: dict[str, type] = {
     "plan": m.Path,
     "explore/status": m.ExploreStatus,
     "sim/status": m.SimStatus,
+    "map_odom": m.Pose,  # the localizer's map -> odom correction (REP-105), per scan
 }
 
 SERVICES = ("sim", "mapper", "topology", "reliability", "planner", "controller")
@@ -42,6 +43,7 @@ SERVICE_IO: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "reliability": (("map", "topo", "odom"), ("reliability",)),
     "planner": (("map", "topo", "reliability", "odom"), ("plan", "explore/status")),
     "controller": (("plan", "explore/status", "scan", "odom"), ("cmd_vel",)),
+    "localizer": (("scan", "odom", "map"), ("map_odom",)),
 }
 
 _SEGMENT = re.compile(r"^[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*$")

@@ -34,7 +34,7 @@ import msgspec
 from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.bus import Bus, BusError, Publisher, init_logging
-from topoexplore.common.domain import Pose
+from topoexplore.common.domain import Pose, compose
 from topoexplore.common.keys import DEFAULT_ENDPOINT, TOPICS, Keys
 from topoexplore.common.params import (
     ParamError,
@@ -60,14 +60,43 @@ CHAOS_LIVE = ("runtime.chaos_topics", "runtime.chaos_drop", "runtime.chaos_delay
 
 
 class OdomBuffer:
-    """Recent odometry poses by stamp; ``pose_at(t)`` interpolates (pure, thread-safe)."""
+    """Recent odometry poses by stamp; ``pose_at(t)`` interpolates (pure, thread-safe).
 
-    def __init__(self, horizon: float = 5.0):
+    ``corrected``: the localizer runs, and every pose is odometry's composed with the
+    ``map`` -> ``odom`` correction in force at its stamp (the newest one stamped at or
+    before it); ``newest`` is then the newest stamp that both odometry and a correction
+    cover, so a service waiting for odometry at a scan's stamp also waits for that scan's
+    correction."""
+
+    def __init__(self, horizon: float = 5.0, corrected: bool = False):
         self.horizon = horizon  # [s] history kept
+        self.corrected = corrected
         self._t: list[float] = []
         self._p: list[Pose] = []
+        self._ct: list[float] = []  # stamps of the corrections
+        self._cp: list[Pose] = []  # map -> odom
         self._seq: int | None = None
         self._lock = threading.Lock()
+
+    def add_correction(self, stamp: float, correction: Pose) -> None:
+        with self._lock:
+            if self._ct and stamp < self._ct[-1] - self.horizon:  # the clock went back
+                self._ct.clear()
+                self._cp.clear()
+            i = bisect.bisect_right(self._ct, stamp)
+            self._ct.insert(i, stamp)
+            self._cp.insert(i, correction)
+            cut = bisect.bisect_left(self._ct, self._ct[-1] - self.horizon)
+            if cut > 0:
+                del self._ct[:cut]
+                del self._cp[:cut]
+
+    def _correct(self, stamp: float, pose: Pose) -> Pose:
+        """Odometry's pose at stamp on the map (under the lock)."""
+        if not self._ct:
+            return pose
+        i = bisect.bisect_right(self._ct, stamp + 1e-6) - 1
+        return compose(self._cp[max(i, 0)], pose)
 
     def add(self, stamp: float, pose: Pose, seq: int | None = None) -> None:
         """One pose. ``seq`` (the message's header.seq) going back means the publisher
@@ -98,11 +127,14 @@ class OdomBuffer:
     @property
     def newest(self) -> float:
         with self._lock:
-            return self._t[-1] if self._t else -math.inf
+            t = self._t[-1] if self._t else -math.inf
+            if self.corrected:
+                t = min(t, self._ct[-1] if self._ct else -math.inf)
+            return t
 
     def latest(self) -> tuple[float, Pose] | None:
         with self._lock:
-            return (self._t[-1], self._p[-1]) if self._t else None
+            return (self._t[-1], self._correct(self._t[-1], self._p[-1])) if self._t else None
 
     def pose_near(self, stamp: float) -> Pose | None:
         """Pose at stamp if covered, else the newest pose (real time: a late or old input);
@@ -120,14 +152,15 @@ class OdomBuffer:
                 return None
             i = bisect.bisect_left(self._t, stamp - tolerance)
             if i < len(self._t) and abs(self._t[i] - stamp) <= tolerance:
-                return self._p[i]
+                return self._correct(stamp, self._p[i])
             if i == 0:
-                return self._p[0]
+                return self._correct(stamp, self._p[0])
             t0, t1 = self._t[i - 1], self._t[i]
             p0, p1 = self._p[i - 1], self._p[i]
-        a = (stamp - t0) / (t1 - t0) if t1 > t0 else 1.0
-        dth = math.atan2(math.sin(p1[2] - p0[2]), math.cos(p1[2] - p0[2]))
-        return Pose(p0[0] + a * (p1[0] - p0[0]), p0[1] + a * (p1[1] - p0[1]), p0[2] + a * dth)
+            a = (stamp - t0) / (t1 - t0) if t1 > t0 else 1.0
+            dth = math.atan2(math.sin(p1[2] - p0[2]), math.cos(p1[2] - p0[2]))
+            return self._correct(stamp, Pose(p0[0] + a * (p1[0] - p0[0]),
+                                             p0[1] + a * (p1[1] - p0[1]), p0[2] + a * dth))
 
 
 class Inbox:
@@ -346,9 +379,20 @@ class Node:
 
         self.bus.subscribe(self.keys.topic(topic), TOPICS[topic], cb)
 
-    def subscribe_odom(self, buffer: OdomBuffer) -> None:
-        self.subscribe("odom", on_msg=lambda o: buffer.add(
-            o.header.stamp, convert.pose_from_msg(o.pose), o.header.seq))
+    def subscribe_odom(self, buffer: OdomBuffer,
+                       then: Callable[[m.Odometry], None] | None = None) -> None:
+        """Odometry into the buffer (then ``then(msg)`` on the receive thread), and, for a
+        corrected buffer, the localizer's map -> odom corrections."""
+
+        def on_odom(o: m.Odometry) -> None:
+            buffer.add(o.header.stamp, convert.pose_from_msg(o.pose), o.header.seq)
+            if then is not None:
+                then(o)
+
+        self.subscribe("odom", on_msg=on_odom)
+        if buffer.corrected:
+            self.subscribe("map_odom", on_msg=lambda c: buffer.add_correction(
+                c.header.stamp, convert.pose_from_msg(c.pose)))
 
     def header(self, topic: str, stamp: float, src_seq: int, frame: str = "map") -> m.Header:
         seq = self._seq.get(topic, 0)

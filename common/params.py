@@ -402,8 +402,10 @@ class ControllerParams(_P):
 
 
 class LocalizerParams(_P):
-    """The scan matcher (services/localizer/core.py)."""
+    """The scan matcher (services/localizer/core.py) and whether it runs."""
 
+    enabled: bool = False  # run the localizer process; every service then takes odometry
+    #   composed with its map -> odom correction (common.node.OdomBuffer)
     search_xy: Pos = 0.3  # [m] the window round odometry's guess, each way
     search_theta: Pos = 0.15  # [rad] each way
     sigma: Pos = 0.1  # [m] the likelihood field's spread round a wall

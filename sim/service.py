@@ -162,6 +162,8 @@ class SimService:
         """Lockstep: before scan 0, wait for the listed services and for a scan subscriber
         (a scan nobody receives would cost a whole lockstep timeout)."""
         want = set(self.runtime.lockstep_wait_for)
+        if self.node.params.localizer.enabled:
+            want.add("localizer")
         deadline = time.monotonic() + self.runtime.lockstep_wait
         alive: set[str] = set()
         while not self.node.stop.is_set() and time.monotonic() < deadline:

@@ -6,6 +6,7 @@ determinism tests reuse them.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -27,7 +28,8 @@ DETERMINISTIC = ["finished", "stop_reason", "sim_time_s", "path_length_m", "cove
 @cache
 def explore(world: str, strategy: str = "reliability", seed: int = 0, repeat: int = 0,
             sets: tuple[str, ...] = ()) -> dict:
-    out = OUT / f"{world}-{strategy}-{seed}-{repeat}-{len(sets)}"
+    tag = hashlib.sha1("\n".join(sets).encode()).hexdigest()[:8] if sets else "defaults"
+    out = OUT / f"{world}-{strategy}-{seed}-{repeat}-{tag}"
     cmd = [sys.executable, "-m", "topoexplore.tools.cli", "run", "--world", world, "--strategy", strategy,
            "--seed", str(seed), "--lockstep", "--quiet", "--out", str(out),
            "--connect", f"tcp/127.0.0.1:{free_port()}", "--namespace", f"e2e{os.getpid()}",
@@ -85,6 +87,20 @@ def test_a_360_degree_lidar_explores_too():
     assert r["_exit"] == 0 and r["finished"] and r["coverage"] >= 0.95, r["_stderr"]
     assert r["collisions"] == 0
     assert "[laser] says" not in (Path(r["_out"]) / "logs.txt").read_text()
+
+
+def test_the_localizer_holds_the_map_together_under_drifting_odometry():
+    """sim.odom_drift = 0.03: with the localizer (a scan matcher correcting odometry for every
+    service) the run maps better and knows where it is far better than without."""
+    drift = ("sim.odom_drift=0.03",)
+    on = explore("paper-room", sets=(*drift, "localizer.enabled=true"))
+    off = explore("paper-room", sets=drift)
+    assert on["_exit"] == 0 and on["finished"] and on["coverage"] >= 0.95, on["_stderr"]
+    assert on["collisions"] == 0 and on["map_accuracy"] > off["map_accuracy"]
+    assert on["pose_error_m"]["samples"] > 100
+    assert on["pose_error_m"]["rms"] < 0.5 * off["pose_error_m"]["rms"], (on["pose_error_m"],
+                                                                          off["pose_error_m"])
+    assert "localizer is up" in (Path(on["_out"]) / "logs.txt").read_text()
 
 
 def test_same_seed_gives_same_report():

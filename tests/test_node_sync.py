@@ -123,3 +123,25 @@ def test_chaos_delays_in_order():
     assert done.wait(5.0)
     assert [i for i, _ in got] == list(range(20)) and all(dt >= 0.2 for _, dt in got)
     c.close()
+
+
+def test_a_corrected_buffer_composes_odometry_with_the_correction_in_force():
+    from topoexplore.common.domain import Pose, compose, inverse
+
+    a = Pose(1.0, -2.0, 0.7)
+    assert compose(a, inverse(a)) == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
+    b = OdomBuffer(corrected=True)
+    b.add(0.0, (0.0, 0.0, 0.0))
+    b.add(1.0, (1.0, 0.0, 0.0))
+    assert b.newest == -math.inf  # odometry, but no correction yet: a scan at 1.0 waits
+    b.add_correction(0.5, Pose(0.0, 1.0, math.pi / 2))  # map -> odom from 0.5 on
+    assert b.newest == 0.5
+    assert b.pose_at(0.0) == pytest.approx((0.0, 1.0, math.pi / 2))  # before: the first one
+    b.add_correction(1.0, Pose(0.0, 0.0, 0.0))
+    assert b.pose_at(1.0) == pytest.approx((1.0, 0.0, 0.0)) and b.newest == 1.0
+    x, y, th = b.pose_at(0.75)  # odometry (0.75, 0, 0) under the correction of 0.5
+    assert (x, y, th) == pytest.approx((0.0, 1.75, math.pi / 2))
+    plain = OdomBuffer()
+    plain.add(0.0, (0.0, 0.0, 0.0))
+    plain.add_correction(0.0, Pose(5.0, 5.0, 0.0))  # applied, but not waited for
+    assert plain.newest == 0.0 and plain.pose_at(0.0) == pytest.approx((5.0, 5.0, 0.0))

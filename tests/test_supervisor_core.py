@@ -23,9 +23,22 @@ def test_shipped_profiles_load():
     assert {"sim", "robot", "sim-only", "mapping"} <= names
     sim = load_profile(PROFILES / "sim.toml")
     assert [p.name for p in sim.processes] == [
-        "mapper", "topology", "reliability", "planner", "controller", "sim"]
+        "mapper", "topology", "reliability", "planner", "controller", "sim", "localizer"]
     robot = load_profile(PROFILES / "robot.toml")
     assert "sim" not in [p.name for p in robot.processes]
+
+
+def test_a_process_under_a_parameter_runs_only_when_it_is_true():
+    from topoexplore.common.params import load_params
+    from topoexplore.tools.launch.core import select
+
+    sim = load_profile(PROFILES / "sim.toml")
+    off = [p.name for p in select(sim, load_params()).processes]
+    on = [p.name for p in select(sim, load_params(None, ["localizer.enabled=true"])).processes]
+    assert "localizer" not in off and on == off + ["localizer"]
+    bad = parse_profile({"process": [{"name": "a", "module": "x", "when": "laser.beams"}]})
+    with pytest.raises(ProfileError):
+        select(bad, load_params())  # not a true/false parameter
 
 
 @pytest.mark.parametrize("data", [
@@ -37,6 +50,7 @@ def test_shipped_profiles_load():
     {"process": [{"name": "a", "module": "x", "ready_timeout": -1}]},
     {"process": [{"name": "a", "module": "x", "bogus": 1}]},
     {"router": "yes", "process": [{"name": "a", "module": "x"}]},
+    {"process": [{"name": "a", "module": "x", "when": "enabled"}]},
 ])
 def test_bad_profiles(data):
     with pytest.raises(ProfileError):

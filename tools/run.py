@@ -35,6 +35,7 @@ from topoexplore.common.checkpoint import clear_state_dir
 from topoexplore.common.keys import DEFAULT_ENDPOINT, Keys
 from topoexplore.common.node import (
     LOG_LEVELS,
+    OdomBuffer,
     add_bus_args,
     add_param_args,
     params_from_args,
@@ -108,6 +109,11 @@ class Monitor:
     coverage_fn: Any = None
     sample_every: float = 0.25  # [m] of travel (and at least every 5 s of sim time)
     first_motion: float | None = None  # [monotonic s] when the sim first reported travel
+    # the robot's own estimate of its pose (odometry, corrected when the localizer runs),
+    # compared with the truth at each truth stamp it covers: [m] sum of squares, max, count
+    est: OdomBuffer | None = None
+    pending: list[tuple[float, float, float]] = field(default_factory=list)
+    pose_err: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
 
     def on_status(self, msg: m.ExploreStatus) -> None:
         with self.lock:
@@ -129,10 +135,28 @@ class Monitor:
                 for k in sorted(self.sim_by_seq)[:-100]:
                     del self.sim_by_seq[k]
 
+    def on_estimate(self) -> None:
+        """Odometry or a correction came: score the truth stamps the estimate now covers."""
+        with self.lock:
+            est = self.est
+            if est is None:
+                return
+            newest = est.newest
+            while self.pending and self.pending[0][0] <= newest:
+                t, x, y = self.pending.pop(0)
+                p = est.pose_at(t)
+                if p is not None:
+                    e = math.hypot(p[0] - x, p[1] - y)
+                    self.pose_err[0] += e * e
+                    self.pose_err[1] = max(self.pose_err[1], e)
+                    self.pose_err[2] += 1
+
     def on_truth(self, msg: m.Pose) -> None:
         with self.lock:
             p = msg.pose
             self.pose = (p.x, p.y, p.theta)
+            if self.est is not None and len(self.pending) < 1000:
+                self.pending.append((msg.header.stamp, p.x, p.y))
             last = self.trail[-1] if self.trail else None
             if last is None or math.hypot(p.x - last[0], p.y - last[1]) > 0.02:
                 self.trail.append((p.x, p.y, self.segment))
@@ -237,6 +261,12 @@ class Truth:
                                   p.mapper.p_free, p.mapper.p_occ))
 
 
+def _pose_error(mon: Monitor) -> dict[str, float | int]:
+    sq, worst, n = mon.pose_err
+    return {"rms": round(math.sqrt(sq / n), 4) if n else 0.0, "max": round(worst, 4),
+            "samples": int(n)}
+
+
 def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_reason: str,
                 mon: Monitor, sim: m.SimStatus | None, wall: float, startup: float,
                 coverage: float, coverage_free: float, accuracy: float, restarts: int,
@@ -273,6 +303,9 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
         "coverage_free": round(coverage_free, 4),
         "map_accuracy": round(accuracy, 4),
         "collisions": sim.collisions if sim else 0,
+        # [m] the robot's own pose estimate (odometry, corrected by the localizer when it
+        # runs) against the truth, at the truth's stamps
+        "pose_error_m": _pose_error(mon),
         "end_nodes_seen": len(mon.seen_end_ids),
         "end_nodes_visited": len(mon.visited_ids),
         "end_nodes_accepted_remote": accepted_remote,
@@ -708,6 +741,19 @@ class StackRun:
         bus.subscribe(keys.explore_status, m.ExploreStatus, lambda msg, k: mon.on_status(msg))
         bus.subscribe(keys.sim_status, m.SimStatus, lambda msg, k: mon.on_sim(msg))
         bus.subscribe(keys.truth, m.Pose, lambda msg, k: mon.on_truth(msg))
+        est = mon.est = OdomBuffer(corrected=self.setup.params.localizer.enabled)
+
+        def on_odom(msg: m.Odometry, _k: str) -> None:
+            est.add(msg.header.stamp, convert.pose_from_msg(msg.pose), msg.header.seq)
+            mon.on_estimate()
+
+        def on_correction(msg: m.Pose, _k: str) -> None:
+            est.add_correction(msg.header.stamp, convert.pose_from_msg(msg.pose))
+            mon.on_estimate()
+
+        bus.subscribe(keys.topic("odom"), m.Odometry, on_odom)
+        if est.corrected:
+            bus.subscribe(keys.topic("map_odom"), m.Pose, on_correction)
         bus.subscribe(keys.plan, m.Path, lambda msg, k: mon.on_plan(msg))
         bus.subscribe(keys.reliability, m.Reliability, lambda msg, k: mon.on_rel(msg))
         bus.subscribe(keys.topo, m.TopoGraph, lambda msg, k: mon.on_topo(msg))

@@ -30,12 +30,12 @@ class ControllerService:
     def __init__(self, node: Node):
         self.node = node
         self.core = ControllerCore(node.params.controller, node.params.robot)
-        self.odom = OdomBuffer()
+        self.odom = OdomBuffer(corrected=node.params.localizer.enabled)
         self.pub = node.publisher("cmd_vel")
         self.pub_lock = threading.Lock()  # cmd_vel from the worker and from the odom thread
         self.plan_came: tuple[int, float] | None = None  # (plan seq, robot time it came)
         self.early_stops = 0  # stale-plan stops sent on odometry, before the next scan
-        node.subscribe("odom", on_msg=self.on_odom)
+        node.subscribe_odom(self.odom, then=self.on_odom)
         node.subscribe("plan", on_msg=self.on_plan)
         node.subscribe("explore/status")
         node.subscribe("scan", queue=True)
@@ -94,11 +94,10 @@ class ControllerService:
             self.plan_came = (plan.header.seq, self.odom.newest)
 
     def on_odom(self, o: m.Odometry) -> None:
-        """Receive thread: keep the pose; in real time, stop a moving robot as soon as the
-        plan is stale by odometry time (20 Hz) instead of at the next scan (5 Hz): a frozen
-        planner's robot stands still sooner."""
+        """Receive thread, after the buffer took the pose: in real time, stop a moving robot
+        as soon as the plan is stale by odometry time (20 Hz) instead of at the next scan
+        (5 Hz): a frozen planner's robot stands still sooner."""
         t = o.header.stamp
-        self.odom.add(t, convert.pose_from_msg(o.pose), o.header.seq)
         if self.node.lockstep:
             return
         age = self.plan_age(t)

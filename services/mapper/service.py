@@ -40,7 +40,7 @@ class MapperService:
                                  rt.checkpoint_max_age, log)
         self.ckpt.stats.update(resumed_cells=0, resumed_from_peer=0)
         self.last_src = -1  # src_seq of the last scan in the map
-        self.odom = OdomBuffer()
+        self.odom = OdomBuffer(corrected=node.params.localizer.enabled)
         self.pub_map = node.publisher("map")
         node.subscribe_odom(self.odom)
         node.subscribe("scan", queue=True)

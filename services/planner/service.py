@@ -30,7 +30,7 @@ class PlannerService:
         P = node.params
         self.p = P.planner
         self.core = PlannerCore(P.planner, P.robot, P.reliability.p_reliable, P.mapper.occupancy)
-        self.odom = OdomBuffer()
+        self.odom = OdomBuffer(corrected=node.params.localizer.enabled)
         self.pub_plan = node.publisher("plan")
         self.pub_status = node.publisher("explore/status", reliable=True)
         self.pub_lock = threading.Lock()  # plan and its seq: the worker and the heartbeat
@@ -38,7 +38,7 @@ class PlannerService:
         self.worker_beat = time.monotonic()  # [wall s] the worker loop's last turn
         self.beat_stamp = -math.inf  # [s] robot time of the last plan sent
         self.heartbeats = 0
-        node.subscribe("odom", on_msg=self.on_odom)
+        node.subscribe_odom(self.odom, then=self.on_odom)
         node.subscribe("map")
         node.serve_latest("map")  # a restarted mapper takes its last map back
         node.subscribe("topo")
@@ -65,11 +65,10 @@ class PlannerService:
                 and self.odom.newest >= rel.header.stamp - 1e-6)
 
     def on_odom(self, o: m.Odometry) -> None:
-        """Receive thread: keep the pose; in real time, send the last plan again every
-        planner.heartbeat of robot time while the worker loop is alive (it turns at least
-        every 0.2 s; a worker stuck for 2 s gets no heartbeat). A frozen or dead process
+        """Receive thread, after the buffer took the pose: in real time, send the last plan
+        again every planner.heartbeat of robot time while the worker loop is alive (it turns
+        at least every 0.2 s; a worker stuck for 2 s gets no heartbeat). A frozen or dead process
         sends nothing, and the controller stops the robot (controller.plan_timeout)."""
-        self.odom.add(o.header.stamp, convert.pose_from_msg(o.pose), o.header.seq)
         beat = self.p.heartbeat
         if beat <= 0.0 or self.node.lockstep or self.last_plan is None \
                 or time.monotonic() - self.worker_beat > 2.0:

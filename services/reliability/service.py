@@ -26,7 +26,7 @@ class ReliabilityService:
         self.node = node
         P = node.params
         self.core = ReliabilityCore(P.reliability, P.laser, P.mapper.occupancy)
-        self.odom = OdomBuffer()
+        self.odom = OdomBuffer(corrected=node.params.localizer.enabled)
         self.pub = node.publisher("reliability")
         node.subscribe_odom(self.odom)
         node.subscribe("map")

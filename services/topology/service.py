@@ -24,7 +24,7 @@ class TopologyService:
     def __init__(self, node: Node):
         self.node = node
         self.core = TopologyCore(node.params.topology, node.params.mapper.occupancy)
-        self.odom = OdomBuffer()
+        self.odom = OdomBuffer(corrected=node.params.localizer.enabled)
         self.pub = node.publisher("topo")
         node.subscribe_odom(self.odom)
         node.subscribe("map", queue=True)

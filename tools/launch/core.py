@@ -14,6 +14,7 @@ A launch profile (TOML, ``deploy/profiles/*.toml``)::
     restart = true                # default true
     ready_timeout = 30.0          # [s] to wait for its liveliness token (module processes)
     liveliness = true             # default: true for module processes, false for cmd
+    when = "localizer.enabled"    # only when this boolean parameter is true (default: always)
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ class ProcSpec:
     ready_timeout: float = 30.0  # [s]
     liveliness: bool = True
     args: tuple[str, ...] = ()  # extra arguments for a module process
+    when: str = ""  # section.name of a boolean parameter: started only when it is true
 
 
 @dataclass(frozen=True)
@@ -47,7 +49,7 @@ class Profile:
     processes: tuple[ProcSpec, ...]
 
 
-_PROC_KEYS = {"name", "module", "cmd", "restart", "ready_timeout", "liveliness", "args"}
+_PROC_KEYS = {"name", "module", "cmd", "restart", "ready_timeout", "liveliness", "args", "when"}
 
 
 def parse_profile(data: dict[str, Any], source: str = "profile") -> Profile:
@@ -91,13 +93,34 @@ def parse_profile(data: dict[str, Any], source: str = "profile") -> Profile:
         live = p.get("liveliness", bool(module))
         if not isinstance(restart, bool) or not isinstance(live, bool):
             raise bad(f"process {name!r}: restart and liveliness must be true/false")
+        when = p.get("when", "")
+        if not isinstance(when, str) or (when and len(when.split(".")) != 2):
+            raise bad(f"process {name!r}: when must name a parameter as section.name")
         specs.append(ProcSpec(name=name, module=module, cmd=tuple(cmd), restart=restart,
-                              ready_timeout=float(timeout), liveliness=live, args=tuple(args)))
+                              ready_timeout=float(timeout), liveliness=live, args=tuple(args),
+                              when=when))
     router = data.get("router", True)
     if not isinstance(router, bool):
         raise bad("router must be true or false")
     return Profile(name=str(data.get("name", source)), description=str(data.get("description", "")),
                    router=router, processes=tuple(specs))
+
+
+def select(profile: Profile, params: Any) -> Profile:
+    """The profile's processes that run with these parameters (``when``: a boolean one).
+    ProfileError for a ``when`` that names no boolean parameter."""
+    keep = []
+    for spec in profile.processes:
+        if spec.when:
+            section, name = spec.when.split(".")
+            value = getattr(getattr(params, section, None), name, None)
+            if not isinstance(value, bool):
+                raise ProfileError(f"process {spec.name!r}: when = {spec.when!r} is not a "
+                                   f"true/false parameter")
+            if not value:
+                continue
+        keep.append(spec)
+    return Profile(profile.name, profile.description, profile.router, tuple(keep))
 
 
 def load_profile(path: str | Path) -> Profile:

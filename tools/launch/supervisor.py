@@ -33,7 +33,8 @@ from pathlib import Path
 from topoexplore.common.bus import Bus, BusError
 from topoexplore.common.keys import Keys
 from topoexplore.common.node import LOG_DATEFMT
-from topoexplore.tools.launch.core import ProcSpec, ProcState, Profile, RestartPolicy
+from topoexplore.common.params import ParamError, Params, load_params
+from topoexplore.tools.launch.core import ProcSpec, ProcState, Profile, RestartPolicy, select
 
 log = logging.getLogger("topoexplore.supervisor")
 
@@ -153,7 +154,11 @@ class Supervisor:
                  policy: RestartPolicy | None = None, lost_grace: float = 12.0,
                  warm: bool = True, log_level: str | None = None,
                  router_config: str | None = None):
-        self.profile = profile
+        try:  # processes started only under a parameter (``when``) follow these parameters
+            params = load_params(params_file, list(overrides or []))
+        except ParamError:  # the children say what is wrong, each in one line
+            params = Params()
+        self.profile = select(profile, params)
         self.keys = keys
         self.endpoint = endpoint
         self.params_file = params_file
@@ -171,7 +176,7 @@ class Supervisor:
         self._router_consecutive = 0  # backoff steps (RestartPolicy.delay)
         self._router_due: float | None = None  # when a dead router is started again
         self.warm_s: float | None = None  # [s] wall time of the warm-up step, once run
-        self.states = {s.name: ProcState(spec=s) for s in profile.processes}
+        self.states = {s.name: ProcState(spec=s) for s in self.profile.processes}
         self.procs: dict[str, subprocess.Popen] = {}
         self.router: subprocess.Popen | None = None
         self.bus: Bus | None = None

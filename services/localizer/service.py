@@ -1,0 +1,89 @@
+"""Localizer service: scan + odom + map -> the ``map`` -> ``odom`` correction, ``map_odom``.
+
+For each scan: odometry's pose at its stamp, composed with the correction in force, is the
+guess; the core matches the scan against the mapper's latest map around it; a trusted match
+sets the correction to ``match ∘ odom⁻¹`` (REP-105: map -> odom). One ``map_odom`` message per
+scan, stamped as the scan, trusted or not, so the services that wait for it (every service's
+odometry is corrected when ``localizer.enabled``: ``common.node.OdomBuffer``) never wait in
+vain. In lockstep it matches against the map of the scans before this one (the mapper waits
+for this scan's correction before it integrates the scan).
+"""
+
+from __future__ import annotations
+
+import logging
+
+from topoexplore.common import convert
+from topoexplore.common import messages as m
+from topoexplore.common.domain import Pose, compose, inverse
+from topoexplore.common.node import Node, OdomBuffer, run_service
+from topoexplore.services.localizer.core import LocalizerCore
+
+log = logging.getLogger("topoexplore.localizer")
+
+
+class LocalizerService:
+    def __init__(self, node: Node):
+        self.node = node
+        P = node.params
+        self.core = LocalizerCore(P.localizer, P.laser.offset, P.mapper.p_occ)
+        self.odom = OdomBuffer()  # odometry as it is: the correction is made here
+        self.pub = node.publisher("map_odom")
+        node.subscribe_odom(self.odom)
+        node.subscribe("map")
+        node.subscribe("scan", queue=True)
+        self.correction = Pose(0.0, 0.0, 0.0)
+        self.map_seq = -1
+        self.counts = {"matched": 0, "kept": 0, "no_map": 0}
+        self.last_score = 0.0
+        node.add_state(self.state)
+
+    def ready(self, scan: m.LaserScan) -> bool:
+        ok = self.odom.newest >= scan.header.stamp - 1e-6
+        if self.node.lockstep:  # the map of the scans before this one (none before scan 0)
+            k = scan.header.src_seq - 1
+            k -= k % self.node.params.mapper.map_every
+            ok = ok and (k < 0 or self.node.inbox.src_seq("map") >= k)
+        return ok
+
+    def step(self) -> None:
+        got = self.node.take("scan", self.ready)
+        if got is None:
+            return
+        scan, _ = got
+        odom = self.odom.pose_near(scan.header.stamp)
+        if odom is None:
+            return
+        grid = self.node.inbox.latest.get("map")
+        if grid is not None and grid.header.seq != self.map_seq:
+            self.core.set_map(convert.grid_from_msg(grid))
+            self.map_seq = grid.header.seq
+        if self.core.ready:
+            match = self.core.match(convert.scan_from_msg(scan), compose(self.correction, odom))
+            self.last_score = match.score
+            if match.ok:
+                self.correction = compose(match.pose, inverse(odom))
+                self.counts["matched"] += 1
+            else:
+                self.counts["kept"] += 1
+        else:
+            self.counts["no_map"] += 1
+        self.pub.put(m.Pose(header=self.node.header("map_odom", scan.header.stamp,
+                                                    scan.header.src_seq, frame="map"),
+                            pose=convert.pose_to_msg(self.correction)))
+        self.node.processed += 1
+
+    def state(self) -> dict:
+        x, y, th = self.correction
+        return {"correction": {"x": float(x), "y": float(y), "theta": float(th)},
+                "score": float(self.last_score),
+                **self.counts}
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_service("localizer", lambda node: LocalizerService(node).step, argv,
+                       "scan matcher: the map -> odom correction")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
