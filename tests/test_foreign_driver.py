@@ -3,8 +3,7 @@ that share none of its code (tests/foreign_driver.py: zenoh and msgpack only): a
 with its own beam count, +Inf for no return and NaN readings, odometry at 50 Hz. The stack
 explores the flat to the end, without a collision, and maps it.
 
-Not yet: odometry drift (the driver has it; exploring to the end with it needs the localizer,
-issue 16 item 3), so this runs with perfect odometry.
+With drift, the localizer runs (localizer.enabled) and the map must still hold together.
 """
 
 from __future__ import annotations
@@ -15,6 +14,7 @@ import signal
 import sys
 
 import numpy as np
+import pytest
 
 from tests.conftest import REPO
 from tests.test_supervisor import wait_for
@@ -28,12 +28,16 @@ LASER = ["laser.beams=400", f"laser.fov={2 * math.pi!r}", "laser.range_min=0.1",
          "laser.range_max=10.0", "laser.scan_hz=10.0", "robot.v_limit=0.5"]
 
 
-def test_the_robot_profile_explores_with_foreign_drivers(procs, endpoint, namespace, tmp_path):
+@pytest.mark.parametrize("drift", [0.0, 0.03])
+def test_the_robot_profile_explores_with_foreign_drivers(procs, endpoint, namespace, tmp_path,
+                                                         drift):
+    """Without drift, and with odometry drifting 0.03 per metre and radian, the localizer on."""
     keys = Keys(namespace, "robot1")
     up_log = tmp_path / "up.log"
+    sets = [*LASER, *(["localizer.enabled=true"] if drift else [])]
     up = procs.python("-m", "topoexplore.tools.cli", "up", "--profile", "robot", "--connect",
                       endpoint, "--namespace", namespace,
-                      *(a for kv in LASER for a in ("--set", kv)), stdout=up_log.open("w"))
+                      *(a for kv in sets for a in ("--set", kv)), stdout=up_log.open("w"))
     statuses: list[str] = []
     with Bus.client(endpoint, wait_for_router=True) as bus:
         bus.subscribe(keys.topic("explore/status"), m.ExploreStatus,
@@ -43,7 +47,7 @@ def test_the_robot_profile_explores_with_foreign_drivers(procs, endpoint, namesp
         assert wait_for(lambda: want <= set(bus.alive(keys.alive_all())), 120), \
             up_log.read_text()[-3000:]
         driver = procs.python(str(REPO / "tests" / "foreign_driver.py"), "--connect", endpoint,
-                              "--prefix", keys.prefix, "--speed", "3")
+                              "--prefix", keys.prefix, "--speed", "3", "--drift", str(drift))
         done = wait_for(lambda: "done" in statuses or driver.poll() is not None, 400)
         try:
             mapper = fetch_state(bus, keys, "mapper")
