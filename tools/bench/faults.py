@@ -321,6 +321,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="draws the fault moments")
     ap.add_argument("--max-sim-time", type=float, default=3000.0)
     ap.add_argument("--json", default=None, help="write the rows here")
+    ap.add_argument("--keep", default=None,
+                    help="keep each run's output directory (report, logs) under this one")
     ap.add_argument("--doc", default=None, help="write the table into this Markdown file")
     a = ap.parse_args(argv)
     faults = [f.strip() for f in a.faults.split(",") if f.strip()]
@@ -337,6 +339,9 @@ def main(argv: list[str] | None = None) -> int:
     rng = random.Random(a.seed)
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench-faults-") as tmp:
+        if a.keep:
+            Path(a.keep).mkdir(parents=True, exist_ok=True)
+            tmp = a.keep
         base = one_run(a.world, a.speed, None, 0.0, a.stop_for, Path(tmp) / "none",
                        a.max_sim_time)
         rows.append(base)
