@@ -19,6 +19,7 @@ SUBSCRIBED = {
     "reliability": ["topo", "map", "odom"],
     "planner": ["reliability", "topo", "map", "odom"],
     "controller": ["plan", "scan", "odom", "explore/status"],
+    "localizer": ["scan", "odom", "map"],
 }
 
 GARBAGE = [

@@ -240,7 +240,7 @@ def main(argv: list[str] | None = None) -> int:
 
     topics = sorted({t for ins, _ in SERVICE_IO.values() for t in ins})
     sup = Supervisor(load_profile(profile_path("sim")), keys, endpoint, sink=sink,
-                     overrides=[f'sim.world="{a.world}"'])
+                     overrides=[f'sim.world="{a.world}"', "localizer.enabled=true"])  # all 7
     try:
         if not sup.start(ready_timeout=120):
             print("topoexplore bench fuzz: the stack did not come up:\n" + "\n".join(lines[-20:]),
