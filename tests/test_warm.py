@@ -19,7 +19,8 @@ from topoexplore.tools.warm import clear_cache, core_of, profile_cores, warm_mod
 
 SIM_CORES = ["topoexplore.services.mapper.core", "topoexplore.services.topology.core",
              "topoexplore.services.reliability.core", "topoexplore.services.planner.core",
-             "topoexplore.services.controller.core", "topoexplore.sim.core"]
+             "topoexplore.services.controller.core", "topoexplore.sim.core",
+             "topoexplore.services.localizer.core"]
 
 
 TOOL_KERNELS = ["topoexplore.sim.rays"]  # the truth masks of run and bench (not the sim's)

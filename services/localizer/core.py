@@ -108,18 +108,8 @@ class LocalizerCore:
             wy = guess.y + sn * pts[:, 0] + cs * pts[:, 1] - n_xy * res
             base.append((np.floor((wy - g.origin_y) / res).astype(np.int64),
                          np.floor((wx - g.origin_x) / res).astype(np.int64)))
-        # coarse bounds: (angle, block row, block col)
         off = np.arange(n_blocks) * c
-        bounds = np.empty((len(thetas), n_blocks, n_blocks))
-        for t, (r0, c0) in enumerate(base):
-            rr = r0[None, :] + off[:, None]  # (blocks, n)
-            cc = c0[None, :] + off[:, None]
-            vr = (rr > -c) & (rr < H)  # a block whose corner lies just off the map still
-            vc = (cc > -c) & (cc < W)  # reaches into it: its bound is the edge block's
-            rr, cc = np.clip(rr, 0, H - 1), np.clip(cc, 0, W - 1)
-            vals = self._coarse[rr[:, None, :], cc[None, :, :]]  # (by, bx, n)
-            vals = np.where(vr[:, None, :] & vc[None, :, :], vals, 0.0)
-            bounds[t] = vals.sum(axis=2)
+        bounds = self._bounds(base, off)  # (angle, block row, block col)
         # the motion prior: a penalty growing with the distance from the guess (ties, as
         # along a corridor, go to odometry); a block's bound takes its nearest translation's
         w = p.prior * n
@@ -166,6 +156,24 @@ class LocalizerCore:
         pose = self._refine(pts, pose, max_step=2.0 * res)
         return Match(Pose(pose.x, pose.y, math.remainder(pose.theta, 2 * math.pi)), score, True,
                      n, evaluated)
+
+    def _bounds(self, base: list[tuple[np.ndarray, np.ndarray]], off: np.ndarray
+                ) -> np.ndarray:
+        """Coarse bounds (angle, block row, block col): each block's score on the max-pooled
+        field, at least every fine score of the block."""
+        H, W = self._coarse.shape
+        c = self.p.coarse
+        bounds = np.empty((len(base), len(off), len(off)))
+        for t, (r0, c0) in enumerate(base):
+            rr = r0[None, :] + off[:, None]  # (blocks, n)
+            cc = c0[None, :] + off[:, None]
+            vr = (rr > -c) & (rr < H)  # a block whose corner lies just off the map still
+            vc = (cc > -c) & (cc < W)  # reaches into it: its bound is the edge block's
+            rr, cc = np.clip(rr, 0, H - 1), np.clip(cc, 0, W - 1)
+            vals = self._coarse[rr[:, None, :], cc[None, :, :]]  # (by, bx, n)
+            vals = np.where(vr[:, None, :] & vc[None, :, :], vals, 0.0)
+            bounds[t] = vals.sum(axis=2)
+        return bounds
 
     def _sample(self, wx: np.ndarray, wy: np.ndarray) -> tuple[np.ndarray, ...]:
         """Bilinear field values and their gradients [1/m] at world points (0 off the map)."""
@@ -216,3 +224,7 @@ class LocalizerCore:
             if abs(step[0]) + abs(step[1]) < 1e-4 and abs(step[2]) < 1e-5:
                 break
         return Pose(x, y, th)
+
+
+# this core runs no numba kernel (common.warm)
+WARM_MODULES: tuple[str, ...] = ()
