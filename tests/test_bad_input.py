@@ -30,6 +30,15 @@ GARBAGE = [
 ]
 
 
+def wait_up(bus: Bus, keys: Keys, service: str, p) -> None:
+    """Until the service's liveliness token is up (its process p still running)."""
+    deadline = time.monotonic() + 60
+    while keys.alive(service) not in bus.alive(keys.alive_all()):
+        assert p.poll() is None, p.stdout.read()
+        assert time.monotonic() < deadline, "service did not come up"
+        time.sleep(0.05)
+
+
 @pytest.mark.parametrize("service", list(SUBSCRIBED))
 def test_garbage_on_every_key_is_counted_and_survived(procs, endpoint, namespace, service):
     procs.router(endpoint)
@@ -37,11 +46,7 @@ def test_garbage_on_every_key_is_counted_and_survived(procs, endpoint, namespace
     p = procs.python("-m", module, "--connect", endpoint, "--namespace", namespace)
     keys = Keys(namespace, "robot1")
     with Bus.client(endpoint, wait_for_router=True) as bus:
-        deadline = time.monotonic() + 60
-        while keys.alive(service) not in bus.alive(keys.alive_all()):
-            assert p.poll() is None, p.stdout.read()
-            assert time.monotonic() < deadline, "service did not come up"
-            time.sleep(0.05)
+        wait_up(bus, keys, service, p)
         before = fetch_state(bus, keys, service)
         for topic in SUBSCRIBED[service]:
             pub = bus.publisher(keys.topic(topic), reliable=True)
@@ -70,11 +75,7 @@ def test_messages_lost_on_the_way_are_counted_by_seq(procs, endpoint, namespace)
                      "--namespace", namespace)
     keys = Keys(namespace, "robot1")
     with Bus.client(endpoint, wait_for_router=True) as bus:
-        deadline = time.monotonic() + 60
-        while keys.alive("mapper") not in bus.alive(keys.alive_all()):
-            assert p.poll() is None, p.stdout.read()
-            assert time.monotonic() < deadline, "service did not come up"
-            time.sleep(0.05)
+        wait_up(bus, keys, "mapper", p)
         pub = bus.publisher(keys.topic("odom"), reliable=True)
         for seq in (0, 1, 2, 6, 7, 0, 1):  # 3, 4, 5 lost; then the publisher restarted
             pub.put(m.Odometry(header=m.Header(seq=seq, stamp=0.1 * seq, frame="odom",
@@ -114,11 +115,7 @@ def test_chaos_set_live_drops_inputs_that_then_count_as_lost(procs, endpoint, na
             time.sleep(0.1)
 
     with Bus.client(endpoint, wait_for_router=True) as bus:
-        deadline = time.monotonic() + 60
-        while keys.alive("mapper") not in bus.alive(keys.alive_all()):
-            assert p.poll() is None, p.stdout.read()
-            assert time.monotonic() < deadline, "service did not come up"
-            time.sleep(0.05)
+        wait_up(bus, keys, "mapper", p)
         pub = bus.publisher(keys.topic("odom"), reliable=True)
         for seq in (0, 1):
             pub.put(odom(seq))

@@ -193,6 +193,13 @@ def _known(state: dict) -> int:
     return 0 if not grid else int((np.frombuffer(grid["data"], np.int8) >= 0).sum())
 
 
+def _reap(run: subprocess.Popen) -> None:
+    """A run the test is done with: gone, with its whole process group."""
+    if run.poll() is None:
+        os.killpg(run.pid, signal.SIGKILL)
+        run.wait(timeout=10)
+
+
 @pytest.mark.parametrize("service", ["mapper", "sim"])
 def test_a_service_killed_mid_run_resumes(tmp_path, endpoint, namespace, service):
     """SIGKILL the mapper or the simulator of a lockstep office run once they have written
@@ -218,9 +225,7 @@ def test_a_service_killed_mid_run_resumes(tmp_path, endpoint, namespace, service
             known_at_kill = _known(mp)
         stdout, _ = run.communicate(timeout=400)
     finally:
-        if run.poll() is None:
-            os.killpg(run.pid, signal.SIGKILL)
-            run.wait(timeout=10)
+        _reap(run)
     report = json.loads(Path(out / "report.json").read_text())
     assert report["finished"] and report["restarts"] >= 1, stdout[-2000:]
     assert report["coverage"] >= 0.95 and report["collisions"] == 0
@@ -397,9 +402,7 @@ def test_topology_reliability_planner_killed_together_resume(tmp_path, endpoint,
             assert len(reliable(after) & before) >= len(before) - 1, (before, reliable(after))
         stdout, _ = run.communicate(timeout=400)
     finally:
-        if run.poll() is None:
-            os.killpg(run.pid, signal.SIGKILL)
-            run.wait(timeout=10)
+        _reap(run)
     report = json.loads(Path(out / "report.json").read_text())
     assert report["finished"] and report["restarts"] >= 3, stdout[-2000:]
     assert report["coverage"] >= 0.95 and report["collisions"] == 0
