@@ -194,10 +194,15 @@ def _known(state: dict) -> int:
 
 
 def _reap(run: subprocess.Popen) -> None:
-    """A run the test is done with: gone, with its whole process group."""
+    """A run the test is done with: gone, with its whole process group (SIGTERM, then
+    SIGKILL after 20 s)."""
     if run.poll() is None:
-        os.killpg(run.pid, signal.SIGKILL)
-        run.wait(timeout=10)
+        os.killpg(run.pid, signal.SIGTERM)
+        try:
+            run.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            os.killpg(run.pid, signal.SIGKILL)
+            run.wait(timeout=10)
 
 
 @pytest.mark.parametrize("service", ["mapper", "sim"])
@@ -449,13 +454,7 @@ def test_a_frozen_planner_stops_the_robot_and_it_goes_on_after(tmp_path, endpoin
                 time.sleep(0.1)
             assert _state(bus, keys, "controller")["cmd"]["mode"] != "stale-plan"
     finally:
-        if run.poll() is None:
-            os.killpg(run.pid, signal.SIGTERM)
-            try:
-                run.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                os.killpg(run.pid, signal.SIGKILL)
-                run.wait(timeout=10)
+        _reap(run)
 
 
 def test_planner_watchdog_counts_and_log_round_trip(tmp_path):
