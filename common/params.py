@@ -208,7 +208,12 @@ class SimParams(_P):
     cmd_max_age: Pos = 1.0  # [s] sim time: a cmd_vel stamped earlier than this, or later than
     #   now (another clock), is stale and dropped; the controller stamps each command with the
     #   scan it answers, so in real time its age is the controller's latency times sim.speed
-    odom_drift: NonNeg = 0.0  # relative odometry noise per metre (0 = perfect odometry)
+    odom_drift: NonNeg = 0.0  # [m/sqrt(m)] odometry translation random walk: after d metres
+    #   of travel the error has sigma odom_drift * sqrt(d) (0 and the two below 0: perfect)
+    odom_drift_heading: NonNeg | None = None  # [rad/sqrt(m)] heading random walk, the same
+    #   way (None: odom_drift's value)
+    odom_slip: Annotated[float, Meta(ge=0.0, le=1.0)] = 0.0  # wheel slip: while the body is
+    #   held by an obstacle, this share of the commanded motion it did not make is counted
 
 
 class MapperParams(_P):

@@ -168,8 +168,9 @@ class SimCore:
         return Pose(float(b.position.x), float(b.position.y), _wrap(float(b.angle)))
 
     def odom_pose(self) -> Pose:
-        """Odometry pose in the map frame: the truth unless ``params.odom_drift`` > 0."""
-        if self.params.odom_drift <= 0.0:
+        """Odometry pose in the map frame: the truth unless odometry error is on
+        (``odom_drift``, ``odom_drift_heading``, ``odom_slip``)."""
+        if not self._odom_error:
             return self.truth_pose()
         x, y, th = self._odom
         return Pose(x, y, _wrap(th))
@@ -266,17 +267,32 @@ class SimCore:
         self.path_length += ds
         vel = b.velocity
         self._meas = (vel.x * math.cos(th1) + vel.y * math.sin(th1), float(b.angular_velocity))
-        if self.params.odom_drift > 0.0:
-            self._integrate_odom(dx * math.cos(th0) + dy * math.sin(th0), th1 - th0)
+        if self._odom_error:
+            ds, dth = dx * math.cos(th0) + dy * math.sin(th0), th1 - th0
+            slip = self.params.odom_slip
+            if slip > 0.0 and self._touching > 0:  # held: the wheels turn on the spot
+                ds += slip * (self._cmd[0] * self._dt - ds)
+                dth += slip * (self._cmd[1] * self._dt - dth)
+            self._integrate_odom(ds, dth)
+
+    @property
+    def _odom_error(self) -> bool:
+        p = self.params
+        return p.odom_drift > 0.0 or bool(p.odom_drift_heading) or p.odom_slip > 0.0
 
     def _integrate_odom(self, ds: float, dth: float) -> None:
-        """Odometry with random-walk drift: variance per step = drift^2 * |travel| (so the
-        position error has sigma ~ drift [m] after 1 m, the heading error ~ drift [rad])."""
-        k = self.params.odom_drift
+        """Odometry with random-walk drift: per step, variance drift^2 * |travel| in
+        translation [m] and heading_drift^2 * |travel| in heading [rad] (so the errors have
+        sigma drift [m] and heading_drift [rad] after 1 m); travel counts a turn on the spot
+        by the arc of the robot's rim."""
+        p = self.params
+        k = p.odom_drift
+        kh = k if p.odom_drift_heading is None else p.odom_drift_heading
         travel = abs(ds) + abs(dth) * self.robot.radius
-        if travel > 0.0:
-            e_s, e_t = self._odom_rng.normal(0.0, k * math.sqrt(travel), 2)
-            ds, dth = ds + e_s, dth + e_t
+        if travel > 0.0 and (k > 0.0 or kh > 0.0):
+            root = math.sqrt(travel)
+            e_s, e_t = self._odom_rng.normal(0.0, (k * root, kh * root))
+            ds, dth = ds + float(e_s), dth + float(e_t)
         x, y, th = self._odom
         mid = th + dth / 2
         self._odom = (x + ds * math.cos(mid), y + ds * math.sin(mid), th + dth)

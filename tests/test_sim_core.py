@@ -302,6 +302,38 @@ def test_odometry_exact_by_default_and_drifts_when_asked():
     assert 0.0 < err < 0.5
 
 
+def test_heading_drift_is_its_own_random_walk_per_metre():
+    """odom_drift_heading [rad/sqrt(m)] alone: the heading error after d metres has sigma
+    odom_drift_heading * sqrt(d), and straight driving gets no translation noise of its own;
+    odom_drift alone with odom_drift_heading = 0 leaves the heading exact."""
+    errs = []
+    for seed in range(60):
+        s = make(world=box_world((1.0, 3.0, 0.0)), odom_drift_heading=0.05, seed=seed)
+        drive(s, 0.5, 0.0, 4.0)  # 2 m
+        errs.append(s.odom_pose().theta - s.truth_pose().theta)
+    sigma = float(np.std(errs))
+    assert 0.05 * math.sqrt(2.0) * 0.7 < sigma < 0.05 * math.sqrt(2.0) * 1.3
+    s = make(world=box_world((1.0, 3.0, 0.0)), odom_drift=0.05, odom_drift_heading=0.0, seed=1)
+    drive(s, 0.5, 0.2, 4.0)
+    assert s.odom_pose().theta == pytest.approx(s.truth_pose().theta, abs=1e-9)
+    assert s.odom_pose()[:2] != pytest.approx(s.truth_pose()[:2], abs=1e-4)
+
+
+@pytest.mark.parametrize("slip", [0.0, 0.5, 1.0])
+def test_wheel_slip_counts_motion_the_body_did_not_make_against_a_wall(slip):
+    """Pushing into the wall at 0.4 m/s for 2 s after touching it: the body stays, the
+    odometry counts slip x the commanded 0.8 m; free driving before the wall is exact."""
+    s = make(world=box_world((9.0, 3.0, 0.0)), odom_slip=slip, seed=0)
+    while not s.in_contact:
+        s.command(0.4, 0.0)
+        s.step()
+    assert s.odom_pose()[:2] == pytest.approx(s.truth_pose()[:2], abs=1e-6)
+    x0, odo0 = s.truth_pose().x, s.odom_pose().x
+    drive(s, 0.4, 0.0, 2.0)
+    assert s.in_contact and s.truth_pose().x == pytest.approx(x0, abs=0.02)
+    assert s.odom_pose().x - odo0 == pytest.approx(slip * 0.8, abs=0.03)
+
+
 def test_beam_angles_edge_to_edge_or_evenly_round_a_full_turn():
     from topoexplore.sim.core import beam_angles
 
