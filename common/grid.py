@@ -222,7 +222,8 @@ def unknown_mask(grid: np.ndarray, p_free: float = 0.35, p_occ: float = 0.65) ->
 
 
 def open_unknown(grid: np.ndarray, pocket_cells: int = 0, p_free: float = 0.35,
-                 p_occ: float = 0.65) -> np.ndarray:
+                 p_occ: float = 0.65, reach: np.ndarray | None = None,
+                 min_reach: int = 1, min_area: int = 0) -> np.ndarray:
     """Unexplored cells (bool, :func:`common.grid.unknown_mask`: never observed plus the
     undecided band connected to it, as the frontier baseline sees them), without the enclosed
     pockets smaller than pocket_cells.
@@ -234,13 +235,23 @@ def open_unknown(grid: np.ndarray, pocket_cells: int = 0, p_free: float = 0.35,
     a pocket from a shadow that a viewpoint would reveal: lse_arena's stair-step wedge is the
     shadow of a wall corner in a 2.0 x 0.7 m bay that is free in the map, enclosed by the walls
     and its own shadow line (docs/design.md, "Enclosed pockets").
+
+    reach: cells the robot can drive its centre to (bool, the grid's shape). A pocket of at
+    least min_area cells with at least min_reach reachable cells 4-adjacent to it is kept: the
+    robot can stand beside it along a frontier that long and look in, so a viewpoint can
+    reveal it. The inside of an obstacle has no such border (a notch the robot's centre fits
+    through is an opening, not a notch); a laser shadow in open space does, such as
+    lse_arena's wedge. A speck of unseen floor, or a box whose outline is still undecided,
+    borders the reachable space only along a few cells, so min_reach (a frontier group's
+    minimum length in cells) keeps them out.
     pocket_cells <= 0 keeps every unknown cell.
     """
     g = np.asarray(grid)
     win = known_window(g) if pocket_cells > 0 else None
     if win is not None:  # a pocket lies inside the observed cells' box; the ring of unknown
         out = np.ones(g.shape, dtype=bool)  # kept around it joins everything outside
-        out[win] = open_unknown(g[win], pocket_cells, p_free, p_occ)
+        out[win] = open_unknown(g[win], pocket_cells, p_free, p_occ,
+                                None if reach is None else reach[win], min_reach, min_area)
         return out
     unknown = unknown_mask(g, p_free, p_occ)
     if pocket_cells <= 0 or not unknown.any():
@@ -252,6 +263,9 @@ def open_unknown(grid: np.ndarray, pocket_cells: int = 0, p_free: float = 0.35,
     border = (x == 0) | (y == 0) | (x + bw == w) | (y + bh == h)
     pocket = ~border & (stats[:, cv2.CC_STAT_AREA] < pocket_cells)
     pocket[0] = False  # label 0: the known cells
+    if reach is not None and pocket.any():  # a pocket the robot can look into is no pocket
+        pocket &= ((_reachable_border(labels, np.asarray(reach, dtype=bool), n) < min_reach)
+                   | (stats[:, cv2.CC_STAT_AREA] < min_area))
     if not pocket.any():
         return unknown
     out = unknown.copy()
@@ -259,6 +273,21 @@ def open_unknown(grid: np.ndarray, pocket_cells: int = 0, p_free: float = 0.35,
         sl = np.s_[y[k]:y[k] + bh[k], x[k]:x[k] + bw[k]]
         out[sl] &= labels[sl] != k
     return out
+
+
+def _reachable_border(labels: np.ndarray, reach: np.ndarray, n: int) -> np.ndarray:
+    """Per label 0..n-1: how many reach cells are 4-adjacent to a cell of that label (each
+    cell counted once per label)."""
+    h, w = labels.shape
+    rr, cc = np.nonzero(reach)
+    keys = []
+    for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        r, c = rr + dr, cc + dc
+        ok = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+        lab = labels[r[ok], c[ok]].astype(np.int64)
+        keys.append((rr[ok].astype(np.int64) * w + cc[ok]) * n + lab)
+    uniq = np.unique(np.concatenate(keys)) if keys else np.zeros(0, dtype=np.int64)
+    return np.bincount(uniq % n, minlength=n)
 
 
 def near_frontier(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, radius: float,

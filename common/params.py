@@ -347,6 +347,9 @@ class PlannerParams(_P):
     completion_min_size: NonNeg = 1.0  # [m] ... those at least this long
     completion_near: NonNeg = 4.0  # [m] ... or shorter (down to min_frontier_size) and this near
     completion_pocket_area: NonNeg = 1.5  # [m^2] ... and not next to a smaller enclosed pocket
+    completion_pocket_share: Annotated[float, Meta(ge=0.0, le=1.0)] = 0.01  # ... unless the
+    #   robot can reach completion_min_size of its edge (look into it) and it is at least this
+    #   share of the known free cells: a laser shadow that matters for coverage (1 = never)
     pickup_radius: NonNeg = 0.0  # [m] while end nodes are left, the frontier groups the
     # completion rules count this near by path are candidates too (cost: path length), so
     # that a corner is not left for a long trip back later; 0: off (the default: not yet

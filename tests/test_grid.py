@@ -31,14 +31,20 @@ def ref_unknown(g: np.ndarray) -> np.ndarray:
     return keep[labels]
 
 
-def ref_open(g: np.ndarray, pocket_cells: int) -> np.ndarray:
+def ref_open(g: np.ndarray, pocket_cells: int, reach: np.ndarray | None = None,
+             min_reach: int = 1, min_area: int = 0) -> np.ndarray:
     u = ref_unknown(g)
-    _, labels, st, _ = cv2.connectedComponentsWithStats(u.view(np.uint8), connectivity=8)
+    n, labels, st, _ = cv2.connectedComponentsWithStats(u.view(np.uint8), connectivity=8)
     h, w = u.shape
     border = ((st[:, 0] == 0) | (st[:, 1] == 0) | (st[:, 0] + st[:, 2] == w)
               | (st[:, 1] + st[:, 3] == h))
     pocket = ~border & (st[:, 4] < pocket_cells)
     pocket[0] = False
+    for k in range(1, n) if reach is not None else ():  # reachable cells beside it, one by one
+        beside = sum(1 for r, c in zip(*np.nonzero(reach), strict=True) if any(
+            0 <= r + dr < h and 0 <= c + dc < w and labels[r + dr, c + dc] == k
+            for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1))))
+        pocket[k] &= (beside < min_reach) | (st[k, 4] < min_area)
     return u & ~pocket[labels]
 
 
@@ -65,6 +71,27 @@ def test_unknown_mask_and_open_unknown_match_their_definition_on_the_whole_grid(
         assert np.array_equal(unknown_mask(g), ref_unknown(g))
         for pocket in (0, 3, 20):
             assert np.array_equal(open_unknown(g, pocket), ref_open(g, pocket))
+
+
+def test_a_pocket_is_kept_where_the_robot_can_reach_enough_of_its_border():
+    rng = np.random.default_rng(1)
+    for g in random_grids(150, seed=3):
+        reach = (g >= 0) & (g < 35) & (rng.random(g.shape) < 0.7)
+        for pocket, min_reach, min_area in ((20, 1, 0), (20, 3, 0), (40, 6, 0), (40, 2, 8)):
+            assert np.array_equal(open_unknown(g, pocket, reach=reach, min_reach=min_reach,
+                                               min_area=min_area),
+                                  ref_open(g, pocket, reach, min_reach, min_area))
+    g = np.zeros((30, 30), np.int8)  # a 6 x 6 pocket in a free room: 24 border cells
+    g[[0, -1], :] = g[:, [0, -1]] = 100
+    g[10:16, 10:16] = -1
+    free = g == 0
+    assert open_unknown(g, 100).sum() == 0  # without reach: dropped
+    assert open_unknown(g, 100, reach=free, min_reach=10).sum() == 36  # beside it: kept
+    few = np.zeros_like(free)
+    few[9, 10:13] = True  # three reachable cells beside it: not a frontier's worth
+    assert open_unknown(g, 100, reach=few, min_reach=10).sum() == 0
+    assert open_unknown(g, 100, reach=few, min_reach=3).sum() == 36
+    assert open_unknown(g, 100, reach=free, min_reach=10, min_area=37).sum() == 0  # too small
 
 
 def test_crop_known_keeps_a_ring_of_unknown_and_world_coordinates():

@@ -329,6 +329,52 @@ def test_an_open_end_node_beside_fragmented_unknown_space_is_still_visited(holes
         assert out.state == "done" and "the map is complete" in out.status.reason
 
 
+def bay(kind: str) -> tuple[np.ndarray, GridGeometry]:
+    """A known 6 x 4 m room; a wall at y = 2 m from x = 3 m to the right wall and a pillar on
+    it up to y = 3 m make a bay (x 3.1-5.9 m, y 2.1-3.9 m) open to the left above the pillar.
+    kind "shadow": the pillar's laser shadow in the bay, a wedge of never-seen cells (0.5 m²,
+    under completion_pocket_area) bounded by the pillar, the wall and free cells, as on
+    lse_arena. "box": a 1 m box in the bay instead, its inside unknown, seen through a notch
+    of two cells (a cone of free cells inside it)."""
+    g, geom = room(60, 40)
+    g[20, 30:] = 100
+    g[20:31, 30] = 100
+    if kind == "shadow":
+        for r in range(21, 29):  # the wedge narrows from the pillar's foot to the right
+            g[r, 31:31 + 3 * (28 - r)] = -1
+    else:
+        g[25:35, 42:52] = 100
+        g[26:34, 43:51] = -1
+        g[29:31, 42] = 0  # the notch, and the cone a beam swept through it
+        g[29:31, 43:47] = 0
+    return g, geom
+
+
+@pytest.mark.parametrize("kind,share,explored", [("shadow", 0.01, True), ("box", 0.01, False),
+                                                  ("shadow", 1.0, False)])
+def test_a_laser_shadow_is_explored_the_inside_of_a_box_is_not(kind, share, explored):
+    """Both are enclosed unknown pockets under completion_pocket_area. The robot can stand
+    beside the shadow along its whole free edge, so it is a frontier and the map is not
+    complete; the box's inside borders only cells the robot cannot reach, so it is no
+    frontier and the run is done. A shadow under completion_pocket_share of the known free
+    cells does not count either."""
+    g, geom = bay(kind)
+    tp = Graph.from_edges([Node(1, "end", 1.0, 1.0), Node(2, "end", 1.0, 3.0)],
+                          [(1, 2, [[1.0, 1.0], [1.0, 3.0]], 2.0, 0.8)])
+    p = params(completion_pocket_share=share)
+    assert (g == -1).sum() * RES ** 2 < p.completion_pocket_area
+    core = PlannerCore(p)
+    for k in range(3):
+        out = core.update(0.4 * k, (1.0, 1.0, 0.0), tp, rel({1: 0.95, 2: 0.95}),
+                          GridMap(g, geom))
+    if explored:  # the completion phase goes to look at it
+        assert out.state == "exploring" and out.route.target_id == -1, out.status.reason
+        tx, ty = out.route.target_xy
+        assert 3.0 < tx < 6.0 and 2.0 < ty < 3.0, out.status.reason
+    else:
+        assert out.state == "done" and "no frontier left" in out.status.reason
+
+
 # --- commitment against flickering reachability ---------------------------------------------
 
 

@@ -60,8 +60,15 @@ class MapView:
         self.occ = occ
         self.blocked = tuple(blocked)  # (x, y, r) [m]: discs learned to be impassable
         self._examined = examined  # geom -> the examined frontier cells (:mod:`.examined`)
-        self._open: dict[int, np.ndarray] = {}
+        self._open: dict[tuple[int, int | None, int, int], tuple[Any, np.ndarray]] = {}
         self._passable: dict[float, np.ndarray] = {}
+        self._memo: dict[Any, Any] = {}
+
+    def memo(self, key: Any, make: Callable[[], Any]) -> Any:
+        """make() once per view and key: what several rules of one update share."""
+        if key not in self._memo:
+            self._memo[key] = make()
+        return self._memo[key]
 
     @_once
     def _crop(self) -> tuple[np.ndarray, GridGeometry]:
@@ -127,15 +134,28 @@ class MapView:
         .unknown_mask`)."""
         return unknown_mask(self.data, self.occ.p_free, self.occ.p_occ)
 
-    def open_unknown(self, pocket_cells: int) -> np.ndarray:
+    def open_unknown(self, pocket_cells: int, search: gs.GridSearch | None = None,
+                     min_reach: int = 1, share: float = 0.0) -> np.ndarray:
         """Unexplored cells without the enclosed pockets smaller than pocket_cells
-        (:func:`common.grid.open_unknown`); pocket_cells <= 0: :attr:`unknown`."""
+        (:func:`common.grid.open_unknown`), except those the robot can look into: a pocket
+        with min_reach cells of its border reached by search, holding at least share of the
+        known free cells; pocket_cells <= 0: :attr:`unknown`."""
         if pocket_cells <= 0:
             return self.unknown
-        if pocket_cells not in self._open:
-            self._open[pocket_cells] = open_unknown(self.data, pocket_cells, self.occ.p_free,
-                                                    self.occ.p_occ)
-        return self._open[pocket_cells]
+        min_area = math.ceil(share * self.free_cells) if search is not None else 0
+        key = (pocket_cells, None if search is None else id(search), min_reach, min_area)
+        hit = self._open.get(key)
+        if hit is None or hit[0] is not search:  # the search is kept: its id stays its own
+            reach = None if search is None else np.isfinite(search.dist)
+            hit = self._open[key] = (search, open_unknown(
+                self.data, pocket_cells, self.occ.p_free, self.occ.p_occ, reach, min_reach,
+                min_area))
+        return hit[1]
+
+    @_once
+    def free_cells(self) -> int:
+        """How many cells are known free."""
+        return int(np.count_nonzero(self.free))
 
     def passable(self, radius: float) -> np.ndarray:
         """Known free cells at least radius [m] from every occupied cell."""

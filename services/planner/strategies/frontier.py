@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from topoexplore.common.grid import cells_for
 from topoexplore.services.planner import gridsearch as gs
 from topoexplore.services.planner.mapview import MapView
 from topoexplore.services.planner.strategies.base import Candidate, Config, Evaluation, Update
@@ -84,13 +85,13 @@ def _evaluate(cfg: Config, u: Update, min_size: float | None, pocket_area: float
     min_size = p.min_frontier_size if min_size is None else min_size
     floor = min(min_size, p.min_frontier_size) if near > 0 else min_size
     ev = Evaluation()
-    search = robot_search(cfg, u, narrow, reach_only)
+    search = robot_reach(cfg, u) if narrow and reach_only else robot_search(cfg, u, narrow)
     if search.start is None:
         ev.failed = "the robot is not near known free space (no start cell for the search)"
         ev.done = ev.failed
         return ev
     res = view.geom.resolution
-    unknown = view.open_unknown(int(pocket_area / res ** 2)) if pocket_area > 0 else view.unknown
+    unknown = open_unknown(cfg, u, pocket_area) if pocket_area > 0 else view.unknown
     groups, dropped = gs.find_frontiers(view.frontier_free, unknown, view.geom, search, floor,
                                         p.potential_scale, p.gain_scale)
     unreachable, black = 0, 0
@@ -119,6 +120,22 @@ def _evaluate(cfg: Config, u: Update, min_size: float | None, pocket_area: float
     ev.status_of = lambda c: "was cleared (no frontier group there any more)"
     ev.path_ok = path_fits(view, search.clearance, cfg.radius)
     return ev
+
+
+def open_unknown(cfg: Config, u: Update, pocket_area: float) -> np.ndarray:
+    """Unexplored cells on u.view without the enclosed pockets under pocket_area [m^2], except
+    those the robot can look into (:meth:`MapView.open_unknown`): completion_min_size of
+    their edge reached from where it is (:func:`robot_reach`), completion_pocket_share of the
+    known free cells or more."""
+    p, res = cfg.params, u.view.geom.resolution
+    return u.view.open_unknown(int(pocket_area / res ** 2), robot_reach(cfg, u),
+                               cells_for(p.completion_min_size, res), p.completion_pocket_share)
+
+
+def robot_reach(cfg: Config, u: Update) -> gs.GridSearch:
+    """Where the robot can get at all (narrow passages too, no path costs), once per map
+    view and robot position."""
+    return u.view.memo(("reach", u.x, u.y), lambda: robot_search(cfg, u, True, True))
 
 
 def robot_search(cfg: Config, u: Update, narrow: bool = False, reach_only: bool = False

@@ -38,6 +38,7 @@ from topoexplore.services.planner.strategies.base import (
 from topoexplore.services.planner.strategies.completion import Completion
 from topoexplore.services.planner.strategies.frontier import (
     NARROW_PENALTY,
+    open_unknown,
     path_fits,
     robot_search,
 )
@@ -305,13 +306,14 @@ class Topological:
     def beside_unknown(self, u: Update, x: float, y: float, radius: float) -> bool:
         """Is there at least min_frontier_size of frontier (in cells, however fragmented)
         within radius [m] of (x, y) [m]? Enclosed pockets smaller than
-        completion_pocket_area (the inside of a box) do not count, nor do specks."""
+        completion_pocket_area (the inside of a box) do not count, unless the robot can get
+        beside them (the completion rules' search), nor do specks."""
         p, v = self.cfg.params, u.view
         if v is None:
             return True
         res = v.geom.resolution
         return near_frontier(x, y, v.data, v.geom, radius, v.occ.p_free,
-                             v.open_unknown(int(p.completion_pocket_area / res ** 2)),
+                             open_unknown(self.cfg, u, p.completion_pocket_area),
                              min_cells=cells_for(p.min_frontier_size, res))
 
     def _has_looked(self, px: float, py: float) -> bool:
