@@ -85,7 +85,8 @@ def _evaluate(cfg: Config, u: Update, min_size: float | None, pocket_area: float
     min_size = p.min_frontier_size if min_size is None else min_size
     floor = min(min_size, p.min_frontier_size) if near > 0 else min_size
     ev = Evaluation()
-    search = robot_reach(cfg, u) if narrow and reach_only else robot_search(cfg, u, narrow)
+    search = (robot_reach(cfg, u) if narrow and reach_only
+              else robot_search(cfg, u, narrow, reach_only))
     if search.start is None:
         ev.failed = "the robot is not near known free space (no start cell for the search)"
         ev.done = ev.failed
