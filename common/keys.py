@@ -20,7 +20,7 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"  # the router every process connects to 
 TOPICS: dict[str, type] = {
     "scan": m.LaserScan,
     "odom": m.Odometry,
-    "truth": m.Pose,
+    "truth": m.PoseStamped,
     "cmd_vel": m.Twist,
     "map": m.OccupancyGrid,
     "topo": m.TopoGraph,
@@ -28,7 +28,7 @@ TOPICS: dict[str, type] = {
     "plan": m.Path,
     "explore/status": m.ExploreStatus,
     "sim/status": m.SimStatus,
-    "map_odom": m.Pose,  # the localizer's map -> odom correction (REP-105), per scan
+    "map_odom": m.TransformStamped,  # the localizer's map -> odom correction (REP-105), per scan
 }
 
 SERVICES = ("sim", "mapper", "topology", "reliability", "planner", "controller")

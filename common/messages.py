@@ -4,10 +4,19 @@ Wire format: MessagePack maps with field names (msgspec structs, not array-like)
 msgpack client (``msgpack.unpackb(raw)``) reads every message as nested dicts and lists. Bulk
 grid data travels as a msgpack ``bin`` (bytes).
 
-Conventions (REP-103/105): SI units, x forward, y left, angles counter-clockwise in radians.
-Every message has a :class:`Header`: ``seq`` (per publisher), ``stamp`` (sim or wall time, s),
-``frame`` and ``src_seq`` — the sequence number of the laser scan the message was derived from,
-so a stage can tell how fresh its input is and lockstep mode can wait for it.
+The shapes are the ROS 2 message definitions, field for field (``std_msgs/Header``,
+``sensor_msgs/LaserScan``, ``nav_msgs/Odometry``, ``geometry_msgs/PoseStamped``,
+``geometry_msgs/TransformStamped``, ``nav_msgs/OccupancyGrid``, ``nav_msgs/Path``; a velocity
+command is ``geometry_msgs/Twist``'s ``linear``/``angular`` with a header beside them), so a
+driver written from the ROS message docs is right. Our own fields live beside the ROS ones:
+``header.seq`` (per publisher and key) and ``header.src_seq`` (the sequence number of the laser
+scan the message derives from, so a stage can tell how fresh its input is and lockstep mode
+can wait for it), the path's target fields, and the topology, reliability and status messages.
+
+Conventions (REP-103/105): SI units, x forward, y left, angles counter-clockwise in radians,
+planar poses as a quaternion about z (:func:`quaternion`, :func:`yaw_of`); frames ``map`` ->
+``odom`` -> ``base_link`` -> ``laser``. Stamps are ``Time{sec, nanosec}`` (sim or wall time);
+``header.time`` gives seconds as a float.
 
 :func:`decode` validates strictly (types, lengths, finite numbers, sane sizes); every problem
 raises the one error type :class:`MessageError`.
@@ -23,12 +32,26 @@ import numpy as np
 
 __all__ = [
     "MessageError",
+    "Time",
     "Header",
+    "stamp",
+    "header",
+    "Vector3",
+    "Point",
+    "Quaternion",
+    "quaternion",
+    "yaw_of",
+    "GeoPose",
+    "GeoTwist",
+    "PoseWithCovariance",
+    "TwistWithCovariance",
     "LaserScan",
-    "Pose2D",
     "Odometry",
-    "Pose",
+    "PoseStamped",
+    "Transform",
+    "TransformStamped",
     "Twist",
+    "MapMetaData",
     "OccupancyGrid",
     "TopoNode",
     "TopoEdge",
@@ -61,57 +84,181 @@ class MessageError(ValueError):
     """A message could not be decoded or failed validation."""
 
 
+class Time(msgspec.Struct, kw_only=True):
+    """builtin_interfaces/Time."""
+
+    sec: int  # [s]
+    nanosec: int  # [ns], 0 <= nanosec < 1e9
+
+
 class Header(msgspec.Struct, kw_only=True):
-    seq: int
-    stamp: float  # [s]
-    frame: str
-    src_seq: int  # scan sequence number this message derives from (-1: none)
+    """std_msgs/Header (``stamp``, ``frame_id``) and ours beside it: ``seq`` (per publisher
+    and key, from 0; -1 = not counted) and ``src_seq`` (the scan this message derives from;
+    -1 = none). A driver that fills only the ROS fields is read as seq -1, src_seq -1."""
+
+    stamp: Time
+    frame_id: str
+    seq: int = -1
+    src_seq: int = -1
+
+    @property
+    def time(self) -> float:
+        """The stamp [s] as a float."""
+        return self.stamp.sec + self.stamp.nanosec / 1e9
+
+
+def stamp(t: float) -> Time:
+    """[s] -> Time, to the nearest nanosecond (a negative time is clamped to 0)."""
+    ns = max(0, round(t * 1e9))
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def header(seq: int, t: float, frame_id: str, src_seq: int = -1) -> Header:
+    """A Header stamped ``t`` [s]."""
+    return Header(stamp=stamp(t), frame_id=frame_id, seq=seq, src_seq=src_seq)
+
+
+class Vector3(msgspec.Struct, kw_only=True):
+    """geometry_msgs/Vector3."""
+
+    x: float = 0.0
+    y: float = 0.0
+    z: float = 0.0
+
+
+class Point(msgspec.Struct, kw_only=True):
+    """geometry_msgs/Point [m]."""
+
+    x: float = 0.0
+    y: float = 0.0
+    z: float = 0.0
+
+
+class Quaternion(msgspec.Struct, kw_only=True):
+    """geometry_msgs/Quaternion (x, y, z, w); identity by default."""
+
+    x: float = 0.0
+    y: float = 0.0
+    z: float = 0.0
+    w: float = 1.0
+
+
+def quaternion(yaw: float) -> Quaternion:
+    """A rotation of ``yaw`` [rad] about z (REP-103)."""
+    return Quaternion(z=math.sin(yaw / 2.0), w=math.cos(yaw / 2.0))
+
+
+def yaw_of(q: Quaternion) -> float:
+    """The yaw [rad] of a quaternion, about z (REP-103; roll and pitch ignored)."""
+    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+
+
+class GeoPose(msgspec.Struct, kw_only=True):
+    """geometry_msgs/Pose."""
+
+    position: Point
+    orientation: Quaternion
+
+
+class GeoTwist(msgspec.Struct, kw_only=True):
+    """geometry_msgs/Twist: linear [m/s], angular [rad/s]."""
+
+    linear: Vector3
+    angular: Vector3
+
+
+def _zeros36() -> list[float]:
+    return [0.0] * 36
+
+
+class PoseWithCovariance(msgspec.Struct, kw_only=True):
+    """geometry_msgs/PoseWithCovariance (row-major 6x6: x, y, z, roll, pitch, yaw)."""
+
+    pose: GeoPose
+    covariance: list[float] = msgspec.field(default_factory=_zeros36)
+
+
+class TwistWithCovariance(msgspec.Struct, kw_only=True):
+    """geometry_msgs/TwistWithCovariance."""
+
+    twist: GeoTwist
+    covariance: list[float] = msgspec.field(default_factory=_zeros36)
 
 
 class LaserScan(msgspec.Struct, kw_only=True):
-    header: Header
+    """sensor_msgs/LaserScan."""
+
+    header: Header  # frame_id: the laser's frame
     angle_min: float  # [rad]
+    angle_max: float  # [rad]
     angle_increment: float  # [rad]
+    time_increment: float = 0.0  # [s] between measurements
+    scan_time: float = 0.0  # [s] between scans
     range_min: float  # [m]
     range_max: float  # [m]
     ranges: list[float]  # [m]; REP-117: NaN invalid, +Inf or >= range_max no return, -Inf
     #   too close, < range_min invalid
-
-
-class Pose2D(msgspec.Struct, kw_only=True):
-    x: float  # [m]
-    y: float  # [m]
-    theta: float  # [rad]
+    intensities: list[float] = []  # device-specific units; empty or one per range
 
 
 class Odometry(msgspec.Struct, kw_only=True):
-    header: Header
-    pose: Pose2D
-    v: float = 0.0  # [m/s]
-    w: float = 0.0  # [rad/s]
-
-
-class Pose(msgspec.Struct, kw_only=True):
-    """A stamped pose (used for ground truth)."""
+    """nav_msgs/Odometry: the pose in ``header.frame_id`` (odom), the twist in
+    ``child_frame_id`` (base_link)."""
 
     header: Header
-    pose: Pose2D
+    child_frame_id: str = "base_link"
+    pose: PoseWithCovariance
+    twist: TwistWithCovariance
+
+
+class PoseStamped(msgspec.Struct, kw_only=True):
+    """geometry_msgs/PoseStamped (ground truth, the localizer's pose, a path's poses)."""
+
+    header: Header
+    pose: GeoPose
+
+
+class Transform(msgspec.Struct, kw_only=True):
+    """geometry_msgs/Transform."""
+
+    translation: Vector3
+    rotation: Quaternion
+
+
+class TransformStamped(msgspec.Struct, kw_only=True):
+    """geometry_msgs/TransformStamped: ``child_frame_id``'s pose in ``header.frame_id``
+    (the localizer's map -> odom correction, REP-105)."""
+
+    header: Header
+    child_frame_id: str
+    transform: Transform
 
 
 class Twist(msgspec.Struct, kw_only=True):
-    header: Header
-    v: float  # [m/s]
-    w: float  # [rad/s]
-
-
-class OccupancyGrid(msgspec.Struct, kw_only=True):
-    """ROS-style grid: int8 row-major, x fastest, -1 unknown, 0..100 occupancy."""
+    """geometry_msgs/Twist's fields (linear.x = v [m/s], angular.z = w [rad/s] for a planar
+    base) with our header beside them: a velocity command carries its stamp."""
 
     header: Header
+    linear: Vector3
+    angular: Vector3
+
+
+class MapMetaData(msgspec.Struct, kw_only=True):
+    """nav_msgs/MapMetaData."""
+
+    map_load_time: Time
     resolution: float  # [m/cell]
     width: int  # cells along x
     height: int  # cells along y
-    origin: Pose2D  # world pose of cell (0, 0)'s corner
+    origin: GeoPose  # world pose of cell (0, 0)'s corner
+
+
+class OccupancyGrid(msgspec.Struct, kw_only=True):
+    """nav_msgs/OccupancyGrid: int8 row-major, x fastest, -1 unknown, 0..100 occupancy
+    (``data`` travels as one msgpack bin, not a list of ints)."""
+
+    header: Header
+    info: MapMetaData
     data: bytes  # width*height int8
 
 
@@ -158,8 +305,11 @@ class Reliability(msgspec.Struct, kw_only=True):
 
 
 class Path(msgspec.Struct, kw_only=True):
+    """nav_msgs/Path (``poses``: the waypoints in the map frame, each facing the next; the
+    last faces ``goal_heading`` if given) and ours beside it."""
+
     header: Header
-    waypoints: list[list[float]]  # [[x, y], ...] [m]; empty = stop
+    poses: list[PoseStamped]  # empty = stop
     target_id: int = -1
     target_x: float = 0.0  # [m]
     target_y: float = 0.0  # [m]
@@ -203,7 +353,8 @@ MESSAGE_TYPES: dict[str, type] = {
     for t in (
         LaserScan,
         Odometry,
-        Pose,
+        PoseStamped,
+        TransformStamped,
         Twist,
         OccupancyGrid,
         TopoGraph,
@@ -253,21 +404,46 @@ def _finite(msg: Any, name: str, value: float, lo: float = -MAX_COORD, hi: float
         _fail(msg, f"{name}={value} outside [{lo}, {hi}]")
 
 
-def _header(msg: Any) -> None:
-    h = msg.header
-    if h.seq < 0 or h.seq > 2**62:
-        _fail(msg, f"header.seq={h.seq} out of range")
+def _header(msg: Any, h: Header | None = None, name: str = "header") -> None:
+    h = msg.header if h is None else h
+    if h.seq < -1 or h.seq > 2**62:
+        _fail(msg, f"{name}.seq={h.seq} out of range")
     if h.src_seq < -1 or h.src_seq > 2**62:
-        _fail(msg, f"header.src_seq={h.src_seq} out of range")
-    _finite(msg, "header.stamp", h.stamp, 0.0, 1.0e12)
-    if len(h.frame) > MAX_STR:
-        _fail(msg, "header.frame too long")
+        _fail(msg, f"{name}.src_seq={h.src_seq} out of range")
+    _time(msg, f"{name}.stamp", h.stamp)
+    if len(h.frame_id) > MAX_STR:
+        _fail(msg, f"{name}.frame_id too long")
 
 
-def _pose(msg: Any, name: str, p: Pose2D) -> None:
-    _finite(msg, f"{name}.x", p.x)
-    _finite(msg, f"{name}.y", p.y)
-    _finite(msg, f"{name}.theta", p.theta, -1000.0, 1000.0)
+def _time(msg: Any, name: str, t: Time) -> None:
+    if not 0 <= t.sec <= 10**12 or not 0 <= t.nanosec < 1_000_000_000:
+        _fail(msg, f"{name}=({t.sec}, {t.nanosec}) not a time (sec 0..1e12, nanosec 0..1e9)")
+
+
+def _vec(msg: Any, name: str, v: Vector3 | Point, lim: float = MAX_COORD) -> None:
+    _finite(msg, f"{name}.x", v.x, -lim, lim)
+    _finite(msg, f"{name}.y", v.y, -lim, lim)
+    _finite(msg, f"{name}.z", v.z, -lim, lim)
+
+
+def _quat(msg: Any, name: str, q: Quaternion) -> None:
+    for k in ("x", "y", "z", "w"):
+        _finite(msg, f"{name}.{k}", getattr(q, k), -1.01, 1.01)
+    norm = math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w)
+    if abs(norm - 1.0) > 1e-3:
+        _fail(msg, f"{name} is not a unit quaternion (norm {norm:.6g})")
+
+
+def _pose(msg: Any, name: str, p: GeoPose) -> None:
+    _vec(msg, f"{name}.position", p.position)
+    _quat(msg, f"{name}.orientation", p.orientation)
+
+
+def _cov(msg: Any, name: str, c: list[float]) -> None:
+    if len(c) != 36:
+        _fail(msg, f"{name} has {len(c)} values, expected 36 (6x6)")
+    if not all(math.isfinite(v) for v in c):
+        _fail(msg, f"{name} is not finite")
 
 
 def _v_scan(m: LaserScan) -> None:
@@ -276,15 +452,26 @@ def _v_scan(m: LaserScan) -> None:
     if not 1 <= n <= MAX_BEAMS:
         _fail(m, f"{n} ranges (expected 1..{MAX_BEAMS})")
     _finite(m, "angle_min", m.angle_min, -2 * math.pi, 2 * math.pi)
+    _finite(m, "angle_max", m.angle_max, -2 * math.pi, 2 * math.pi)
     _finite(m, "angle_increment", m.angle_increment, -math.pi, math.pi)
     if m.angle_increment == 0.0 and n > 1:
         _fail(m, "angle_increment is zero")
     if abs(m.angle_increment) * (n - 1) > 2 * math.pi + 1e-6:
         _fail(m, f"{n} beams at {m.angle_increment} rad span more than a turn")
+    # angle_max is angle_min + (n - 1) * angle_increment; drivers that count n increments (or
+    # round in float32) are read as well: the beam angles come from angle_min and the increment
+    end = m.angle_min + (n - 1) * m.angle_increment
+    if abs(m.angle_max - end) > abs(m.angle_increment) + 1e-3:
+        _fail(m, f"angle_max={m.angle_max:.6g} disagrees with angle_min + (n - 1) * "
+                 f"angle_increment = {end:.6g}")
+    _finite(m, "time_increment", m.time_increment, -1.0, 1.0)
+    _finite(m, "scan_time", m.scan_time, 0.0, 100.0)
     _finite(m, "range_min", m.range_min, 0.0, 1000.0)
     _finite(m, "range_max", m.range_max, 0.0, 1000.0)
     if m.range_max <= m.range_min:
         _fail(m, "range_max must exceed range_min")
+    if m.intensities and len(m.intensities) != n:
+        _fail(m, f"{len(m.intensities)} intensities for {n} ranges (expected none or one each)")
     # ranges as REP-117 reads them, any float goes: NaN (no valid reading), +Inf (no return
     # within range_max), -Inf (an object closer than range_min), finite values outside
     # [range_min, range_max] (invalid: discarded); range_max itself is no return too (what
@@ -293,30 +480,44 @@ def _v_scan(m: LaserScan) -> None:
 
 def _v_odom(m: Odometry) -> None:
     _header(m)
-    _pose(m, "pose", m.pose)
-    _finite(m, "v", m.v, -100.0, 100.0)
-    _finite(m, "w", m.w, -100.0, 100.0)
+    if len(m.child_frame_id) > MAX_STR:
+        _fail(m, "child_frame_id too long")
+    _pose(m, "pose.pose", m.pose.pose)
+    _cov(m, "pose.covariance", m.pose.covariance)
+    _vec(m, "twist.twist.linear", m.twist.twist.linear, 100.0)
+    _vec(m, "twist.twist.angular", m.twist.twist.angular, 100.0)
+    _cov(m, "twist.covariance", m.twist.covariance)
 
 
-def _v_pose(m: Pose) -> None:
+def _v_pose(m: PoseStamped) -> None:
     _header(m)
     _pose(m, "pose", m.pose)
+
+
+def _v_transform(m: TransformStamped) -> None:
+    _header(m)
+    if len(m.child_frame_id) > MAX_STR:
+        _fail(m, "child_frame_id too long")
+    _vec(m, "transform.translation", m.transform.translation)
+    _quat(m, "transform.rotation", m.transform.rotation)
 
 
 def _v_twist(m: Twist) -> None:
     _header(m)
-    _finite(m, "v", m.v, -100.0, 100.0)
-    _finite(m, "w", m.w, -100.0, 100.0)
+    _vec(m, "linear", m.linear, 100.0)
+    _vec(m, "angular", m.angular, 100.0)
 
 
 def _v_grid(m: OccupancyGrid) -> None:
     _header(m)
-    _finite(m, "resolution", m.resolution, 1e-4, 100.0)
-    if m.width < 1 or m.height < 1 or m.width * m.height > MAX_GRID_CELLS:
-        _fail(m, f"grid size {m.width}x{m.height} not in 1..{MAX_GRID_CELLS} cells")
-    _pose(m, "origin", m.origin)
-    if len(m.data) != m.width * m.height:
-        _fail(m, f"data has {len(m.data)} bytes, expected width*height={m.width * m.height}")
+    i = m.info
+    _time(m, "info.map_load_time", i.map_load_time)
+    _finite(m, "info.resolution", i.resolution, 1e-4, 100.0)
+    if i.width < 1 or i.height < 1 or i.width * i.height > MAX_GRID_CELLS:
+        _fail(m, f"grid size {i.width}x{i.height} not in 1..{MAX_GRID_CELLS} cells")
+    _pose(m, "info.origin", i.origin)  # its yaw is ignored, as map_server does
+    if len(m.data) != i.width * i.height:
+        _fail(m, f"data has {len(m.data)} bytes, expected width*height={i.width * i.height}")
     a = np.frombuffer(m.data, dtype=np.int8)
     if a.size and (a.min() < -1 or a.max() > 100):
         _fail(m, "cell values must be -1 (unknown) or 0..100")
@@ -393,15 +594,21 @@ def _v_rel(m: Reliability) -> None:
 
 def _v_path(m: Path) -> None:
     _header(m)
-    if len(m.waypoints) > MAX_WAYPOINTS:
-        _fail(m, "too many waypoints")
-    for p in m.waypoints:
-        if len(p) != 2:
-            _fail(m, f"waypoint with {len(p)} coordinates")
-    if m.waypoints:
-        pts = np.asarray(m.waypoints, dtype=np.float64)
-        if not np.all(np.isfinite(pts)) or np.any(np.abs(pts) > MAX_COORD):
-            _fail(m, "non-finite or absurd waypoint")
+    if len(m.poses) > MAX_WAYPOINTS:
+        _fail(m, "too many poses")
+    if m.poses:  # one array for all poses (a path can hold hundreds)
+        v = np.array([(p.pose.position.x, p.pose.position.y, p.pose.position.z,
+                       p.pose.orientation.x, p.pose.orientation.y, p.pose.orientation.z,
+                       p.pose.orientation.w) for p in m.poses], dtype=np.float64)
+        if not np.all(np.isfinite(v)) or np.any(np.abs(v[:, :3]) > MAX_COORD):
+            _fail(m, "non-finite or absurd pose position")
+        with np.errstate(over="ignore"):  # an absurd component: an inf norm, refused below
+            norm = np.linalg.norm(v[:, 3:], axis=1)
+        if np.any(np.abs(norm - 1.0) > 1e-3):
+            _fail(m, "a pose orientation is not a unit quaternion")
+        for k, p in enumerate(m.poses):
+            if len(p.header.frame_id) > MAX_STR:
+                _fail(m, f"poses[{k}].header.frame_id too long")
     _finite(m, "target_x", m.target_x)
     _finite(m, "target_y", m.target_y)
     if m.goal_heading is not None:
@@ -440,7 +647,8 @@ def _v_sim(m: SimStatus) -> None:
 _VALIDATORS = {
     LaserScan: _v_scan,
     Odometry: _v_odom,
-    Pose: _v_pose,
+    PoseStamped: _v_pose,
+    TransformStamped: _v_transform,
     Twist: _v_twist,
     OccupancyGrid: _v_grid,
     TopoGraph: _v_topo,

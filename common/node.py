@@ -187,7 +187,7 @@ class Inbox:
             self.latest[topic] = msg
             self.received[topic] = self.received.get(topic, 0) + 1
             hdr = getattr(msg, "header", None)
-            if hdr is not None:
+            if hdr is not None and hdr.seq >= 0:  # -1: a publisher that does not count
                 self.seqs.check(topic, hdr.seq)
             q = self._queues.get(topic)
             if q is not None:
@@ -385,19 +385,20 @@ class Node:
         corrected buffer, the localizer's map -> odom corrections."""
 
         def on_odom(o: m.Odometry) -> None:
-            buffer.add(o.header.stamp, convert.pose_from_msg(o.pose), o.header.seq)
+            buffer.add(o.header.time, convert.pose_from_msg(o.pose.pose), o.header.seq)
             if then is not None:
                 then(o)
 
         self.subscribe("odom", on_msg=on_odom)
         if buffer.corrected:
             self.subscribe("map_odom", on_msg=lambda c: buffer.add_correction(
-                c.header.stamp, convert.pose_from_msg(c.pose)))
+                c.header.time, convert.correction_from_msg(c)))
 
     def header(self, topic: str, stamp: float, src_seq: int, frame: str = "map") -> m.Header:
+        """The next header of ``topic``, stamped ``stamp`` [s], in ``frame`` (its frame_id)."""
         seq = self._seq.get(topic, 0)
         self._seq[topic] = seq + 1
-        return m.Header(seq=seq, stamp=stamp, frame=frame, src_seq=src_seq)
+        return m.header(seq, stamp, frame, src_seq)
 
     def take(self, topic: str, ready: Callable[[Any], bool] | None = None,
              poll: float = 0.2) -> tuple[Any, bool] | None:

@@ -40,6 +40,7 @@ class SimService:
             raise SystemExit(f"topoexplore-sim: {exc}") from None
         self.core = SimCore(self.world, p, np.random.default_rng(p.seed), P.robot, P.laser)
         self.steps_per_scan = max(1, round(p.physics_hz / P.laser.scan_hz))
+        self.scan_period = self.steps_per_scan / p.physics_hz  # [s]
         self.odom_tick = 1  # the next odometry tick (tick 0 goes out with the first scan)
         self.odom_stamp: float | None = None  # [s] sim time of the last odometry published
         self.pub_scan = node.publisher("scan")
@@ -53,7 +54,8 @@ class SimService:
         self.wall_start = time.monotonic()
         self.last_status_wall = 0.0
         self.started = False
-        self.applied_cmd_seq = -1
+        self.applied_cmd: m.Twist | None = None  # the last command applied (by identity:
+        #   a foreign controller need not count its header.seq)
         rt = P.runtime
         self.ckpt = Checkpointer(rt.state_dir, "sim", rt.checkpoint_every,
                                  rt.checkpoint_max_age, log)
@@ -100,7 +102,8 @@ class SimService:
     def publish_odom(self) -> None:
         t = self.odom_stamp = self.core.time
         self.pub_odom.put(convert.odom_to_msg(self.core.odom(),
-                                              self.node.header("odom", t, self.scan_seq)))
+                                              self.node.header("odom", t, self.scan_seq,
+                                                                               frame="odom")))
         self.pub_truth.put(convert.truth_to_msg(self.core.truth_pose(),
                                                 self.node.header("truth", t, self.scan_seq)))
 
@@ -108,9 +111,8 @@ class SimService:
         self.scan_seq += 1
         if self.odom_stamp != self.core.time:  # the mapper needs the pose at the scan stamp:
             self.publish_odom()  # an extra message only when no odometry tick fell on it
-        hdr = m.Header(seq=self.scan_seq, stamp=self.core.time, frame="laser",
-                       src_seq=self.scan_seq)
-        self.pub_scan.put(convert.scan_to_msg(self.core.scan(), hdr))
+        hdr = m.header(self.scan_seq, self.core.time, "laser", self.scan_seq)
+        self.pub_scan.put(convert.scan_to_msg(self.core.scan(), hdr, self.scan_period))
 
     def publish_status(self) -> None:
         wall = time.monotonic() - self.wall_start
@@ -125,13 +127,14 @@ class SimService:
 
     def apply_latest_cmd(self) -> None:
         cmd = self.node.inbox.latest.get("cmd_vel")
-        if cmd is not None and cmd.header.seq != self.applied_cmd_seq:
-            self.applied_cmd_seq = cmd.header.seq
+        if cmd is not None and cmd is not self.applied_cmd:
+            self.applied_cmd = cmd
+            c = convert.command_from_msg(cmd)
             n = self.core.stale_cmds
-            if not self.core.command(cmd.v, cmd.w, cmd.header.stamp) \
+            if not self.core.command(c.v, c.w, cmd.header.time) \
                     and (n + 1 in (1, 10, 100) or (n + 1) % 1000 == 0):  # counted, not echoed
                 log.warning("stale cmd_vel #%d dropped: stamp %.3f s, sim time %.3f s "
-                            "(%d so far)", cmd.header.seq, cmd.header.stamp, self.core.time,
+                            "(%d so far)", cmd.header.seq, cmd.header.time, self.core.time,
                             self.core.stale_cmds)
 
     def physics_step(self) -> None:

@@ -11,6 +11,12 @@ radius of one is refused and counted as a collision. Its clock runs ``--speed`` 
 faster than the wall clock. On SIGTERM or SIGINT it prints one JSON line (collisions, path
 length, true pose, messages) and exits 0.
 
+The messages are plain dicts written from the ROS 2 message docs (``sensor_msgs/LaserScan``,
+``nav_msgs/Odometry``, ``geometry_msgs/Twist`` with a ``std_msgs/Header``), frames per
+REP-105 (``laser``, ``odom`` -> ``base_link``). Of the stack's own header fields only the
+scans carry ``seq`` (so the stack counts scans lost on the way); the rest is left out (read
+as -1: the mapper numbers the scans itself).
+
     python tests/foreign_driver.py --connect tcp/127.0.0.1:7447 --prefix topoexplore/robot1
 """
 
@@ -67,8 +73,23 @@ def clearance(x: float, y: float) -> float:
     return best
 
 
-def header(seq: int, stamp: float, frame: str, src_seq: int) -> dict:
-    return {"seq": seq, "stamp": stamp, "frame": frame, "src_seq": src_seq}
+def stamp(t: float) -> dict:
+    """builtin_interfaces/Time from seconds."""
+    ns = round(t * 1e9)
+    return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
+
+
+def header(t: float, frame_id: str, **ours: int) -> dict:
+    """std_msgs/Header; ``ours``: the stack's seq / src_seq beside it (optional: -1 if left out)."""
+    return {"stamp": stamp(t), "frame_id": frame_id, **ours}
+
+
+def quaternion(yaw: float) -> dict:
+    return {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2.0), "w": math.cos(yaw / 2.0)}
+
+
+def vector3(x: float = 0.0, y: float = 0.0, z: float = 0.0) -> dict:
+    return {"x": x, "y": y, "z": z}
 
 
 class Robot:
@@ -86,8 +107,10 @@ class Robot:
 
     def on_cmd(self, sample: zenoh.Sample) -> None:
         try:
-            msg = msgpack.unpackb(sample.payload.to_bytes())
-            v, w, stamp = float(msg["v"]), float(msg["w"]), float(msg["header"]["stamp"])
+            msg = msgpack.unpackb(sample.payload.to_bytes())  # geometry_msgs/Twist + header
+            v, w = float(msg["linear"]["x"]), float(msg["angular"]["z"])
+            st = msg["header"]["stamp"]
+            stamp = int(st["sec"]) + int(st["nanosec"]) / 1e9
         except (ValueError, KeyError, TypeError):
             return
         if not (math.isfinite(v) and math.isfinite(w)):
@@ -140,6 +163,27 @@ class Robot:
         return out
 
 
+def odometry(robot: Robot) -> dict:
+    """nav_msgs/Odometry: the pose in odom, the twist in base_link. The ROS fields only: the
+    stack's header.seq / src_seq are left out (read as -1)."""
+    zeros = [0.0] * 36
+    return {"header": header(robot.t, "odom"), "child_frame_id": "base_link",
+            "pose": {"pose": {"position": vector3(robot.ox, robot.oy),
+                              "orientation": quaternion(robot.oth)}, "covariance": zeros},
+            "twist": {"twist": {"linear": vector3(robot.v), "angular": vector3(z=robot.w)},
+                      "covariance": zeros}}
+
+
+def laser_scan(robot: Robot, k: int) -> dict:
+    """sensor_msgs/LaserScan, scan ``k``. Of the stack's own fields only header.seq is set
+    (scans lost on the way are counted); src_seq is left out: the mapper numbers the scans."""
+    inc = 2 * math.pi / BEAMS
+    return {"header": header(robot.t, "laser", seq=k), "angle_min": -math.pi,
+            "angle_max": -math.pi + (BEAMS - 1) * inc, "angle_increment": inc,
+            "time_increment": 0.0, "scan_time": 1.0 / SCAN_HZ, "range_min": RANGE_MIN,
+            "range_max": RANGE_MAX, "ranges": robot.scan(), "intensities": []}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--connect", required=True)
@@ -166,16 +210,12 @@ def main() -> int:
         while not stop.is_set():
             robot.step(dt)
             tick += 1
-            odom = {"header": header(sent["odom"], robot.t, "odom", -1),
-                    "pose": {"x": robot.ox, "y": robot.oy, "theta": robot.oth},
-                    "v": robot.v, "w": robot.w}
+            odom = odometry(robot)
             pub_odom.put(msgpack.packb(odom))
             sent["odom"] += 1
             if tick % per_scan == 0:
                 k = sent["scan"]
-                scan = {"header": header(k, robot.t, "laser", k), "angle_min": -math.pi,
-                        "angle_increment": 2 * math.pi / BEAMS, "range_min": RANGE_MIN,
-                        "range_max": RANGE_MAX, "ranges": robot.scan()}
+                scan = laser_scan(robot, k)
                 pub_scan.put(msgpack.packb(scan))
                 sent["scan"] += 1
             wait = t0 + tick * dt / a.speed - time.monotonic()

@@ -159,8 +159,8 @@ def test_secure_router_keeps_strangers_out(procs, hosts, tmp_path, namespace, mo
                              lambda msg, k: maps.append(msg.header.seq))
                 assert wait_for(lambda: bool(maps), 10), "the viewer cannot read the map"
                 assert fetch_state(vw, keys, "sim", timeout=2.0)["service"] == "sim"
-                spoof = m.Twist(header=m.Header(seq=987654321, stamp=0.0, frame="base_link",
-                                                src_seq=-1), v=100.0, w=0.0)
+                spoof = m.Twist(header=m.header(987654321, 0.0, "base_link", -1),
+                                linear=m.Vector3(x=100.0), angular=m.Vector3())
                 pub = vw.publisher(keys.cmd_vel, m.Twist, reliable=True)
                 done = vw.publisher(keys.topic("explore/status"), m.ExploreStatus,
                                     reliable=True)
@@ -168,8 +168,7 @@ def test_secure_router_keeps_strangers_out(procs, hosts, tmp_path, namespace, mo
                 assert wait_for(lambda: pub.matched and done.matched, 5)
                 for _ in range(5):
                     pub.put(spoof)
-                    done.put(m.ExploreStatus(header=m.Header(seq=987654321, stamp=0.0,
-                                                             frame="map", src_seq=-1),
+                    done.put(m.ExploreStatus(header=m.header(987654321, 0.0, "map", -1),
                                              state="done", reason="spoofed"))
                     time.sleep(0.1)
                 time.sleep(1.0)
@@ -186,9 +185,8 @@ def test_secure_router_keeps_strangers_out(procs, hosts, tmp_path, namespace, mo
                 tpub = tp.publisher(keys.cmd_vel, m.Twist, reliable=True)
                 time.sleep(0.5)
                 for i in range(5):
-                    tpub.put(m.Twist(header=m.Header(seq=123456789 + i, stamp=0.0,
-                                                     frame="base_link", src_seq=-1),
-                                     v=0.0, w=0.0))
+                    tpub.put(m.Twist(header=m.header(123456789 + i, 0.0, "base_link", -1),
+                                     linear=m.Vector3(), angular=m.Vector3()))
                     time.sleep(0.1)
                 assert wait_for(lambda: any(m.decode(c, m.Twist).header.seq >= 123456789
                                          for c in list(cmds)), 5), "teleop cannot drive"

@@ -7,8 +7,10 @@ import time
 import msgpack
 import pytest
 
+from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.bus import Bus
+from topoexplore.common.domain import Odom, Pose
 from topoexplore.common.keys import Keys
 from topoexplore.tools.livestate import fetch_state
 
@@ -26,7 +28,8 @@ GARBAGE = [
     b"\xc1not msgpack",
     msgpack.packb({"header": {"seq": 1}}),
     msgpack.packb([1, 2, 3]),
-    msgpack.packb({"header": {"seq": 0, "stamp": float("nan"), "frame": "x", "src_seq": 0}}),
+    msgpack.packb({"header": {"seq": 0, "stamp": float("nan"), "frame_id": "x", "src_seq": 0}}),
+    msgpack.packb({"header": {"seq": 0, "stamp": {"sec": 1, "nanosec": -1}, "frame_id": "x"}}),
 ]
 
 
@@ -78,9 +81,8 @@ def test_messages_lost_on_the_way_are_counted_by_seq(procs, endpoint, namespace)
         wait_up(bus, keys, "mapper", p)
         pub = bus.publisher(keys.topic("odom"), reliable=True)
         for seq in (0, 1, 2, 6, 7, 0, 1):  # 3, 4, 5 lost; then the publisher restarted
-            pub.put(m.Odometry(header=m.Header(seq=seq, stamp=0.1 * seq, frame="odom",
-                                               src_seq=-1),
-                               pose=m.Pose2D(x=0.0, y=0.0, theta=0.0)))
+            pub.put(convert.odom_to_msg(Odom(Pose(0.0, 0.0, 0.0), 0.0, 0.0),
+                                        m.header(seq, 0.1 * seq, "odom", -1)))
         deadline = time.monotonic() + 10
         while True:
             state = fetch_state(bus, keys, "mapper")
@@ -103,8 +105,8 @@ def test_chaos_set_live_drops_inputs_that_then_count_as_lost(procs, endpoint, na
     keys = Keys(namespace, "robot1")
 
     def odom(seq: int) -> m.Odometry:
-        return m.Odometry(header=m.Header(seq=seq, stamp=0.1 * seq, frame="odom", src_seq=-1),
-                          pose=m.Pose2D(x=0.0, y=0.0, theta=0.0))
+        return convert.odom_to_msg(Odom(Pose(0.0, 0.0, 0.0), 0.0, 0.0),
+                                   m.header(seq, 0.1 * seq, "odom", -1))
 
     def wait_received(n: int) -> dict:
         deadline = time.monotonic() + 10

@@ -187,7 +187,7 @@ def _grid_msg(known: np.ndarray, solid: np.ndarray) -> m.OccupancyGrid:
     data = np.where(known, np.where(solid, OCC, FREE), UNK).astype(np.int8)
     geom = GridGeometry(RES, 0.0, 0.0, known.shape[1], known.shape[0])
     return convert.grid_to_msg(GridMap(data, geom),
-                               m.Header(seq=0, stamp=0.0, frame="map", src_seq=0))
+                               m.header(0, 0.0, "map", 0))
 
 
 def test_run_truth_and_report_give_both_coverages(tmp_path):

@@ -1,6 +1,7 @@
 """Issue 16's foreign-driver test: the stack's `robot` profile (no simulator) against drivers
-that share none of its code (tests/foreign_driver.py: zenoh and msgpack only): a 360 deg lidar
-with its own beam count, +Inf for no return and NaN readings, odometry at 50 Hz. The stack
+that share none of its code (tests/foreign_driver.py: zenoh and msgpack only, the messages
+written from the ROS definitions as plain dicts): a 360 deg lidar with its own beam count,
++Inf for no return and NaN readings, odometry at 50 Hz without our seq/src_seq. The stack
 explores the flat to the end, without a collision, and maps it.
 
 With drift, the localizer runs (localizer.enabled) and the map must still hold together.
@@ -63,7 +64,7 @@ def test_the_robot_profile_explores_with_foreign_drivers(procs, endpoint, namesp
     assert stats["path_m"] > 1.0, stats  # it drove (a 360 deg lidar sees most from the door)
     # the map: most of the flat's 70 m^2 known, and no scan was skipped for its shape
     grid = mapper["map"]
-    known = (np.frombuffer(grid["data"], np.int8) >= 0).sum() * grid["resolution"] ** 2
+    known = (np.frombuffer(grid["data"], np.int8) >= 0).sum() * grid["info"]["resolution"] ** 2
     assert known >= 0.9 * 70.0, known
     assert not mapper["skipped_scans"], mapper["skipped_scans"]
     assert mapper["bad_messages_total"] == 0, mapper["last_bad_message"]

@@ -22,17 +22,39 @@ from topoexplore.tools.teleop import Teleop
 
 
 def test_assignments_and_messages():
-    assert parse_assignments(["v=0.2", "header.stamp=3", "waypoints=[[0, 0], [1, 2]]"]) == {
-        "v": 0.2, "header": {"stamp": 3}, "waypoints": [[0, 0], [1, 2]]}
-    tw = build_message(m.Twist, {"w": 0.5}, seq=7, frame="base_link")
-    assert (tw.v, tw.w, tw.header.seq, tw.header.frame) == (0.0, 0.5, 7, "base_link")
-    path = build_message(m.Path, parse_assignments(["waypoints=[[0,0],[1,1]]", "target_id=3"]), 1)
-    assert path.waypoints == [[0.0, 0.0], [1.0, 1.0]] and path.target_id == 3
+    assert parse_assignments(["v=0.2", "header.stamp=3", "blacklisted=[1, 2]"]) == {
+        "v": 0.2, "header": {"stamp": 3}, "blacklisted": [1, 2]}
+    tw = build_message(m.Twist, {"w": 0.5}, seq=7, frame="base_link", stamp=2.25)
+    assert (tw.linear.x, tw.angular.z, tw.header.seq, tw.header.frame_id) == (
+        0.0, 0.5, 7, "base_link")  # v=, w=: a planar base's linear.x, angular.z
+    assert (tw.header.stamp.sec, tw.header.stamp.nanosec, tw.header.src_seq) == (2, 250000000, -1)
+    tw = build_message(m.Twist, parse_assignments(["linear.x=0.2", "angular.z=-1",
+                                                   "header.stamp=12.5"]), 1)
+    assert (tw.linear.x, tw.angular.z, tw.header.time) == (0.2, -1.0, 12.5)
+    for given, t in ((["header.stamp=1e6"], 1e6), (["header.stamp.sec=4"], 4.0),
+                     (["header.stamp.sec=4", "header.stamp.nanosec=5"], 4.000000005),
+                     (["header.stamp={sec: 1, nanosec: 2}"], 1.000000002)):
+        assert build_message(m.Twist, parse_assignments(given), 1, stamp=9.0).header.time == t
+    odom = build_message(m.Odometry, parse_assignments(["pose.pose.position.x=1.5"]), 1, "odom")
+    assert odom.pose.pose.position.x == 1.5 and odom.pose.pose.orientation.w == 1.0
+    assert odom.child_frame_id == "base_link" and len(odom.pose.covariance) == 36
+    path = build_message(m.Path, parse_assignments(
+        ["poses=[{pose: {position: {x: 1, y: 2}}}, {pose: {position: {x: 3}}}]",
+         "target_id=3"]), 1)  # list items are filled in too (identity orientation)
+    assert [(p.pose.position.x, p.pose.position.y, p.pose.orientation.w)
+            for p in path.poses] == [(1.0, 2.0, 1.0), (3.0, 0.0, 1.0)] and path.target_id == 3
     for bad, why in ((["v"], "FIELD=VALUE"), (["x=1"], "no field 'x'"),
                      (["v=abc"], "Expected `float`"), (["v=.nan"], "finite"),
-                     (["header=1", "header.seq=2"], "at once")):
+                     (["header=1", "header.seq=2"], "at once"),
+                     (["v=1", "linear.x=1"], "same field"),
+                     (["header.frame=base_link"], "no field 'header.frame'"),
+                     (["header.stamp=-1"], "seconds >= 0"), (["header.stamp=abc"], "seconds"),
+                     (["header.stamp.nanosec=1e9"], "not a time"),
+                     (["header.stamp.usec=1"], "no field 'header.stamp.usec'")):
         with pytest.raises(PubError, match=why):
             build_message(m.Twist, parse_assignments(bad), 1)
+    with pytest.raises(PubError, match="no field 'poses.0.pose.positon'"):
+        build_message(m.Path, parse_assignments(["poses=[{pose: {positon: {x: 1}}}]"]), 1)
 
 
 def test_teleop_keys_clamp_and_silence_stops():
@@ -67,7 +89,8 @@ def _wait_alive(endpoint: str, keys: Keys, services: tuple[str, ...]) -> None:
 def _truth_x(endpoint: str, keys: Keys) -> float:
     got: list[float] = []
     with Bus.client(endpoint, wait_for_router=True) as bus:
-        bus.subscribe(keys.truth, m.Pose, lambda msg, k: got.append(msg.pose.x))
+        bus.subscribe(keys.truth, m.PoseStamped,
+                      lambda msg, k: got.append(msg.pose.position.x))
         deadline = time.monotonic() + 10
         while not got and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -87,8 +110,8 @@ def test_keys_pub_drives_and_keys_set_changes_live(procs, endpoint, namespace):
     x1 = _truth_x(endpoint, keys)
     assert 0.2 < x1 - x0 < 0.6  # stamped with the robot's clock (its odometry), so applied
     # issue 14: a command stamped long ago (a replay) or ahead of the sim clock is dropped
-    for stamp in ("0", "1e6"):
-        r = _cli("keys", "pub", "cmd_vel", "v=0.2", f"header.stamp={stamp}", "--rate", "10",
+    for stamp in ("header.stamp=0", "header.stamp.sec=1000000"):
+        r = _cli("keys", "pub", "cmd_vel", "linear.x=0.2", stamp, "--rate", "10",
                  "--duration", "1", *bus_args)
         assert r.returncode == 0, r.stderr
     time.sleep(0.3)
@@ -128,7 +151,8 @@ def test_teleop_under_a_pty(procs, endpoint, namespace):
     procs.router(endpoint)
     cmds: list[tuple[float, float]] = []
     with Bus.client(endpoint, wait_for_router=True) as bus:
-        bus.subscribe(keys.cmd_vel, m.Twist, lambda msg, k: cmds.append((msg.v, msg.w)))
+        bus.subscribe(keys.cmd_vel, m.Twist,
+                      lambda msg, k: cmds.append((msg.linear.x, msg.angular.z)))
         master, slave = pty.openpty()
         p = subprocess.Popen([sys.executable, "-m", "topoexplore.tools.cli", "teleop",
                               "--connect", endpoint, "--namespace", namespace, "--hold", "0.5"],

@@ -89,8 +89,10 @@ def test_summarize_numbers_bytes_points_and_lists():
 
 
 def test_select_fields_and_errors():
-    msg = {"header": {"seq": 3, "stamp": 1.5}, "waypoints": [[0.0, 1.0], [2.0, 3.0]], "m": {7: "x"}}
-    assert select_fields(msg, ["header.stamp"]) == {"header.stamp": 1.5}
+    msg = {"header": {"seq": 3, "stamp": {"sec": 1, "nanosec": 5}},
+           "waypoints": [[0.0, 1.0], [2.0, 3.0]], "m": {7: "x"}}
+    assert select_fields(msg, ["header.stamp.nanosec"]) == {"header.stamp.nanosec": 5}
+    assert select_fields(msg, ["header.stamp"]) == {"header.stamp": {"sec": 1, "nanosec": 5}}
     assert select_fields(msg, ["waypoints.1.0", "header.seq"]) == {"waypoints.1.0": 2.0,
                                                                    "header.seq": 3}
     assert select_fields(msg, ["waypoints.-1"]) == {"waypoints.-1": [2.0, 3.0]}
@@ -106,12 +108,12 @@ def test_select_fields_and_errors():
 
 
 def test_format_yaml_and_json():
-    obj = {"header": {"seq": 1, "frame": "map"}, "ranges": Summary("<3 floats: ...>"),
+    obj = {"header": {"seq": 1, "frame_id": "map"}, "ranges": Summary("<3 floats: ...>"),
            "nodes": [{"id": 1, "kind": "end"}, {"id": 2, "kind": "branch"}],
            "pts": [[1.0, 2.0]], "empty": [], "s": "two words", "r": math.inf, "ok": True,
            "w": "yes", "u": "Zürich", "b": b"\x01\x02"}
     lines = format_yaml(obj).splitlines()
-    assert lines[:3] == ["header:", "  seq: 1", "  frame: map"]  # block style, message order
+    assert lines[:3] == ["header:", "  seq: 1", "  frame_id: map"]  # block style, in order
     assert "ranges: <3 floats: ...>" in lines  # a summary is printed plainly
     assert lines[lines.index("nodes:") + 1:lines.index("nodes:") + 5] == [
         "- id: 1", "  kind: end", "- id: 2", "  kind: branch"]
@@ -187,17 +189,24 @@ PUBLISHER = textwrap.dedent('''
         i = 0
         t0 = time.monotonic()
         while not stop.is_set():
-            h = m.Header(seq=i, stamp=i * 0.05, frame="laser", src_seq=i)
+            t = i * 0.05
             if i % 10 == 9:  # every 10th scan is garbage
                 scan.put(b"\\x01garbage")
             else:
-                scan.put(m.LaserScan(header=h, angle_min=-1.5, angle_increment=0.01,
+                scan.put(m.LaserScan(header=m.header(i, t, "laser", i), angle_min=-1.5,
+                                     angle_max=-1.5 + 180 * 0.01, angle_increment=0.01,
                                      range_min=0.1, range_max=10.0,
                                      ranges=[1.0 + 0.01 * k for k in range(181)]))
-            odom.put(m.Odometry(header=h, pose=m.Pose2D(x=0.1 * i, y=0.0, theta=0.0), v=0.5))
+            pose = m.GeoPose(position=m.Point(x=0.1 * i), orientation=m.quaternion(0.0))
+            odom.put(m.Odometry(header=m.header(i, t, "odom"),
+                                pose=m.PoseWithCovariance(pose=pose),
+                                twist=m.TwistWithCovariance(twist=m.GeoTwist(
+                                    linear=m.Vector3(x=0.5), angular=m.Vector3()))))
             if i % 10 == 0:
-                grid.put(m.OccupancyGrid(header=h, resolution=0.1, width=10, height=10,
-                                         origin=m.Pose2D(x=0.0, y=0.0, theta=0.0),
+                info = m.MapMetaData(map_load_time=m.stamp(t), resolution=0.1, width=10,
+                                     height=10, origin=m.GeoPose(position=m.Point(),
+                                                                 orientation=m.Quaternion()))
+                grid.put(m.OccupancyGrid(header=m.header(i, t, "map", i), info=info,
                                          data=bytes([255] * 50 + [0] * 30 + [100] * 20)))
             i += 1
             stop.wait(max(0.0, t0 + i * 0.05 - time.monotonic()))
@@ -314,7 +323,8 @@ def test_list_table_and_json(stack):
 def test_echo(stack):
     once = stack.tool("echo", "scan", "--once")
     fields = stack.tool("echo", "scan", "--count", "12", "--field", "header.seq,ranges.0")
-    js = stack.tool("echo", "odom", "--count", "2", "--json", "--field", "pose")
+    js = stack.tool("echo", "odom", "--count", "2", "--json", "--field", "pose.pose.position")
+    stamps = stack.tool("echo", "odom", "--once", "--field", "header.stamp,header.frame_id")
     scan_js = stack.tool("echo", "scan", "--once", "--json")
     grid = stack.tool("echo", f"{stack.ns}/robot1/map", "--once", "--timeout", "5")
     wild = stack.tool("echo", f"{stack.ns}/robot1/*", "--count", "3", "--json")
@@ -332,7 +342,11 @@ def test_echo(stack):
     rc, out, err = finish(js)
     assert rc == 0, err
     poses = [json.loads(ln) for ln in out.splitlines()]
-    assert len(poses) == 2 and set(poses[0]) == {"x", "y", "theta"}
+    assert len(poses) == 2 and set(poses[0]) == {"x", "y", "z"}
+    rc, out, err = finish(stamps)
+    assert rc == 0, err
+    d = yaml.safe_load(out.split("---")[0])  # a stamp is builtin_interfaces/Time
+    assert set(d["header.stamp"]) == {"sec", "nanosec"} and d["header.frame_id"] == "odom"
     rc, out, err = finish(scan_js)
     assert rc == 0, err
     ranges = json.loads(out)["ranges"]  # a real array for scripts, not "<181 floats ...>"

@@ -13,8 +13,10 @@ from topoexplore.common import messages as m
 
 
 def hdr(**kw) -> m.Header:
-    return m.Header(seq=kw.get("seq", 3), stamp=kw.get("stamp", 1.5), frame="map",
-                    src_seq=kw.get("src_seq", 2))
+    return m.header(kw.get("seq", 3), kw.get("stamp", 1.5), "map", kw.get("src_seq", 2))
+
+
+POSE = m.GeoPose(position=m.Point(x=1.0, y=-2.0), orientation=m.quaternion(0.5))
 
 
 def samples() -> list:
@@ -22,14 +24,22 @@ def samples() -> list:
     grid[1, 2] = 100
     grid[0, 0] = 0
     return [
-        m.LaserScan(header=hdr(), angle_min=-math.pi / 2, angle_increment=math.pi / 180,
-                    range_min=0.02, range_max=8.0, ranges=[1.0] * 181),
-        m.Odometry(header=hdr(), pose=m.Pose2D(x=1.0, y=-2.0, theta=0.5), v=0.2, w=-0.1),
-        m.Pose(header=hdr(), pose=m.Pose2D(x=1.0, y=2.0, theta=3.0)),
-        m.Twist(header=hdr(), v=0.2, w=0.3),
-        m.OccupancyGrid(header=hdr(), resolution=0.1, width=4, height=3,
-                        origin=m.Pose2D(x=-1.0, y=-2.0, theta=0.0),
-                        data=grid.tobytes()),
+        m.LaserScan(header=hdr(), angle_min=-math.pi / 2, angle_max=math.pi / 2,
+                    angle_increment=math.pi / 180, time_increment=1e-4, scan_time=0.2,
+                    range_min=0.02, range_max=8.0, ranges=[1.0] * 181,
+                    intensities=[100.0] * 181),
+        m.Odometry(header=hdr(), child_frame_id="base_link", pose=m.PoseWithCovariance(
+            pose=POSE, covariance=[0.01 * k for k in range(36)]),
+            twist=m.TwistWithCovariance(twist=m.GeoTwist(linear=m.Vector3(x=0.2),
+                                                         angular=m.Vector3(z=-0.1)))),
+        m.PoseStamped(header=hdr(), pose=POSE),
+        m.TransformStamped(header=hdr(), child_frame_id="odom", transform=m.Transform(
+            translation=m.Vector3(x=0.1, y=-0.2), rotation=m.quaternion(0.05))),
+        m.Twist(header=hdr(), linear=m.Vector3(x=0.2), angular=m.Vector3(z=0.3)),
+        m.OccupancyGrid(header=hdr(), info=m.MapMetaData(
+            map_load_time=m.Time(sec=1, nanosec=5), resolution=0.1, width=4, height=3,
+            origin=m.GeoPose(position=m.Point(x=-1.0, y=-2.0), orientation=m.Quaternion())),
+            data=grid.tobytes()),
         m.TopoGraph(header=hdr(), nodes=[m.TopoNode(id=1, kind="end", x=0.0, y=0.0),
                                          m.TopoNode(id=2, kind="branch", x=1.0, y=0.0)],
                     edges=[m.TopoEdge(a=1, b=2, points=[[0.0, 0.0], [1.0, 0.0]], length=1.0,
@@ -37,8 +47,8 @@ def samples() -> list:
         m.Reliability(header=hdr(), nodes=[m.NodeReliability(
             id=1, x=0.0, y=0.0, p=0.6, d=0.8, a=0.1, r_min=1.5, alpha_max=0.2, visible=True,
             n_obs=3)]),
-        m.Path(header=hdr(), waypoints=[[0.0, 0.0], [1.0, 1.0]], target_id=4, target_x=1.0,
-               target_y=1.0, strategy="reliability", plan_id=2),
+        m.Path(header=hdr(), poses=[m.PoseStamped(header=hdr(seq=-1, src_seq=-1), pose=POSE)] * 2,
+               target_id=4, target_x=1.0, target_y=1.0, strategy="reliability", plan_id=2),
         m.ExploreStatus(header=hdr(), state="exploring", reason="target 4", target_id=4,
                         target_p=0.5, candidates=2, end_nodes=3, reliable=1, blacklisted=[9]),
         m.SimStatus(header=hdr(), world="paper-room", mode="lockstep", sim_time=1.0, steps=50,
@@ -76,24 +86,46 @@ BAD = [
     ("not msgpack", b"\xc1\xc1garbage", m.LaserScan),
     ("empty payload", b"", m.Odometry),
     ("wrong root type", msgpack.packb([1, 2, 3]), m.Twist),
-    ("missing header fields", msgpack.packb({"header": {}, "v": 0.0, "w": 0.0}), m.Twist),
-    ("missing field", msgpack.packb({"header": {"seq": 0, "stamp": 0.0, "frame": "map",
-                                                "src_seq": 0}, "v": 0.0}), m.Twist),
-    ("string for float", msgpack.packb({"header": {}, "v": "fast", "w": 0.0}), m.Twist),
-    ("nan velocity", m.encode(_mut(S["Twist"], v=NAN)), m.Twist),
-    ("inf pose", m.encode(_mut(S["Odometry"], pose=m.Pose2D(x=INF, y=0, theta=0))), m.Odometry),
+    ("missing header fields", msgpack.packb({"header": {}, "linear": {}, "angular": {}}),
+     m.Twist),
+    ("missing field", msgpack.packb({"header": {"stamp": {"sec": 0, "nanosec": 0},
+                                                "frame_id": "map"}, "linear": {}}), m.Twist),
+    ("float stamp", msgpack.packb({"header": {"stamp": 1.5, "frame_id": "map"}, "linear": {},
+                                   "angular": {}}), m.Twist),
+    ("string for float", msgpack.packb({"header": {"stamp": {"sec": 0, "nanosec": 0},
+                                                   "frame_id": ""}, "linear": {"x": "fast"},
+                                        "angular": {}}), m.Twist),
+    ("nan velocity", m.encode(_mut(S["Twist"], linear=m.Vector3(x=NAN))), m.Twist),
+    ("inf pose", m.encode(_mut(S["PoseStamped"], pose=m.GeoPose(
+        position=m.Point(x=INF), orientation=m.Quaternion()))), m.PoseStamped),
+    ("zero quaternion", m.encode(_mut(S["PoseStamped"], pose=m.GeoPose(
+        position=m.Point(), orientation=m.Quaternion(w=0.0)))), m.PoseStamped),
+    ("short covariance", m.encode(_mut(S["Odometry"], pose=m.PoseWithCovariance(
+        pose=POSE, covariance=[0.0] * 9))), m.Odometry),
+    ("nan covariance", m.encode(_mut(S["Odometry"], pose=m.PoseWithCovariance(
+        pose=POSE, covariance=[NAN] * 36))), m.Odometry),
+    ("nanosec overflow", m.encode(_mut(S["Twist"], header=m.Header(
+        stamp=m.Time(sec=1, nanosec=10**9), frame_id="x"))), m.Twist),
+    ("angle_max off", m.encode(_mut(S["LaserScan"], angle_max=2.0)), m.LaserScan),
+    ("intensities count", m.encode(_mut(S["LaserScan"], intensities=[1.0] * 3)), m.LaserScan),
+    ("unrotated bad origin", m.encode(_mut(S["OccupancyGrid"], info=msgspec.structs.replace(
+        S["OccupancyGrid"].info, origin=m.GeoPose(position=m.Point(y=NAN),
+                                                  orientation=m.Quaternion())))),
+     m.OccupancyGrid),
     ("no ranges", m.encode(_mut(S["LaserScan"], ranges=[])), m.LaserScan),
     ("too many beams", m.encode(_mut(S["LaserScan"], ranges=[1.0] * 20000)), m.LaserScan),
     ("range_max < min", m.encode(_mut(S["LaserScan"], range_max=0.01)), m.LaserScan),
     ("zero increment", m.encode(_mut(S["LaserScan"], angle_increment=0.0)), m.LaserScan),
-    ("more than a turn", m.encode(_mut(S["LaserScan"], angle_increment=0.1)), m.LaserScan),
+    ("more than a turn", m.encode(_mut(S["LaserScan"], angle_increment=0.1, angle_max=16.0)),
+     m.LaserScan),
     ("nan angle_min", m.encode(_mut(S["LaserScan"], angle_min=NAN)), m.LaserScan),
     ("grid data short", m.encode(_mut(S["OccupancyGrid"], data=b"\x00" * 5)), m.OccupancyGrid),
-    ("grid absurd size", m.encode(_mut(S["OccupancyGrid"], width=100000, height=100000)),
-     m.OccupancyGrid),
+    ("grid absurd size", m.encode(_mut(S["OccupancyGrid"], info=msgspec.structs.replace(
+        S["OccupancyGrid"].info, width=100000, height=100000))), m.OccupancyGrid),
     ("grid bad value", m.encode(_mut(S["OccupancyGrid"], data=bytes([120] * 12))),
      m.OccupancyGrid),
-    ("zero resolution", m.encode(_mut(S["OccupancyGrid"], resolution=0.0)), m.OccupancyGrid),
+    ("zero resolution", m.encode(_mut(S["OccupancyGrid"], info=msgspec.structs.replace(
+        S["OccupancyGrid"].info, resolution=0.0))), m.OccupancyGrid),
     ("node kind", m.encode(_mut(S["TopoGraph"], nodes=[m.TopoNode(id=1, kind="x", x=0, y=0)],
                                 edges=[])), m.TopoGraph),
     ("edge to unknown node", m.encode(_mut(S["TopoGraph"], edges=[m.TopoEdge(
@@ -114,9 +146,12 @@ BAD = [
         a=1, b=2, points=[], length=1.0, clearance=NAN)])), m.TopoGraph),
     ("p above 1", m.encode(_mut(S["Reliability"], nodes=[msgspec.structs.replace(
         S["Reliability"].nodes[0], p=1.5)])), m.Reliability),
-    ("nan waypoint", m.encode(_mut(S["Path"], waypoints=[[0.0, NAN]])), m.Path),
+    ("nan waypoint", m.encode(_mut(S["Path"], poses=[m.PoseStamped(
+        header=hdr(), pose=m.GeoPose(position=m.Point(y=NAN), orientation=m.Quaternion()))])),
+     m.Path),
     ("bad state", m.encode(_mut(S["ExploreStatus"], state="lost")), m.ExploreStatus),
-    ("negative stamp", m.encode(_mut(S["Twist"], header=hdr(stamp=-1.0))), m.Twist),
+    ("negative stamp", m.encode(_mut(S["Twist"], header=m.Header(
+        stamp=m.Time(sec=-1, nanosec=0), frame_id="x"))), m.Twist),
     ("bad mode", m.encode(_mut(S["SimStatus"], mode="fast")), m.SimStatus),
 ]
 

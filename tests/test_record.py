@@ -14,11 +14,14 @@ import time
 from pathlib import Path
 
 import msgspec
+import numpy as np
 import pytest
 
 from tests.conftest import REPO, free_port
+from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.bus import Bus
+from topoexplore.common.domain import Pose, Route, Scan
 from topoexplore.common.keys import Keys
 from topoexplore.tools import fox
 from topoexplore.tools.record import Recorder, header_of, raw_messages, read_summary
@@ -39,13 +42,30 @@ def dec(fmsg):
 
 
 def hdr(seq: int, stamp: float, src: int = -1, frame: str = "map") -> m.Header:
-    return m.Header(seq=seq, stamp=stamp, frame=frame, src_seq=src)
+    return m.header(seq, stamp, frame, src)
 
 
 def grid_msg(seq: int = 0) -> m.OccupancyGrid:
     data = bytes([0xFF, 0, 100, 50, 0xFF, 0])  # unknown, free, occupied, half, unknown, free
-    return m.OccupancyGrid(header=hdr(seq, 1.0, seq), resolution=0.1, width=3, height=2,
-                           origin=m.Pose2D(x=-1.0, y=-2.0, theta=0.0), data=data)
+    h = hdr(seq, 1.0, seq)
+    return m.OccupancyGrid(header=h, info=m.MapMetaData(
+        map_load_time=h.stamp, resolution=0.1, width=3, height=2,
+        origin=m.GeoPose(position=m.Point(x=-1.0, y=-2.0), orientation=m.Quaternion())),
+        data=data)
+
+
+def scan_msg(seq: int, stamp: float, ranges: list[float]) -> m.LaserScan:
+    return convert.scan_to_msg(Scan(np.asarray(ranges), -math.pi / 2, math.pi / 180, 0.02, 8.0),
+                               hdr(seq, stamp, seq, "laser"))
+
+
+def pose_msg(seq: int, stamp: float, x: float, frame: str = "map") -> m.PoseStamped:
+    return convert.truth_to_msg(Pose(x, 0.0, 0.0), hdr(seq, stamp, seq, frame))
+
+
+def path_msg(seq: int, stamp: float, waypoints: list) -> m.Path:
+    return convert.route_to_msg(Route(np.asarray(waypoints, float), 1, 9, (1.0, 1.0)),
+                                hdr(seq, stamp, seq))
 
 
 def topo_msg(src: int) -> m.TopoGraph:
@@ -95,9 +115,7 @@ def test_graph_waits_for_its_reliability_and_labels_id_p():
 
 def test_scan_tf_trail_and_plan():
     sc = fox.FoxScene(laser_offset=0.15)
-    scan = m.LaserScan(header=hdr(0, 0.2, 0, "laser"), angle_min=-math.pi / 2,
-                       angle_increment=math.pi / 180, range_min=0.02, range_max=8.0,
-                       ranges=[1.0] * 180 + [8.0])
+    scan = scan_msg(0, 0.2, [1.0] * 180 + [8.0])
     out = sc.convert("scan", scan)
     assert [t for t, _ in out] == ["/tf", "/viz/scan"]  # the static mount once, then the scan
     assert dec(out[0][1]).transforms[0].translation.x == 0.15
@@ -106,20 +124,20 @@ def test_scan_tf_trail_and_plan():
     assert [t for t, _ in sc.convert("scan", scan)] == ["/viz/scan"]
     trail = []
     for i in range(11):
-        p = m.Pose(header=hdr(i, 0.1 * i), pose=m.Pose2D(x=0.1 * i, y=0.0, theta=0.0))
+        p = pose_msg(i, 0.1 * i, 0.1 * i)
         trail += [u for t, u in sc.convert("truth", p) if t == "/viz/trail"]
     assert len(trail) == 2  # one entity per 0.5 m
-    path = m.Path(header=hdr(0, 1.0), waypoints=[[0, 0], [1, 1]], target_id=9, target_x=1,
-                  target_y=1)
+    path = path_msg(0, 1.0, [[0, 0], [1, 1]])
     ent = dec(sc.convert("plan", path)[0][1]).entities[0]
     assert len(ent.lines) == 1 and len(ent.spheres) == 1
-    stop = m.Path(header=hdr(1, 1.2), waypoints=[])
+    stop = path_msg(1, 1.2, [])
     ent = dec(sc.convert("plan", stop)[0][1]).entities[0]
     assert len(ent.lines) == 0 and len(ent.spheres) == 0
     assert sc.convert("cmd_vel", object()) == []  # nothing to draw
     st = sc.convert("explore/status", m.ExploreStatus(header=hdr(0, 1.0), state="done"))
-    assert st == [("/status/explore", {"header": {"seq": 0, "stamp": 1.0, "frame": "map",
-                                                  "src_seq": -1}, "state": "done",
+    assert st == [("/status/explore", {"header": {"stamp": {"sec": 1, "nanosec": 0},
+                                                  "frame_id": "map", "seq": 0, "src_seq": -1},
+                                       "state": "done",
                                        "reason": "", "strategy": "", "target_id": -1,
                                        "target_p": 0.0, "candidates": 0, "end_nodes": 0,
                                        "reliable": 0, "blacklisted": [], "replans": 0})]
@@ -138,7 +156,7 @@ def test_recorder_file_channels_schemas_counts_and_gaps(tmp_path):
     rec.put(keys.topic("reliability"), m.encode(rel_msg(0)), 2_001)
     rec.put(keys.topic("odom"), b"\x93garbage", 2_002)  # kept raw, counted bad
     rec.put("ns/r1/custom", b"\x01", 2_003)  # not ours: raw channel without schema
-    rec.put(keys.topic("plan"), m.encode(m.Path(header=hdr(7, 1.0), waypoints=[])), 2_004)
+    rec.put(keys.topic("plan"), m.encode(path_msg(7, 1.0, [])), 2_004)
     st = rec.close()
     assert st["first_seq"]["ns/r1/plan"] == 7 and st["first_seq"]["ns/r1/map"] == 0
     # (a recorder that joins a running stack: what came before it is not lost)

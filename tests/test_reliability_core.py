@@ -11,7 +11,7 @@ import pytest
 
 from topoexplore.common.domain import Belief, Graph, GridMap, Node, Pose
 from topoexplore.common.grid import GridGeometry, open_unknown
-from topoexplore.common.messages import Header, Reliability, decode, encode
+from topoexplore.common.messages import Reliability, decode, encode, header
 from topoexplore.common.params import LaserParams, ReliabilityParams
 from topoexplore.services.reliability.core import (
     ReliabilityCore,
@@ -271,8 +271,8 @@ def test_never_observed_node_defaults():
     assert not n.visible and n.n_obs == 0
     assert n.p == P.p_init and n.d == 0.0 and n.a == 0.0 and math.isinf(n.r_min)
     # and it encodes into a valid Reliability message (inf r_min allowed)
-    header = Header(seq=0, stamp=0.0, frame="map", src_seq=-1)
-    msg = decode(encode(Reliability(header=header, nodes=[n])), Reliability)
+    h = header(0, 0.0, "map", -1)
+    msg = decode(encode(Reliability(header=h, nodes=[n])), Reliability)
     assert math.isinf(msg.nodes[0].r_min)
 
 

@@ -61,7 +61,7 @@ def check_wellformed(res, geom: GridGeometry) -> None:
         assert e.clearance >= 0
     assert res.skeleton.shape == (geom.height, geom.width) and res.skeleton.dtype == bool
     # the message validates
-    msg = convert.graph_to_msg(res.graph, m.Header(seq=0, stamp=0.0, frame="map", src_seq=-1))
+    msg = convert.graph_to_msg(res.graph, m.header(0, 0.0, "map", -1))
     m.decode(m.encode(msg), m.TopoGraph)
 
 

@@ -11,9 +11,11 @@ import time
 
 import pytest
 
-from tests.test_record import grid_msg, hdr, rel_msg, topo_msg
+from tests.test_record import grid_msg, hdr, path_msg, pose_msg, rel_msg, scan_msg, topo_msg
+from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.bus import Bus
+from topoexplore.common.domain import Odom, Pose
 from topoexplore.common.keys import Keys
 from topoexplore.tools import fox
 
@@ -30,17 +32,14 @@ def _publish_forever(endpoint: str, keys: Keys, stop: threading.Event) -> None:
         while not stop.is_set():
             k += 1
             t = 0.2 * k
-            pub["scan"].put(m.LaserScan(header=hdr(k, t, k, "laser"), angle_min=-1.57,
-                                        angle_increment=0.01745, range_min=0.02, range_max=8.0,
-                                        ranges=[1.0] * 181))
-            pose = m.Pose2D(x=0.1 * k, y=0.0, theta=0.0)
-            pub["odom"].put(m.Odometry(header=hdr(k, t, k), pose=pose))
-            pub["truth"].put(m.Pose(header=hdr(k, t, k), pose=pose))
+            pub["scan"].put(scan_msg(k, t, [1.0] * 181))
+            pub["odom"].put(convert.odom_to_msg(Odom(Pose(0.1 * k, 0.0, 0.0), 0.0, 0.0),
+                                                hdr(k, t, k, "odom")))
+            pub["truth"].put(pose_msg(k, t, 0.1 * k))
             pub["map"].put(grid_msg(k))
             pub["topo"].put(topo_msg(k))
             pub["reliability"].put(rel_msg(k))
-            pub["plan"].put(m.Path(header=hdr(k, t, k), waypoints=[[0, 0], [1, 1]], target_id=9,
-                                   target_x=1.0, target_y=1.0))
+            pub["plan"].put(path_msg(k, t, [[0, 0], [1, 1]]))
             pub["explore/status"].put(m.ExploreStatus(header=hdr(k, t, k), state="exploring"))
             pub["sim/status"].put(m.SimStatus(header=hdr(k, t, k), world="w", mode="lockstep",
                                               sim_time=t, steps=k, collisions=0,

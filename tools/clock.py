@@ -24,7 +24,7 @@ class RobotClock:
         bus.subscribe(keys.topic("odom"), m.Odometry, self._on_odom)
 
     def _on_odom(self, msg: m.Odometry, _key: str) -> None:
-        self._stamp = msg.header.stamp
+        self._stamp = msg.header.time
         self._seen.set()
 
     def now(self) -> float | None:

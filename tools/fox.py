@@ -35,6 +35,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
+from topoexplore.common import convert
 from topoexplore.common import messages as m
 
 TOPICS = ("/viz/map", "/viz/scan", "/tf", "/viz/trail", "/viz/graph", "/viz/plan",
@@ -115,21 +116,24 @@ def grid_to_fox(g: m.OccupancyGrid) -> Any:
     u8 = fm.PackedElementFieldNumericType.Uint8
     fields = [fm.PackedElementField(name=n, offset=i, type=u8)
               for i, n in enumerate(("red", "green", "blue", "alpha"))]
-    return fm.Grid(timestamp=stamp(g.header.stamp), frame_id="map",
-                   pose=_pose(g.origin.x, g.origin.y, g.origin.theta),
-                   column_count=g.width,
-                   cell_size=fm.Vector2(x=g.resolution, y=g.resolution),
-                   row_stride=4 * g.width, cell_stride=4, fields=fields,
-                   data=grid_rgba(g.data, g.width, g.height))
+    i = g.info
+    return fm.Grid(timestamp=stamp(g.header.time), frame_id="map",
+                   pose=_pose(i.origin.position.x, i.origin.position.y,
+                              m.yaw_of(i.origin.orientation)),
+                   column_count=i.width,
+                   cell_size=fm.Vector2(x=i.resolution, y=i.resolution),
+                   row_stride=4 * i.width, cell_stride=4, fields=fields,
+                   data=grid_rgba(g.data, i.width, i.height))
 
 
 def scan_to_fox(s: m.LaserScan) -> Any:
     fm = _fm()
     n = len(s.ranges)
     ranges = [r if math.isfinite(r) and r < s.range_max else math.inf for r in s.ranges]
-    return fm.LaserScan(timestamp=stamp(s.header.stamp), frame_id="laser", pose=_pose(0, 0),
+    return fm.LaserScan(timestamp=stamp(s.header.time), frame_id="laser", pose=_pose(0, 0),
                         start_angle=s.angle_min,
-                        end_angle=s.angle_min + s.angle_increment * max(0, n - 1),
+                        end_angle=s.angle_min + s.angle_increment * max(0, n - 1),  # not
+                        #   angle_max: a driver that counts n increments would skew the beams
                         ranges=ranges, intensities=[])
 
 
@@ -143,7 +147,7 @@ def graph_scene(topo: m.TopoGraph, rel: m.Reliability | None, p_reliable: float)
     """The topological map as one scene entity: edges, nodes coloured by kind and P, labels
     ``id(P)`` at the end nodes (those without a P yet are labelled with the id only)."""
     fm = _fm()
-    ts = stamp(topo.header.stamp)
+    ts = stamp(topo.header.time)
     p_of = {n.id: n.p for n in rel.nodes} if rel is not None else {}
     lines = [fm.LinePrimitive(type=fm.LinePrimitiveLineType.LineStrip, pose=_pose(0, 0),
                               thickness=2.0, scale_invariant=True,
@@ -172,8 +176,8 @@ def graph_scene(topo: m.TopoGraph, rel: m.Reliability | None, p_reliable: float)
 def plan_scene(p: m.Path) -> Any:
     """The path the controller follows and its target (an empty path deletes the line)."""
     fm = _fm()
-    ts = stamp(p.header.stamp)
-    pts = [fm.Point3(x=w[0], y=w[1], z=0.03) for w in p.waypoints]
+    ts = stamp(p.header.time)
+    pts = [fm.Point3(x=q.pose.position.x, y=q.pose.position.y, z=0.03) for q in p.poses]
     lines, spheres = [], []
     if len(pts) >= 2:
         lines.append(fm.LinePrimitive(type=fm.LinePrimitiveLineType.LineStrip, pose=_pose(0, 0),
@@ -216,15 +220,15 @@ class FoxScene:
         return out
 
     def _odom(self, o: m.Odometry) -> list[tuple[str, Any]]:
-        p = o.pose
+        p = convert.pose_from_msg(o.pose.pose)
         return [("/tf", _fm().FrameTransforms(transforms=[transform(
-            o.header.stamp, "map", "base_link", p.x, p.y, p.theta)]))]
+            o.header.time, "map", "base_link", p.x, p.y, p.theta)]))]
 
-    def _truth(self, t: m.Pose) -> list[tuple[str, Any]]:
+    def _truth(self, t: m.PoseStamped) -> list[tuple[str, Any]]:
         fm = _fm()
-        p = t.pose
+        p = convert.truth_from_msg(t)
         out = [("/tf", fm.FrameTransforms(transforms=[transform(
-            t.header.stamp, "map", "truth", p.x, p.y, p.theta)]))]
+            t.header.time, "map", "truth", p.x, p.y, p.theta)]))]
         if self._trail is None:
             self._trail = (p.x, p.y)
         elif math.hypot(p.x - self._trail[0], p.y - self._trail[1]) >= TRAIL_STEP:
@@ -236,7 +240,7 @@ class FoxScene:
                                             fm.Point3(x=p.x, y=p.y, z=0.02)],
                                     color=_color((0.95, 0.55, 0.0, 1.0)))
             out.append(("/viz/trail", fm.SceneUpdate(entities=[fm.SceneEntity(
-                timestamp=stamp(t.header.stamp), frame_id="map", id=f"trail-{self._trail_n}",
+                timestamp=stamp(t.header.time), frame_id="map", id=f"trail-{self._trail_n}",
                 lines=[line])])))
         return out
 

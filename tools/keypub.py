@@ -1,11 +1,16 @@
 """``topoexplore keys pub`` and ``keys set``: write to a running stack.
 
 - ``keys pub KEY FIELD=VALUE... [--rate HZ] [--count N] [--duration S]``: one message of the
-  key's type (or a stream at a rate), like ``ros2 topic pub``. Values are YAML
-  (``v=0.2``, ``waypoints=[[0,0],[1,1]]``); the header is filled in (seq counting up from a
-  random start, the stamp of the robot's latest odometry (:mod:`tools.clock`; 0 if none is
-  seen), the frame of the topic) unless given (``header.stamp=12.5``). The message is
-  validated exactly as a service would decode it before anything is sent.
+  key's type (or a stream at a rate), like ``ros2 topic pub``. Fields are the ROS message's
+  (``linear.x=0.2``, ``header.frame_id=odom``); values are YAML (``blacklisted=[3, 4]``,
+  ``poses=[{pose: {position: {x: 1, y: 2}}}]``); what is not given is zero (a quaternion:
+  identity), in list items too. For ``cmd_vel`` (Twist) ``v=`` and ``w=`` are short for
+  ``linear.x=`` and ``angular.z=``. The header is filled in (seq counting up from a random
+  start, the stamp of the robot's latest odometry (:mod:`tools.clock`; 0 if none is seen), the
+  topic's frame_id) unless given: ``header.stamp=12.5`` takes seconds as a float (made into
+  ``{sec: 12, nanosec: 500000000}``), ``header.stamp.sec=12 header.stamp.nanosec=5`` the ROS
+  fields (a part not given is 0). The message is validated exactly as a service would decode
+  it before anything is sent.
 - ``keys set SERVICE section.name=VALUE``: change a parameter of a running service through its
   ``<ns>/<robot>/<service>/params`` queryable (``common.node``); the answer gives the old and
   the new value, or the service's one-line refusal (a bad value, or a parameter that cannot
@@ -24,6 +29,7 @@ from typing import Any
 from urllib.parse import quote
 
 import msgspec
+import msgspec.inspect as mi
 import yaml
 
 from topoexplore.common import messages as m
@@ -32,7 +38,7 @@ from topoexplore.common.keys import Keys, type_for_key
 from topoexplore.tools.clock import RobotClock
 
 # the frame a hand-made message of a topic is in (REP-105)
-FRAMES = {"scan": "laser", "cmd_vel": "base_link"}
+FRAMES = {"scan": "laser", "odom": "odom", "cmd_vel": "base_link"}
 
 
 class PubError(ValueError):
@@ -48,7 +54,8 @@ def parse_value(text: str) -> Any:
 
 
 def parse_assignments(items: list[str]) -> dict[str, Any]:
-    """``["v=0.2", "header.stamp=3"]`` -> ``{"v": 0.2, "header": {"stamp": 3}}``."""
+    """``["linear.x=0.2", "header.stamp=3"]`` -> ``{"linear": {"x": 0.2}, "header":
+    {"stamp": 3}}``."""
     out: dict[str, Any] = {}
     for item in items:
         path, eq, text = item.partition("=")
@@ -77,48 +84,105 @@ def _merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
 def zero_fields(msg_type: type) -> dict[str, Any]:
     """The required fields of a message type at zero ("" for text, [] for lists, nested
     structs likewise), as ``ros2 topic pub`` fills what it is not given."""
-    import msgspec.inspect as mi
+    return _zero(mi.type_info(msg_type))
 
-    def zero(t: Any) -> Any:
-        if isinstance(t, mi.StructType):
-            return {f.name: zero(f.type) for f in t.fields if f.required}
-        if isinstance(t, (mi.FloatType, mi.IntType)):
-            return 0
-        if isinstance(t, mi.BoolType):
-            return False
-        if isinstance(t, mi.StrType):
-            return ""
-        if isinstance(t, (mi.ListType, mi.BytesType)):
-            return [] if isinstance(t, mi.ListType) else b""
-        return None
 
-    return zero(mi.type_info(msg_type))
+def _zero(t: Any) -> Any:
+    if isinstance(t, mi.StructType):
+        return {f.name: _zero(f.type) for f in t.fields if f.required}
+    if isinstance(t, (mi.FloatType, mi.IntType)):
+        return 0
+    if isinstance(t, mi.BoolType):
+        return False
+    if isinstance(t, mi.StrType):
+        return ""
+    if isinstance(t, (mi.ListType, mi.BytesType)):
+        return [] if isinstance(t, mi.ListType) else b""
+    return None
+
+
+def _filled(t: Any, given: Any) -> Any:
+    """``given`` with the required fields it lacks at zero, in nested structs and in the
+    struct items of lists (a path's poses) too."""
+    if isinstance(t, mi.StructType) and isinstance(given, dict):
+        return {f.name: _filled(f.type, given[f.name]) if f.name in given else _zero(f.type)
+                for f in t.fields if f.required or f.name in given}
+    if isinstance(t, mi.ListType) and isinstance(given, list):
+        return [_filled(t.item_type, v) for v in given]
+    return given
 
 
 def check_names(msg_type: type, fields: dict[str, Any], path: str = "") -> None:
     """PubError for a field the type does not have (a typo must not be dropped silently)."""
-    import msgspec.inspect as mi
-
     info = mi.type_info(msg_type)
     known = {f.name: f.type for f in info.fields}
     for k, v in fields.items():
         if k not in known:
+            short = " or v, w" if msg_type is m.Twist and not path else ""
             raise PubError(f"{msg_type.__name__} has no field {path + k!r} (fields: "
-                           f"{', '.join(known)})")
+                           f"{', '.join(known)}{short})")
         t = known[k]
         if isinstance(v, dict) and isinstance(t, mi.StructType):
             check_names(t.cls, v, f"{path}{k}.")
+        elif isinstance(v, list) and isinstance(t, mi.ListType) \
+                and isinstance(t.item_type, mi.StructType):
+            for i, item in enumerate(v):
+                if isinstance(item, dict):
+                    check_names(t.item_type.cls, item, f"{path}{k}.{i}.")
+
+
+# cmd_vel's shorthands: a planar base's (v, w) in geometry_msgs/Twist's fields
+TWIST_SHORT = {"v": ("linear", "x"), "w": ("angular", "z")}
+
+
+def expand_shorthands(msg_type: type, fields: dict[str, Any]) -> dict[str, Any]:
+    """Twist: ``v`` -> ``linear.x``, ``w`` -> ``angular.z`` (PubError if both are given)."""
+    if msg_type is not m.Twist or not TWIST_SHORT.keys() & fields.keys():
+        return fields
+    out = dict(fields)
+    for short, (vec, axis) in TWIST_SHORT.items():
+        if short not in out:
+            continue
+        part = out.get(vec, {})
+        if not isinstance(part, dict) or axis in part:
+            raise PubError(f"{short}= and {vec}.{axis}= (or {vec}=) are the same field: give "
+                           "one")
+        out[vec] = {**part, axis: out.pop(short)}
+    return out
+
+
+def stamp_fields(value: Any) -> dict[str, Any]:
+    """A stamp as given -> ``{sec, nanosec}``: seconds as a number (``12.5``, ``1e6``) or the
+    ROS fields (a part not given is 0)."""
+    if isinstance(value, dict):
+        return {"sec": 0, "nanosec": 0, **value}
+    try:
+        t = float(value) if not isinstance(value, bool) else math.nan
+    except (TypeError, ValueError):
+        t = math.nan
+    if not (math.isfinite(t) and 0.0 <= t <= 1e12):
+        raise PubError(f"header.stamp={value!r}: expected seconds >= 0 (12.5) or "
+                       "header.stamp.sec=.. header.stamp.nanosec=..")
+    s = m.stamp(t)
+    return {"sec": s.sec, "nanosec": s.nanosec}
 
 
 def build_message(msg_type: type, fields: dict[str, Any], seq: int, frame: str = "map",
                   stamp: float = 0.0) -> Any:
     """A message of ``msg_type`` from ``fields`` (nested; what is not given is zero) with the
-    header filled in; validated as a service decodes it (PubError with the reason otherwise)."""
+    header filled in (stamped ``stamp`` [s], frame_id ``frame``); validated as a service
+    decodes it (PubError with the reason otherwise)."""
+    fields = expand_shorthands(msg_type, fields)
     check_names(msg_type, fields)
-    base = _merge(zero_fields(msg_type),
-                  {"header": {"seq": seq, "stamp": stamp, "frame": frame, "src_seq": -1}})
+    hdr = fields.get("header")
+    if isinstance(hdr, dict) and "stamp" in hdr:
+        fields = {**fields, "header": {**hdr, "stamp": stamp_fields(hdr["stamp"])}}
+    s = m.stamp(stamp)
+    base = {"header": {"stamp": {"sec": s.sec, "nanosec": s.nanosec}, "frame_id": frame,
+                       "seq": seq, "src_seq": -1}}
+    given = _filled(mi.type_info(msg_type), _merge(base, fields))
     try:
-        msg = msgspec.convert(_merge(base, fields), msg_type, strict=False)  # "1e6": YAML str
+        msg = msgspec.convert(given, msg_type, strict=False)  # "1e6": a YAML str
         return m.decode(m.encode(msg), msg_type)
     except (msgspec.ValidationError, m.MessageError) as exc:
         raise PubError(f"not a valid {msg_type.__name__}: {exc}") from None
@@ -134,11 +198,12 @@ def cmd_pub(args: argparse.Namespace, bus: Bus, keys: Keys, stop: Any) -> int:
     if msg_type is None:
         raise KeyToolError(f"{key} carries none of our message types (topics: scan, cmd_vel, ...)")
     fields = parse_assignments(args.fields)
-    fixed_seq = "seq" in fields.get("header", {})
     seq0 = random.randrange(1 << 30)  # a fresh seq: the simulator applies a cmd_vel once per seq
     frame = FRAMES.get(key.rsplit("/", 1)[-1], "map")
     build_message(msg_type, fields, seq0, frame)  # check before anything is sent
-    clock = None if "stamp" in fields.get("header", {}) else RobotClock(bus, keys)
+    given = fields.get("header", {})  # a dict: build_message took it
+    fixed_seq = "seq" in given
+    clock = None if "stamp" in given else RobotClock(bus, keys)
     pub = bus.publisher(key, msg_type, reliable=True)
     deadline = time.monotonic() + args.wait
     while not pub.matched and time.monotonic() < deadline and not stop.event.is_set():

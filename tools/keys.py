@@ -179,7 +179,7 @@ def summarize_numbers(values: list) -> Summary:
 
 
 def summarize_points(values: list) -> Summary:
-    """``<N points: first [x, y], last [x, y], x a..b, y c..d>`` for polylines/waypoints."""
+    """``<N points: first [x, y], last [x, y], x a..b, y c..d>`` for polylines."""
     a = np.asarray(values, dtype=np.float64)
     first = ", ".join(_fmt_num(v) for v in a[0])
     last = ", ".join(_fmt_num(v) for v in a[-1])
@@ -261,7 +261,7 @@ def parse_field_args(fields: list[str] | None) -> list[str]:
 
 
 def get_field(obj: Any, path: str) -> Any:
-    """Value at a dotted path (dict keys, list indices like ``waypoints.0``); FieldError."""
+    """Value at a dotted path (dict keys, list indices like ``poses.0``); FieldError."""
     cur = obj
     done: list[str] = []
     for seg in path.split("."):
@@ -956,7 +956,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--count", type=_positive(int, 1, "--count"), default=None,
                     help="exit after N messages")
     sp.add_argument("--field", action="append", default=[],
-                    help="dotted field path(s), repeatable or comma separated (header.stamp)")
+                    help="dotted field path(s), repeatable or comma separated "
+                         "(header.stamp.sec, ranges.0)")
     sp.add_argument("--full", action="store_true", help="do not summarize large arrays")
     sp.add_argument("--json", action="store_true",
                     help="one JSON line per message, whole (arrays as arrays, bytes base64)")
@@ -987,7 +988,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("pub", help="publish a message (or a stream) on a key: FIELD=VALUE ...")
     sp.add_argument("key", help="topic (cmd_vel) or full key")
     sp.add_argument("fields", nargs="*", metavar="FIELD=VALUE",
-                    help="message fields, YAML values (v=0.2 w=0.5); the header is filled in")
+                    help="message fields, YAML values (linear.x=0.2 angular.z=0.5; for "
+                         "cmd_vel also v=0.2 w=0.5; header.stamp=12.5 [s]); the header is "
+                         "filled in")
     sp.add_argument("--rate", type=_positive(float, 0.001, "--rate"), default=None,
                     help="publish at this rate [Hz] until --count/--duration or Ctrl-C")
     sp.add_argument("--count", type=_positive(int, 1, "--count"), default=None,

@@ -199,7 +199,7 @@ class Recorder:
                       json_schema(msg_type)) if msg_type is not None else None
             cid = self._channel(key, MESSAGE_ENCODING, schema, {"zenoh_key": key})
         hdr = header_of(payload)
-        pub_ns = to_ns(hdr.stamp) if hdr is not None else log_ns
+        pub_ns = (hdr.stamp.sec * 1_000_000_000 + hdr.stamp.nanosec) if hdr is not None else log_ns
         seq = hdr.seq if hdr is not None else self.counts[key]
         self._w.add_message(cid, log_time=log_ns, data=payload, publish_time=pub_ns,
                             sequence=max(0, min(seq, 2**32 - 1)))

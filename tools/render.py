@@ -55,6 +55,7 @@ def load_live(args: argparse.Namespace):
     message within --timeout), the target from the planner's status."""
     import threading
 
+    from topoexplore.common import convert
     from topoexplore.common import messages as m
     from topoexplore.common.bus import Bus
     from topoexplore.common.keys import Keys
@@ -67,7 +68,8 @@ def load_live(args: argparse.Namespace):
     got_pose = threading.Event()
 
     def on_odom(msg: m.Odometry, _k: str) -> None:
-        pose[:] = [(msg.pose.x, msg.pose.y, msg.pose.theta)]
+        p = convert.odom_from_msg(msg).pose
+        pose[:] = [(p.x, p.y, p.theta)]
         got_pose.set()
 
     with Bus.client(params.bus.connect, config_file=args.zenoh_config) as bus:

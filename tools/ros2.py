@@ -2,15 +2,21 @@
 
 The CDR side is ``rosbags``' typestore (the ROS 2 standard message definitions, pure Python,
 no ROS installation): payloads are CDR with the 4-byte encapsulation header, as DDS and
-rmw_zenoh carry them. Conversions come in symmetric pairs (tests/test_ros2.py round-trips
-each against payloads that rosbags itself serialized):
+rmw_zenoh carry them. Our messages are the ROS 2 definitions field for field
+(:mod:`topoexplore.common.messages`), so each conversion is a copy: stamps as ``sec`` and
+``nanosec`` (no float in between), frame ids, quaternions, covariances, every scan field.
+Conversions come in symmetric pairs; tests/test_ros2.py round-trips each against payloads
+that rosbags itself serialized and gets the same bytes back.
 
 | ROS 2 | ours | what maps |
 |---|---|---|
-| sensor_msgs/msg/LaserScan | LaserScan | stamp, frame_id, angle_min, angle_increment, range_min, range_max, ranges (float32, REP-117 values kept) |
-| nav_msgs/msg/Odometry | Odometry | stamp; pose position x, y and the yaw of its quaternion; twist linear.x, angular.z |
-| geometry_msgs/msg/Twist | Twist | linear.x = v, angular.z = w (a Twist has no stamp: ours gets the robot's latest odometry stamp) |
-| nav_msgs/msg/OccupancyGrid | OccupancyGrid | stamp, resolution, width, height, origin x, y, yaw, data |
+| sensor_msgs/msg/LaserScan | LaserScan | every field; ranges and intensities are float32 there, float64 here (exact both ways; REP-117's inf and nan kept) |
+| nav_msgs/msg/Odometry | Odometry | every field (header, child_frame_id, pose and twist with their covariances) |
+| geometry_msgs/msg/Twist | Twist | linear, angular; a ROS Twist has no header: ours is dropped on the way out, and one coming in is stamped with the time the caller gives (the robot's clock), frame ``base_link`` |
+| nav_msgs/msg/OccupancyGrid | OccupancyGrid | every field (header, info with map_load_time and the origin pose, data) |
+
+Ours only: ``header.seq`` (the bridge's count of that topic) and ``header.src_seq`` (a scan's
+own count; -1 for the others); they are dropped on the way out.
 
 Keys (``RosKeys``):
 
@@ -25,7 +31,6 @@ Keys (``RosKeys``):
 
 from __future__ import annotations
 
-import math
 import struct
 from dataclasses import dataclass
 from functools import cache
@@ -72,29 +77,56 @@ def _checked(msg: Any, msg_type: type) -> Any:
         raise Ros2Error(str(exc)) from None
 
 
-def to_stamp(t: Any) -> float:
-    """builtin_interfaces/Time -> [s]."""
-    return float(t.sec) + 1e-9 * float(t.nanosec)
+# --- the common pieces, field for field ---------------------------------------------------
 
 
-def from_stamp(s: float) -> Any:
-    """[s] -> builtin_interfaces/Time (sec, nanosec; a negative time is clamped to 0)."""
-    ns = max(0, round(s * 1e9))
-    return _types()["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9)
+def _time_from(t: Any) -> m.Time:
+    return m.Time(sec=int(t.sec), nanosec=int(t.nanosec))
 
 
-def _header(stamp: float, frame: str) -> Any:
-    return _types()["std_msgs/msg/Header"](stamp=from_stamp(stamp), frame_id=frame)
+def _time_to(t: m.Time) -> Any:
+    return _types()["builtin_interfaces/msg/Time"](sec=t.sec, nanosec=t.nanosec)
 
 
-def yaw_of(q: Any) -> float:
-    """The yaw [rad] of a quaternion (x, y, z, w) (REP-103: about z)."""
-    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+def _header_from(h: Any, seq: int, src_seq: int = -1) -> m.Header:
+    return m.Header(stamp=_time_from(h.stamp), frame_id=str(h.frame_id), seq=seq,
+                    src_seq=src_seq)
 
 
-def quaternion(yaw: float) -> Any:
-    return _types()["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(yaw / 2.0),
-                                                    w=math.cos(yaw / 2.0))
+def _header_to(h: m.Header) -> Any:
+    return _types()["std_msgs/msg/Header"](stamp=_time_to(h.stamp), frame_id=h.frame_id)
+
+
+def _xyz_from(v: Any, cls: type) -> Any:
+    """A ROS Vector3 or Point -> ours (``cls``)."""
+    return cls(x=float(v.x), y=float(v.y), z=float(v.z))
+
+
+def _xyz_to(v: m.Vector3 | m.Point, typename: str) -> Any:
+    return _types()[typename](x=v.x, y=v.y, z=v.z)
+
+
+def _pose_from(p: Any) -> m.GeoPose:
+    q = p.orientation
+    return m.GeoPose(position=_xyz_from(p.position, m.Point),
+                     orientation=m.Quaternion(x=float(q.x), y=float(q.y), z=float(q.z),
+                                              w=float(q.w)))
+
+
+def _pose_to(p: m.GeoPose) -> Any:
+    T, q = _types(), p.orientation
+    return T["geometry_msgs/msg/Pose"](
+        position=_xyz_to(p.position, "geometry_msgs/msg/Point"),
+        orientation=T["geometry_msgs/msg/Quaternion"](x=q.x, y=q.y, z=q.z, w=q.w))
+
+
+def _floats(a: Any) -> list[float]:
+    """A ROS float array (float32 or float64) -> a float64 list (exact)."""
+    return np.asarray(a, np.float64).tolist()
+
+
+def _serialize(msg: Any, typename: str) -> bytes:
+    return bytes(typestore().serialize_cdr(msg, typename))
 
 
 # --- LaserScan ---------------------------------------------------------------------------
@@ -104,24 +136,22 @@ def scan_from_cdr(data: bytes, seq: int) -> m.LaserScan:
     """A CDR sensor_msgs/LaserScan -> ours (seq and src_seq: the bridge's count)."""
     s = _decode(data, SCAN)
     return _checked(m.LaserScan(
-        header=m.Header(seq=seq, stamp=to_stamp(s.header.stamp), frame=s.header.frame_id,
-                        src_seq=seq),
-        angle_min=float(s.angle_min), angle_increment=float(s.angle_increment),
-        range_min=float(s.range_min), range_max=float(s.range_max),
-        ranges=np.asarray(s.ranges, np.float64).tolist()), m.LaserScan)
+        header=_header_from(s.header, seq, src_seq=seq),
+        angle_min=float(s.angle_min), angle_max=float(s.angle_max),
+        angle_increment=float(s.angle_increment), time_increment=float(s.time_increment),
+        scan_time=float(s.scan_time), range_min=float(s.range_min),
+        range_max=float(s.range_max), ranges=_floats(s.ranges),
+        intensities=_floats(s.intensities)), m.LaserScan)
 
 
-def scan_to_cdr(msg: m.LaserScan, scan_time: float = 0.0) -> bytes:
-    n = len(msg.ranges)
-    T = _types()
-    s = T[SCAN](header=_header(msg.header.stamp, msg.header.frame),
-                angle_min=msg.angle_min,
-                angle_max=msg.angle_min + msg.angle_increment * max(0, n - 1),
-                angle_increment=msg.angle_increment, time_increment=0.0, scan_time=scan_time,
-                range_min=msg.range_min, range_max=msg.range_max,
-                ranges=np.asarray(msg.ranges, np.float32),
-                intensities=np.zeros(0, np.float32))
-    return bytes(typestore().serialize_cdr(s, SCAN))
+def scan_to_cdr(msg: m.LaserScan) -> bytes:
+    s = _types()[SCAN](header=_header_to(msg.header), angle_min=msg.angle_min,
+                       angle_max=msg.angle_max, angle_increment=msg.angle_increment,
+                       time_increment=msg.time_increment, scan_time=msg.scan_time,
+                       range_min=msg.range_min, range_max=msg.range_max,
+                       ranges=np.asarray(msg.ranges, np.float32),
+                       intensities=np.asarray(msg.intensities, np.float32))
+    return _serialize(s, SCAN)
 
 
 # --- Odometry ----------------------------------------------------------------------------
@@ -129,72 +159,71 @@ def scan_to_cdr(msg: m.LaserScan, scan_time: float = 0.0) -> bytes:
 
 def odom_from_cdr(data: bytes, seq: int) -> m.Odometry:
     o = _decode(data, ODOM)
-    p, q = o.pose.pose.position, o.pose.pose.orientation
+    t = o.twist.twist
     return _checked(m.Odometry(
-        header=m.Header(seq=seq, stamp=to_stamp(o.header.stamp), frame=o.header.frame_id,
-                        src_seq=-1),
-        pose=m.Pose2D(x=float(p.x), y=float(p.y), theta=yaw_of(q)),
-        v=float(o.twist.twist.linear.x), w=float(o.twist.twist.angular.z)), m.Odometry)
+        header=_header_from(o.header, seq), child_frame_id=str(o.child_frame_id),
+        pose=m.PoseWithCovariance(pose=_pose_from(o.pose.pose),
+                                  covariance=_floats(o.pose.covariance)),
+        twist=m.TwistWithCovariance(
+            twist=m.GeoTwist(linear=_xyz_from(t.linear, m.Vector3),
+                             angular=_xyz_from(t.angular, m.Vector3)),
+            covariance=_floats(o.twist.covariance))), m.Odometry)
 
 
-def odom_to_cdr(msg: m.Odometry, child_frame: str = "base_link") -> bytes:
-    T = _types()
-    v3 = T["geometry_msgs/msg/Vector3"]
-    pose = T["geometry_msgs/msg/Pose"](
-        position=T["geometry_msgs/msg/Point"](x=msg.pose.x, y=msg.pose.y, z=0.0),
-        orientation=quaternion(msg.pose.theta))
-    o = T[ODOM](header=_header(msg.header.stamp, msg.header.frame), child_frame_id=child_frame,
-                pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose,
-                                                                covariance=np.zeros(36)),
+def odom_to_cdr(msg: m.Odometry) -> bytes:
+    T, t = _types(), msg.twist.twist
+    v3 = "geometry_msgs/msg/Vector3"
+    o = T[ODOM](header=_header_to(msg.header), child_frame_id=msg.child_frame_id,
+                pose=T["geometry_msgs/msg/PoseWithCovariance"](
+                    pose=_pose_to(msg.pose.pose),
+                    covariance=np.asarray(msg.pose.covariance, np.float64)),
                 twist=T["geometry_msgs/msg/TwistWithCovariance"](
-                    twist=T[TWIST](linear=v3(x=msg.v, y=0.0, z=0.0),
-                                   angular=v3(x=0.0, y=0.0, z=msg.w)),
-                    covariance=np.zeros(36)))
-    return bytes(typestore().serialize_cdr(o, ODOM))
+                    twist=T[TWIST](linear=_xyz_to(t.linear, v3),
+                                   angular=_xyz_to(t.angular, v3)),
+                    covariance=np.asarray(msg.twist.covariance, np.float64)))
+    return _serialize(o, ODOM)
 
 
 # --- Twist -------------------------------------------------------------------------------
 
 
 def twist_to_cdr(msg: m.Twist) -> bytes:
-    v3 = _types()["geometry_msgs/msg/Vector3"]
-    t = _types()[TWIST](linear=v3(x=msg.v, y=0.0, z=0.0), angular=v3(x=0.0, y=0.0, z=msg.w))
-    return bytes(typestore().serialize_cdr(t, TWIST))
+    """Ours -> a CDR geometry_msgs/Twist (linear, angular; our header has no place there)."""
+    v3 = "geometry_msgs/msg/Vector3"
+    t = _types()[TWIST](linear=_xyz_to(msg.linear, v3), angular=_xyz_to(msg.angular, v3))
+    return _serialize(t, TWIST)
 
 
 def twist_from_cdr(data: bytes, seq: int, stamp: float) -> m.Twist:
-    """A CDR Twist -> ours, stamped ``stamp`` (a Twist has none: the robot's clock)."""
+    """A CDR Twist -> ours, stamped ``stamp`` [s] (a Twist has none: the robot's clock; to
+    the nearest nanosecond), frame base_link."""
     t = _decode(data, TWIST)
-    return _checked(m.Twist(header=m.Header(seq=seq, stamp=stamp, frame="base_link",
-                                            src_seq=-1),
-                            v=float(t.linear.x), w=float(t.angular.z)), m.Twist)
+    return _checked(m.Twist(header=m.header(seq, stamp, "base_link"),
+                            linear=_xyz_from(t.linear, m.Vector3),
+                            angular=_xyz_from(t.angular, m.Vector3)), m.Twist)
 
 
 # --- OccupancyGrid -----------------------------------------------------------------------
 
 
 def grid_to_cdr(msg: m.OccupancyGrid) -> bytes:
-    T = _types()
-    origin = T["geometry_msgs/msg/Pose"](
-        position=T["geometry_msgs/msg/Point"](x=msg.origin.x, y=msg.origin.y, z=0.0),
-        orientation=quaternion(msg.origin.theta))
-    info = T["nav_msgs/msg/MapMetaData"](map_load_time=from_stamp(msg.header.stamp),
-                                         resolution=msg.resolution, width=msg.width,
-                                         height=msg.height, origin=origin)
-    g = T[GRID](header=_header(msg.header.stamp, msg.header.frame), info=info,
+    T, i = _types(), msg.info
+    info = T["nav_msgs/msg/MapMetaData"](map_load_time=_time_to(i.map_load_time),
+                                         resolution=i.resolution, width=i.width,
+                                         height=i.height, origin=_pose_to(i.origin))
+    g = T[GRID](header=_header_to(msg.header), info=info,
                 data=np.frombuffer(msg.data, np.int8))
-    return bytes(typestore().serialize_cdr(g, GRID))
+    return _serialize(g, GRID)
 
 
 def grid_from_cdr(data: bytes, seq: int) -> m.OccupancyGrid:
     g = _decode(data, GRID)
     i = g.info
     return _checked(m.OccupancyGrid(
-        header=m.Header(seq=seq, stamp=to_stamp(g.header.stamp), frame=g.header.frame_id,
-                        src_seq=-1),
-        resolution=float(i.resolution), width=int(i.width), height=int(i.height),
-        origin=m.Pose2D(x=float(i.origin.position.x), y=float(i.origin.position.y),
-                        theta=yaw_of(i.origin.orientation)),
+        header=_header_from(g.header, seq),
+        info=m.MapMetaData(map_load_time=_time_from(i.map_load_time),
+                           resolution=float(i.resolution), width=int(i.width),
+                           height=int(i.height), origin=_pose_from(i.origin)),
         data=np.asarray(g.data, np.int8).tobytes()), m.OccupancyGrid)
 
 

@@ -151,12 +151,12 @@ class Monitor:
                     self.pose_err[1] = max(self.pose_err[1], e)
                     self.pose_err[2] += 1
 
-    def on_truth(self, msg: m.Pose) -> None:
+    def on_truth(self, msg: m.PoseStamped) -> None:
         with self.lock:
-            p = msg.pose
+            p = convert.truth_from_msg(msg)
             self.pose = (p.x, p.y, p.theta)
             if self.est is not None and len(self.pending) < 1000:
-                self.pending.append((msg.header.stamp, p.x, p.y))
+                self.pending.append((msg.header.time, p.x, p.y))
             last = self.trail[-1] if self.trail else None
             if last is None or math.hypot(p.x - last[0], p.y - last[1]) > 0.02:
                 self.trail.append((p.x, p.y, self.segment))
@@ -164,7 +164,7 @@ class Monitor:
     def on_plan(self, msg: m.Path) -> None:
         with self.lock:
             self.plan = msg
-            if not msg.waypoints:
+            if not msg.poses:
                 return
             cur = (msg.target_id, msg.target_x, msg.target_y)
             prev = self.seg_target
@@ -740,20 +740,20 @@ class StackRun:
                                     config_file=args.zenoh_config, wait_for_router=True)
         bus.subscribe(keys.explore_status, m.ExploreStatus, lambda msg, k: mon.on_status(msg))
         bus.subscribe(keys.sim_status, m.SimStatus, lambda msg, k: mon.on_sim(msg))
-        bus.subscribe(keys.truth, m.Pose, lambda msg, k: mon.on_truth(msg))
+        bus.subscribe(keys.truth, m.PoseStamped, lambda msg, k: mon.on_truth(msg))
         est = mon.est = OdomBuffer(corrected=self.setup.params.localizer.enabled)
 
         def on_odom(msg: m.Odometry, _k: str) -> None:
-            est.add(msg.header.stamp, convert.pose_from_msg(msg.pose), msg.header.seq)
+            est.add(msg.header.time, convert.pose_from_msg(msg.pose.pose), msg.header.seq)
             mon.on_estimate()
 
-        def on_correction(msg: m.Pose, _k: str) -> None:
-            est.add_correction(msg.header.stamp, convert.pose_from_msg(msg.pose))
+        def on_correction(msg: m.TransformStamped, _k: str) -> None:
+            est.add_correction(msg.header.time, convert.correction_from_msg(msg))
             mon.on_estimate()
 
         bus.subscribe(keys.topic("odom"), m.Odometry, on_odom)
         if est.corrected:
-            bus.subscribe(keys.topic("map_odom"), m.Pose, on_correction)
+            bus.subscribe(keys.topic("map_odom"), m.TransformStamped, on_correction)
         bus.subscribe(keys.plan, m.Path, lambda msg, k: mon.on_plan(msg))
         bus.subscribe(keys.reliability, m.Reliability, lambda msg, k: mon.on_rel(msg))
         bus.subscribe(keys.topo, m.TopoGraph, lambda msg, k: mon.on_topo(msg))

@@ -27,8 +27,10 @@ import threading
 import time
 from dataclasses import dataclass
 
+from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.bus import Bus, BusError
+from topoexplore.common.domain import Command
 from topoexplore.common.keys import DEFAULT_ENDPOINT, Keys
 from topoexplore.common.node import add_bus_args, add_param_args, params_from_args, stop_on_signals
 from topoexplore.common.params import ParamError
@@ -129,8 +131,8 @@ def _drive(bus: Bus, keys: Keys, state: Teleop, rate: float) -> int:
     def send(v: float, w: float) -> None:
         nonlocal seq
         seq += 1
-        pub.put(m.Twist(header=m.Header(seq=seq, stamp=clock.now() or 0.0, frame="base_link",
-                                        src_seq=-1), v=v, w=w))
+        hdr = m.header(seq, clock.now() or 0.0, "base_link")
+        pub.put(convert.command_to_msg(Command(v, w), hdr))  # linear.x, angular.z
 
     print(f"teleop on {keys.cmd_vel}: {HELP}", flush=True)
     try:

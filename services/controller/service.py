@@ -45,7 +45,7 @@ class ControllerService:
         node.add_live(LIVE, self.apply_params)
 
     def ready(self, scan: m.LaserScan) -> bool:
-        ok = self.odom.newest >= scan.header.stamp - 1e-6
+        ok = self.odom.newest >= scan.header.time - 1e-6
         if self.node.lockstep:  # the plan and status of the latest scan that has a map
             k = scan.header.src_seq
             k -= k % self.node.params.mapper.map_every
@@ -60,31 +60,31 @@ class ControllerService:
         scan, _ = got
         inbox = self.node.inbox
         plan, status = inbox.latest.get("plan"), inbox.latest.get("explore/status")
-        pose = self.odom.pose_near(scan.header.stamp)
+        pose = self.odom.pose_near(scan.header.time)
         if pose is None:
             cmd = Command(0.0, 0.0, "no-pose")
         else:
             done = status is not None and convert.status_from_msg(status).finished
-            cmd = self.core.update(scan.header.stamp, pose,
+            cmd = self.core.update(scan.header.time, pose,
                                    convert.route_from_msg(plan) if plan is not None else None,
                                    done, convert.scan_from_msg(scan),
-                                   self.plan_age(scan.header.stamp), self.plan_limit())
+                                   self.plan_age(scan.header.time), self.plan_limit())
         v, w, mode = cmd
         if mode != self.last_cmd.mode and mode == "stale-plan":
             log.warning("t=%.1f s: no new plan for %.1f s: the robot stops until one comes "
-                        "(%d stopped steps so far)", scan.header.stamp,
-                        self.plan_age(scan.header.stamp) or 0.0, self.core.stale_plan_steps)
+                        "(%d stopped steps so far)", scan.header.time,
+                        self.plan_age(scan.header.time) or 0.0, self.core.stale_plan_steps)
         if mode != self.last_cmd.mode and mode in ("blocked", "recovery") and pose is not None:
             c = self.core  # the safety stop or a stuck recovery took over: say where and why
             log.info("t=%.1f s %s at (%.2f, %.2f, %.2f rad): front %.2f m, heading error "
-                     "%.2f rad, lookahead (%.2f, %.2f), recoveries %d", scan.header.stamp, mode,
+                     "%.2f rad, lookahead (%.2f, %.2f), recoveries %d", scan.header.time, mode,
                      pose[0], pose[1], pose[2], c.front, c.heading_error, *(c.target or (math.nan, math.nan)),
                      c.recoveries)
         with self.pub_lock:
             self.last_cmd = cmd
             self.last_src = scan.header.src_seq
             self.pub.put(convert.command_to_msg(cmd, self.node.header(
-                "cmd_vel", scan.header.stamp, scan.header.src_seq)))
+                "cmd_vel", scan.header.time, scan.header.src_seq)))
         self.node.processed += 1
 
     def on_plan(self, plan: m.Path) -> None:
@@ -97,7 +97,7 @@ class ControllerService:
         """Receive thread, after the buffer took the pose: in real time, stop a moving robot
         as soon as the plan is stale by odometry time (20 Hz) instead of at the next scan
         (5 Hz): a frozen planner's robot stands still sooner."""
-        t = o.header.stamp
+        t = o.header.time
         if self.node.lockstep:
             return
         age = self.plan_age(t)

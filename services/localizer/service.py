@@ -39,7 +39,7 @@ class LocalizerService:
         node.add_state(self.state)
 
     def ready(self, scan: m.LaserScan) -> bool:
-        ok = self.odom.newest >= scan.header.stamp - 1e-6
+        ok = self.odom.newest >= scan.header.time - 1e-6
         if self.node.lockstep:  # the map of the scans before this one (none before scan 0)
             k = scan.header.src_seq - 1
             k -= k % self.node.params.mapper.map_every
@@ -51,7 +51,7 @@ class LocalizerService:
         if got is None:
             return
         scan, _ = got
-        odom = self.odom.pose_near(scan.header.stamp)
+        odom = self.odom.pose_near(scan.header.time)
         if odom is None:
             return
         grid = self.node.inbox.latest.get("map")
@@ -68,9 +68,8 @@ class LocalizerService:
                 self.counts["kept"] += 1
         else:
             self.counts["no_map"] += 1
-        self.pub.put(m.Pose(header=self.node.header("map_odom", scan.header.stamp,
-                                                    scan.header.src_seq, frame="map"),
-                            pose=convert.pose_to_msg(self.correction)))
+        self.pub.put(convert.correction_to_msg(self.correction, self.node.header(
+            "map_odom", scan.header.time, scan.header.src_seq, frame="map")))
         self.node.processed += 1
 
     def state(self) -> dict:

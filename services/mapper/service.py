@@ -119,13 +119,13 @@ class MapperService:
             log.warning("skipped scan (%s, %d so far): %s", reason, self.skipped[reason], detail)
 
     def step(self) -> None:
-        got = self.node.take("scan", lambda s: self.odom.newest >= s.header.stamp - 1e-6)
+        got = self.node.take("scan", lambda s: self.odom.newest >= s.header.time - 1e-6)
         if got is None:
             return
         scan, ok = got
-        pose = self.odom.pose_at(scan.header.stamp, tolerance=1e-6) if ok else None
+        pose = self.odom.pose_at(scan.header.time, tolerance=1e-6) if ok else None
         if pose is None:
-            self.skip("pose_missing", f"no odometry at stamp {scan.header.stamp:.3f}")
+            self.skip("pose_missing", f"no odometry at stamp {scan.header.time:.3f}")
             return
         self.check_geometry(scan)
         try:
@@ -134,11 +134,14 @@ class MapperService:
             self.skip("rejected", str(exc))
             return
         self.node.processed += 1
-        self.last_src = scan.header.src_seq
-        block = scan.header.src_seq // self.node.params.mapper.map_every
+        src = scan.header.src_seq
+        if src < 0:  # a driver that fills only the ROS fields: number its scans here
+            src = self.last_src + 1
+        self.last_src = src
+        block = src // self.node.params.mapper.map_every
         if block != self.last_block:  # else integrated; this block's map went out already
             self.last_block = block
-            self.last_map = self.make_map(scan.header.stamp, scan.header.src_seq)
+            self.last_map = self.make_map(scan.header.time, src)
             self.pub_map.put(self.last_map)
         if self.ckpt.due(time.monotonic()):
             self.save_checkpoint()  # after the map went out: it does not wait for the disk
@@ -151,8 +154,9 @@ class MapperService:
                      "checkpoint": dict(self.ckpt.stats)}
         if self.last_map is not None:
             g = self.last_map
-            out["grid"] = {"width": g.width, "height": g.height, "resolution": g.resolution,
-                           "origin": [g.origin.x, g.origin.y]}
+            i = g.info
+            out["grid"] = {"width": i.width, "height": i.height, "resolution": i.resolution,
+                           "origin": [i.origin.position.x, i.origin.position.y]}
         return out
 
 

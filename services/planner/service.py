@@ -62,7 +62,7 @@ class PlannerService:
         k = rel.header.src_seq
         inbox = self.node.inbox
         return (inbox.src_seq("topo") >= k and inbox.src_seq("map") >= k
-                and self.odom.newest >= rel.header.stamp - 1e-6)
+                and self.odom.newest >= rel.header.time - 1e-6)
 
     def on_odom(self, o: m.Odometry) -> None:
         """Receive thread, after the buffer took the pose: in real time, send the last plan
@@ -75,12 +75,12 @@ class PlannerService:
             return
         with self.pub_lock:
             last = self.last_plan
-            t = o.header.stamp
+            t = o.header.time
             if t - self.beat_stamp < beat and t >= self.beat_stamp:
                 return
             h = last.header
             self.last_plan = msgspec.structs.replace(last, header=self.node.header(
-                "plan", h.stamp, h.src_seq))
+                "plan", h.time, h.src_seq))
             self.pub_plan.put(self.last_plan)
             self.beat_stamp = t
             self.heartbeats += 1
@@ -94,22 +94,22 @@ class PlannerService:
         rel, _ = got
         inbox = self.node.inbox
         topo, grid = inbox.latest.get("topo"), inbox.latest.get("map")
-        pose = self.odom.pose_near(rel.header.stamp)
+        pose = self.odom.pose_near(rel.header.time)
         if pose is None:
             log.warning("reliability %d skipped: no pose", rel.header.src_seq)
             return
         plan = self.core.update(
-            rel.header.stamp, pose, convert.graph_from_msg(topo) if topo is not None else None,
+            rel.header.time, pose, convert.graph_from_msg(topo) if topo is not None else None,
             convert.beliefs_from_msg(rel),
             convert.grid_from_msg(grid) if grid is not None else None)
         self.plan = plan
-        stamp, k = rel.header.stamp, rel.header.src_seq
+        stamp, k = rel.header.time, rel.header.src_seq
         with self.pub_lock:
             self.last_plan = convert.route_to_msg(plan.route, self.node.header("plan", stamp, k))
             self.pub_plan.put(self.last_plan)
             self.beat_stamp = self.odom.newest
         self.last_status = convert.status_to_msg(  # its seq is given when it goes out
-            plan.status, m.Header(seq=0, stamp=stamp, frame="map", src_seq=k))
+            plan.status, m.header(0, stamp, "map", k))
         self.node.processed += 1
         st = plan.status
         key = (st.state, st.target_id, st.reason, st.blacklisted)
@@ -129,7 +129,7 @@ class PlannerService:
             self.last_status_wall = now
             h = self.last_status.header  # one seq per message sent: a gap is a loss
             self.last_status = msgspec.structs.replace(self.last_status, header=self.node.header(
-                "explore/status", h.stamp, h.src_seq))
+                "explore/status", h.time, h.src_seq))
             self.pub_status.put(self.last_status)
 
     def state(self) -> dict:

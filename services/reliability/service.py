@@ -45,7 +45,7 @@ class ReliabilityService:
 
     def ready(self, topo: m.TopoGraph) -> bool:
         return (self.node.inbox.src_seq("map") >= topo.header.src_seq
-                and self.odom.newest >= topo.header.stamp - 1e-6)
+                and self.odom.newest >= topo.header.time - 1e-6)
 
     def step(self) -> None:
         got = self.node.take("topo", self.ready)
@@ -53,7 +53,7 @@ class ReliabilityService:
             return
         topo, _ = got
         grid = self.node.inbox.latest.get("map")
-        pose = self.odom.pose_near(topo.header.stamp)
+        pose = self.odom.pose_near(topo.header.time)
         if grid is None or pose is None:
             self.skipped += 1
             log.warning("topo %d skipped: %s missing", topo.header.src_seq,
@@ -62,7 +62,7 @@ class ReliabilityService:
         beliefs = self.core.update(convert.graph_from_msg(topo), pose,
                                    convert.grid_from_msg(grid))
         self.last = convert.beliefs_to_msg(beliefs, self.node.header(
-            "reliability", topo.header.stamp, topo.header.src_seq))
+            "reliability", topo.header.time, topo.header.src_seq))
         self.pub.put(self.last)
         self.node.processed += 1
         self.ckpt.save_if_due(self.core.checkpoint)  # after the beliefs went out

@@ -39,18 +39,18 @@ class TopologyService:
         node.add_state(self.state)
 
     def step(self) -> None:
-        got = self.node.take("map", lambda g: self.odom.newest >= g.header.stamp - 1e-6)
+        got = self.node.take("map", lambda g: self.odom.newest >= g.header.time - 1e-6)
         if got is None:
             return
         grid, _ = got
-        pose = self.odom.pose_near(grid.header.stamp)
+        pose = self.odom.pose_near(grid.header.time)
         if pose is None:
             self.skipped += 1
-            log.warning("no odometry for map at %.3f: skipped", grid.header.stamp)
+            log.warning("no odometry for map at %.3f: skipped", grid.header.time)
             return
         res = self.core.update(convert.grid_from_msg(grid), (pose.x, pose.y))
         self.last = convert.graph_to_msg(res.graph, self.node.header(
-            "topo", grid.header.stamp, grid.header.src_seq))
+            "topo", grid.header.time, grid.header.src_seq))
         self.pub.put(self.last)
         self.node.processed += 1
         self.ckpt.save_if_due(self.core.checkpoint)  # after the graph went out

@@ -80,13 +80,15 @@ with Bus.client(ep, wait_for_router=True) as bus:
     time.sleep(0.2)
     grid = bytes(1000 * 1000)
     for i in range(n):
-        h = m.Header(seq=i, stamp=time.monotonic(), frame="x", src_seq=i)
+        h = m.header(i, time.monotonic(), "x", i)
         if kind == "scan":
-            msg = m.LaserScan(header=h, angle_min=-1.57, angle_increment=0.01745, range_min=0.02,
-                              range_max=8.0, ranges=[3.0] * 181)
+            msg = m.LaserScan(header=h, angle_min=-1.57, angle_max=1.5713,
+                              angle_increment=0.01745, range_min=0.02, range_max=8.0,
+                              ranges=[3.0] * 181)
         else:
-            msg = m.OccupancyGrid(header=h, resolution=0.1, width=1000, height=1000,
-                                  origin=m.Pose2D(x=0.0, y=0.0, theta=0.0), data=grid)
+            msg = m.OccupancyGrid(header=h, info=m.MapMetaData(
+                map_load_time=h.stamp, resolution=0.1, width=1000, height=1000,
+                origin=m.GeoPose(position=m.Point(), orientation=m.Quaternion())), data=grid)
         pub.put(msg)
         time.sleep(1.0 / rate)
 """
@@ -106,7 +108,7 @@ def bench_hop(n: int = 200) -> dict[str, dict]:
                 count = n if kind == "scan" else max(20, n // 4)
 
                 def cb(msg, key, lat=lat, count=count, done=done):
-                    lat.append(time.monotonic() - msg.header.stamp)
+                    lat.append(time.monotonic() - msg.header.time)
                     if len(lat) >= count:
                         done.set()
 
@@ -140,9 +142,9 @@ def bench_lockstep_sim(world: str = "paper-room", scans: int = 400) -> dict:
                 if len(stamps) >= scans:
                     done.set()
                     return
-                pub.put(m.Twist(header=m.Header(seq=msg.header.seq, stamp=msg.header.stamp,
-                                                frame="base", src_seq=msg.header.src_seq),
-                                v=0.0, w=0.3))
+                pub.put(m.Twist(header=m.header(msg.header.seq, msg.header.time, "base_link",
+                                                msg.header.src_seq),
+                                linear=m.Vector3(), angular=m.Vector3(z=0.3)))
 
             bus.subscribe(keys.scan, m.LaserScan, on_scan)
             done.wait(120)

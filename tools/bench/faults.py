@@ -46,6 +46,7 @@ from urllib.parse import quote
 import msgspec
 import numpy as np
 
+from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.bus import Bus, BusError
 from topoexplore.common.keys import TOPICS, Keys
@@ -97,13 +98,14 @@ class Watch:
         self._last: tuple[float, float, float, float] | None = None
         self.lock = threading.Lock()
         bus.subscribe(keys.topic("sim/status"), m.SimStatus, self._on_status)
-        bus.subscribe(keys.topic("truth"), m.Pose, self._on_truth)
+        bus.subscribe(keys.topic("truth"), m.PoseStamped, self._on_truth)
 
     def _on_status(self, msg: m.SimStatus, _k: str) -> None:
         self.sim_time = msg.sim_time
 
-    def _on_truth(self, msg: m.Pose, _k: str) -> None:
-        t, x, y, th = msg.header.stamp, msg.pose.x, msg.pose.y, msg.pose.theta
+    def _on_truth(self, msg: m.PoseStamped, _k: str) -> None:
+        p = convert.truth_from_msg(msg)
+        t, x, y, th = msg.header.time, p.x, p.y, p.theta
         with self.lock:
             if self._last is not None and t > self._last[0]:
                 dt = t - self._last[0]

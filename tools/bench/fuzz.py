@@ -32,9 +32,13 @@ from collections import Counter
 from typing import Any
 
 import msgspec
+import numpy as np
 
+from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.bus import MAX_KINDS, Bus
+from topoexplore.common.domain import Command, GridMap, Odom, Pose, Route
+from topoexplore.common.grid import GridGeometry
 from topoexplore.common.keys import SERVICE_IO, TOPICS, Keys
 
 MAX_PER_KEY = 10_000
@@ -42,26 +46,28 @@ KINDS = ("bytes", "not-a-map", "missing", "nan", "wrong-type", "header")
 
 
 def _h(frame: str = "map") -> m.Header:
-    return m.Header(seq=3, stamp=0.3, frame=frame, src_seq=3)
+    return m.header(3, 0.3, frame, 3)
 
 
 # one valid message per type: the fuzzer breaks one thing in it
 EXAMPLES: dict[type, Any] = {
-    m.LaserScan: m.LaserScan(header=_h("laser"), angle_min=-1.5707963, angle_increment=0.0174533,
-                             range_min=0.02, range_max=8.0, ranges=[1.0, 2.0, 8.0, 0.5]),
-    m.Odometry: m.Odometry(header=_h(), pose=m.Pose2D(x=1.0, y=2.0, theta=0.5)),
-    m.Pose: m.Pose(header=_h(), pose=m.Pose2D(x=1.0, y=2.0, theta=0.5)),
-    m.Twist: m.Twist(header=_h("base_link"), v=0.2, w=-0.1),
-    m.OccupancyGrid: m.OccupancyGrid(header=_h(), resolution=0.1, width=3, height=2,
-                                     origin=m.Pose2D(x=-1.0, y=-2.0, theta=0.0),
-                                     data=bytes([0xFF, 0, 100, 50, 0xFF, 0])),
+    m.LaserScan: m.LaserScan(header=_h("laser"), angle_min=-1.5707963, angle_max=-1.5184364,
+                             angle_increment=0.0174533, range_min=0.02, range_max=8.0,
+                             ranges=[1.0, 2.0, 8.0, 0.5], intensities=[1.0, 1.0, 0.0, 3.0]),
+    m.Odometry: convert.odom_to_msg(Odom(Pose(1.0, 2.0, 0.5), 0.2, 0.1), _h("odom")),
+    m.PoseStamped: convert.truth_to_msg(Pose(1.0, 2.0, 0.5), _h()),
+    m.TransformStamped: convert.correction_to_msg(Pose(0.1, -0.2, 0.05), _h()),
+    m.Twist: convert.command_to_msg(Command(0.2, -0.1), _h("base_link")),
+    m.OccupancyGrid: convert.grid_to_msg(GridMap(
+        np.array([[-1, 0, 100], [50, -1, 0]], np.int8), GridGeometry(0.1, -1.0, -2.0, 3, 2)),
+        _h()),
     m.TopoGraph: m.TopoGraph(header=_h(), nodes=[
         m.TopoNode(id=4, kind="end", x=0.0, y=0.0), m.TopoNode(id=7, kind="branch", x=1, y=0)],
         edges=[m.TopoEdge(a=4, b=7, points=[[0, 0], [1, 0]], length=1.0, clearance=0.5)]),
     m.Reliability: m.Reliability(header=_h(), nodes=[m.NodeReliability(
         id=4, x=0.0, y=0.0, p=0.5, d=0.5, a=0.5, r_min=1.0, alpha_max=0.1, visible=True)]),
-    m.Path: m.Path(header=_h(), waypoints=[[0.0, 0.0], [1.0, 1.0]], target_id=9, target_x=1.0,
-                   target_y=1.0),
+    m.Path: convert.route_to_msg(Route(np.array([[0.0, 0.0], [1.0, 1.0]]), 1, 9, (1.0, 1.0)),
+                                 _h()),
     m.ExploreStatus: m.ExploreStatus(header=_h(), state="exploring"),
     m.SimStatus: m.SimStatus(header=_h(), world="w", mode="lockstep", sim_time=0.3, steps=15,
                              collisions=0, path_length=0.1, real_time_factor=1.0),

@@ -66,7 +66,7 @@ class Wire:
 
     def __call__(self, obj: Any, to_msg: Callable, from_msg: Callable, msg_type: type) -> Any:
         self.k += 1
-        hdr = m.Header(seq=self.k, stamp=0.0, frame="map", src_seq=self.k)
+        hdr = m.header(self.k, 0.0, "map", self.k)
         return from_msg(m.decode(m.encode(to_msg(obj, hdr)), msg_type))
 
 
