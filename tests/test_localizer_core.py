@@ -132,3 +132,15 @@ def test_along_a_featureless_corridor_the_guess_stands():
     assert m.ok
     assert abs(m.pose.y - y) < RES and abs(m.pose.theta - th) < 0.01  # across: corrected
     assert abs(m.pose.x - (x + 0.17)) < RES  # along: odometry's guess
+
+
+def test_the_in_process_runner_runs_the_localizer():
+    """`bench inproc --set localizer.enabled=true`: the localizer between the simulator and
+    the rest, as in lockstep on the bus; with drifting odometry it keeps the pose close."""
+    from topoexplore.tools.bench.inproc import run
+
+    drift = ("sim.odom_drift=0.05", "sim.odom_drift_heading=0.05")
+    on = run("paper-room", "reliability", 0, (*drift, "localizer.enabled=true"), 300.0)
+    off = run("paper-room", "reliability", 0, drift, 300.0)
+    assert on["finished"] and on["collisions"] == 0
+    assert on["pose_rms_m"] < 0.15 and off["pose_rms_m"] > 3 * on["pose_rms_m"], (on, off)

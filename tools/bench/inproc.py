@@ -4,7 +4,9 @@
                              [--jobs 2] [--max-sim-time S] [--json OUT] [--wire]
 
 The six cores (sim, mapper, topology, reliability, planner, controller) are called in one
-loop in the order the services run them in lockstep: every scan is integrated; on the first
+loop in the order the services run them in lockstep (with ``--set localizer.enabled=true``
+the localizer too: each scan matched against the map of the scans before it, and every core
+then takes odometry composed with its correction): every scan is integrated; on the first
 scan of every ``mapper.map_every`` block the map goes through topology, reliability and
 planner; the controller answers every scan with the newest plan. The cores pass domain objects
 (``common.domain``) to each other; with ``--wire`` every hop goes through the same message
@@ -32,6 +34,7 @@ import numpy as np
 
 from topoexplore.common import convert
 from topoexplore.common import messages as m
+from topoexplore.common.domain import Pose, compose, inverse
 from topoexplore.common.params import (
     STRATEGIES,
     STRATEGY_NAMES,
@@ -40,6 +43,7 @@ from topoexplore.common.params import (
     strategy_overrides,
 )
 from topoexplore.services.controller.core import ControllerCore
+from topoexplore.services.localizer.core import LocalizerCore
 from topoexplore.services.mapper.core import MapperCore
 from topoexplore.services.planner.core import PlannerCore
 from topoexplore.services.reliability.core import ReliabilityCore
@@ -74,6 +78,42 @@ def _direct(obj: Any, *_: Any) -> Any:
     return obj
 
 
+class _Localized:
+    """The localizer as its service runs it in lockstep: each scan matched against the map
+    published before it, from odometry composed with the correction in force; the pose every
+    other core takes is odometry composed with the new correction. Without the localizer the
+    pose is odometry's. ``errors``: [m] the estimate against the truth, once per scan."""
+
+    def __init__(self, P: Params, hop: Callable):
+        self.core = LocalizerCore(P.localizer, P.laser.offset, P.mapper.p_occ) \
+            if P.localizer.enabled else None
+        self.hop = hop
+        self.correction = Pose(0.0, 0.0, 0.0)
+        self.grid = None  # the newest map, not yet handed to the matcher
+        self.errors: list[float] = []
+
+    def pose(self, odom: Pose, scan: Any, truth: Pose) -> Pose:
+        if self.core is not None:
+            if self.grid is not None:
+                self.core.set_map(self.grid)
+                self.grid = None
+            if self.core.ready:
+                match = self.core.match(scan, compose(self.correction, odom))
+                if match.ok:
+                    self.correction = self.hop(compose(match.pose, inverse(odom)),
+                                               convert.correction_to_msg,
+                                               convert.correction_from_msg, m.TransformStamped)
+        pose = compose(self.correction, odom) if self.core is not None else odom
+        self.errors.append(math.hypot(pose.x - truth.x, pose.y - truth.y))
+        return pose
+
+    def figures(self) -> dict[str, Any]:
+        e = np.asarray(self.errors)
+        return {"pose_rms_m": round(float(np.sqrt(np.mean(e ** 2))), 4) if e.size else None,
+                "pose_median_m": round(float(np.median(e)), 4) if e.size else None,
+                "pose_max_m": round(float(e.max()), 4) if e.size else None}
+
+
 def _pipeline(P: Params, world: World) -> SimpleNamespace:
     """The six cores, built as the services build them."""
     occ = P.mapper.occupancy
@@ -97,18 +137,20 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
     w = load_world(P.sim.world)
     c = _pipeline(P, w)
     hop = Wire() if wire else _direct
+    loc = _Localized(P, hop)
     steps = max(1, round(P.sim.physics_hz / P.laser.scan_hz))
     plan = grid = None
     state, k, t0 = "exploring", -1, time.monotonic()
     while True:
         k += 1
         t = c.sim.time
-        pose = hop(c.sim.odom(), convert.odom_to_msg, convert.odom_from_msg, m.Odometry).pose
+        odom = hop(c.sim.odom(), convert.odom_to_msg, convert.odom_from_msg, m.Odometry).pose
         scan = hop(c.sim.scan(), convert.scan_to_msg, convert.scan_from_msg, m.LaserScan)
+        pose = loc.pose(odom, scan, c.sim.truth_pose())
         c.mapper.integrate(pose, scan)
         if k % P.mapper.map_every == 0:
-            grid = hop(c.mapper.grid(copy=True), convert.grid_to_msg, convert.grid_from_msg,
-                       m.OccupancyGrid)
+            grid = loc.grid = hop(c.mapper.grid(copy=True), convert.grid_to_msg,
+                                  convert.grid_from_msg, m.OccupancyGrid)
             graph = hop(c.topology.update(grid, (pose.x, pose.y)).graph, convert.graph_to_msg,
                         convert.graph_from_msg, m.TopoGraph)
             beliefs = hop(c.reliability.update(graph, pose, grid), convert.beliefs_to_msg,
@@ -137,7 +179,7 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
             "escalations": snap["watchdog"]["counts"],
             "watchdog_approaches": snap["watchdog"]["approaches"],
             "blocked_marks": snap["blocked"]["made"],
-            "blocked_forgotten": snap["blocked"]["forgotten"]}
+            "blocked_forgotten": snap["blocked"]["forgotten"], **loc.figures()}
 
 
 def _coverages(P: Params, w: World, grid: Any) -> tuple[float, float]:
