@@ -3,6 +3,7 @@ running stack, render of a saved run directory."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -92,6 +93,8 @@ def test_bad_world_file_one_line(tmp_path, content):
     ["bench", "inproc", "--set", "planner.clearance_margin=-1"],
     ["bench", "inproc", "--set", "sim.seed=3"],
     ["bench", "inproc", "--strategies", "random"],
+    ["bench", "codec", "--repeats", "0"],
+    ["bench", "codec", "--repeats", "many"],
     ["map", "save", "/tmp/x.yaml", "--connect", "tcp/127.0.0.1:1", "--timeout", "0.5"],
 ])
 def test_bad_arguments_one_line(args, tmp_path):
@@ -170,3 +173,12 @@ def test_run_takes_world_seed_and_speed_from_the_params_file(tmp_path):
     args = ap.parse_args([])
     runner._fill_from_params(args)
     assert (args.world, args.seed, args.speed) == ("paper-room", 0, 1.0)
+
+
+def test_bench_codec_prints_every_message():
+    r = cli("bench", "codec", "--repeats", "3", "--json")
+    assert r.returncode == 0, r.stderr
+    rows = json.loads(r.stdout)
+    assert [x["type"] for x in rows] == ["Odometry", "LaserScan", "LaserScan", "Path",
+                                         "OccupancyGrid"]
+    assert all(x["bytes"] > 0 and x["to_wire_us"] > 0 and x["from_wire_us"] > 0 for x in rows)

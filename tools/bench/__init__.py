@@ -9,6 +9,7 @@
     topoexplore bench faults [--world office] [--speed 4] [--faults kill:mapper,stop:planner,router]
     topoexplore bench fuzz [--per-key 10000] [--rate 2000] [--world paper-room]
     topoexplore bench hangs [--tries 20] [--cases disk-full,broken-pipe,signals]
+    topoexplore bench codec [--repeats 2000] [--json]
 
 ``stages`` (:mod:`.stages`, :mod:`.bus`) times every core and the bus; ``explore``
 (:mod:`.explore`) runs the strategy comparison suite with the real processes; ``inproc``
@@ -18,27 +19,32 @@
 (:mod:`.faults`) runs explorations while it kills, freezes and restarts processes; ``fuzz``
 (:mod:`.fuzz`) floods a running stack with malformed messages on every key it subscribes;
 ``hangs`` (:mod:`.hangs`) checks that ``run`` comes down, with its children, after a full
-disk, a broken pipe or back-to-back signals.
+disk, a broken pipe or back-to-back signals; ``codec`` (:mod:`.codec`) gives each message's
+size and the cost of its conversion and codec.
 """
 
 from __future__ import annotations
 
 import sys
 
-_USAGE = ("usage: topoexplore bench {stages,explore,inproc,robust,oracle,record,faults,fuzz,hangs} "
-          "[options]  (-h for help)")
+_USAGE = ("usage: topoexplore bench {stages,explore,inproc,robust,oracle,record,faults,fuzz,hangs,"
+          "codec} [options]  (-h for help)")
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] not in ("stages", "explore", "inproc", "robust", "oracle",
-                                   "record", "faults", "fuzz", "hangs"):
+                                   "record", "faults", "fuzz", "hangs", "codec"):
         print(_USAGE, file=sys.stderr)
         return 2
     if argv[0] == "stages":
         from topoexplore.tools.bench import bus
 
         return bus.stages_main(argv[1:])
+    if argv[0] == "codec":
+        from topoexplore.tools.bench import codec
+
+        return codec.main(argv[1:])
     if argv[0] == "inproc":
         from topoexplore.tools.bench import inproc
 
