@@ -301,3 +301,26 @@ def test_realistic_picture_with_text(monkeypatch):
     assert differs[:TITLE_H].mean() > 0.01  # the title is drawn
     assert differs[-100:].mean() > 0.01  # so is the legend
     assert differs.mean() < 0.08  # text only
+
+
+def test_an_older_runs_topology_json_still_loads():
+    """topology.json written before the headers took the ROS shape ({seq, stamp: float, frame,
+    src_seq}) is read with its header upgraded; today's shape is left as it is."""
+    from topoexplore.tools.livestate import beliefs_from_state, graph_from_state, upgrade_header
+
+    old_topo = {"header": {"seq": 4, "stamp": 12.25, "frame": "map", "src_seq": 8},
+                "nodes": [{"id": 1, "kind": "end", "x": 0.0, "y": 0.0},
+                          {"id": 2, "kind": "branch", "x": 1.0, "y": 0.0}],
+                "edges": [{"a": 1, "b": 2, "points": [[0.0, 0.0], [1.0, 0.0]], "length": 1.0,
+                           "clearance": 0.4}], "gone": []}
+    g = graph_from_state(old_topo)
+    assert [n.id for n in g.nodes] == [1, 2] and len(g.edges) == 1
+    old_rel = {"header": {"seq": 0, "stamp": 3.0, "frame": "map", "src_seq": -1}, "nodes": [
+        {"id": 1, "x": 0.0, "y": 0.0, "p": 0.5, "d": 0.0, "a": 0.0, "r_min": 1.0,
+         "alpha_max": 0.0, "visible": True}]}
+    assert beliefs_from_state(old_rel)[0].p == 0.5
+    up = upgrade_header(old_topo)["header"]
+    assert up == {"stamp": {"sec": 12, "nanosec": 250_000_000}, "frame_id": "map", "seq": 4,
+                  "src_seq": 8}
+    new = {"header": up, "nodes": []}
+    assert upgrade_header(new) is new and upgrade_header(None) is None

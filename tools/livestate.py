@@ -36,10 +36,28 @@ def fetch_state(bus: Bus, keys: Keys, service: str, timeout: float = 3.0) -> dic
                      f"(is the stack running on this endpoint and namespace?)")
 
 
+def upgrade_header(value: Any) -> Any:
+    """A message written before the headers took the ROS shape (``{seq, stamp: float, frame,
+    src_seq}``, e.g. in an older run's topology.json) with its header in today's shape; any
+    other value as it is."""
+    h = value.get("header") if isinstance(value, dict) else None
+    if not isinstance(h, dict) or "frame" not in h or isinstance(h.get("stamp"), dict):
+        return value
+    try:
+        stamp = m.stamp(float(h.get("stamp", 0.0)))
+    except (TypeError, ValueError):
+        return value  # not a number: left for validation to refuse
+    new = {"stamp": {"sec": stamp.sec, "nanosec": stamp.nanosec}, "frame_id": h["frame"],
+           **{k: h[k] for k in ("seq", "src_seq") if k in h}}
+    return {**value, "header": new}
+
+
 def as_message(value: Any, msg_type: type) -> Any:
-    """A message that came nested in a state reply (as a dict) -> validated struct."""
+    """A message that came nested in a state reply or a saved run (as a dict) -> validated
+    struct (a header of the shape before 2026-12-04 is read too: :func:`upgrade_header`)."""
     if value is None:
         return None
+    value = upgrade_header(value)
     try:
         return m.decode(msgspec.msgpack.encode(value), msg_type)
     except m.MessageError as exc:
