@@ -123,6 +123,7 @@ class SimCore:
         self._cmd_time = 0.0  # [s] sim time of the latest command()
         self._meas = (0.0, 0.0)  # [m/s, rad/s] measured velocity after the last step
         self._odom = (float(x), float(y), float(th))
+        self._odom_travel = 0.0  # [m] travel odometry integrated with error (its variance)
         self._touching = 0
         self.collisions = 0
         self.path_length = 0.0  # [m]
@@ -179,6 +180,20 @@ class SimCore:
         """Odometry: pose and measured velocity."""
         return Odom(self.odom_pose(), *self._meas)
 
+    def odom_covariance(self) -> list[float]:
+        """The covariance of :meth:`odom_pose` as the drift model has it (row-major 6 x 6 over
+        x, y, z, roll, pitch, yaw, as nav_msgs/Odometry carries it): odom_drift^2 x travel
+        [m^2] in x and in y, odom_drift_heading^2 x travel [rad^2] in yaw, travel counted as
+        the drift counts it. Zero with perfect odometry. Not in it: wheel slip, and the
+        position error a heading error grows into."""
+        p = self.params
+        k = p.odom_drift
+        kh = k if p.odom_drift_heading is None else p.odom_drift_heading
+        cov = [0.0] * 36
+        cov[0] = cov[7] = k * k * self._odom_travel
+        cov[35] = kh * kh * self._odom_travel
+        return cov
+
     def velocity(self) -> tuple[float, float]:
         """Measured (v [m/s] along the heading, w [rad/s]) after the last step."""
         return self._meas
@@ -192,6 +207,7 @@ class SimCore:
                 "sim_pose": np.array([x, y, th], np.float64),
                 "sim_odom": np.array(self._odom, np.float64),
                 "sim_path": np.array([self.path_length], np.float64),
+                "sim_odom_travel": np.array([self._odom_travel], np.float64),
                 "sim_counts": np.array([self._steps, self.collisions, self.watchdog_stops,
                                         self.stale_cmds, self.clipped_cmds], np.int64)}
 
@@ -221,6 +237,9 @@ class SimCore:
         self._space.reindex_shapes_for_body(self._body)
         self._odom = (float(odom[0]), float(odom[1]), float(odom[2]))
         self.path_length = float(path[0])
+        travel = np.asarray(ck.get("sim_odom_travel", [0.0]), np.float64)  # older: none
+        self._odom_travel = float(travel[0]) if travel.shape == (1,) and np.isfinite(
+            travel[0]) and travel[0] >= 0.0 else 0.0
         (self._steps, self.collisions, self.watchdog_stops, self.stale_cmds,
          self.clipped_cmds) = (int(v) for v in counts)
         self._cmd, self._cmd_time, self._meas = (0.0, 0.0), self.time, (0.0, 0.0)
@@ -289,6 +308,7 @@ class SimCore:
         k = p.odom_drift
         kh = k if p.odom_drift_heading is None else p.odom_drift_heading
         travel = abs(ds) + abs(dth) * self.robot.radius
+        self._odom_travel += travel
         if travel > 0.0 and (k > 0.0 or kh > 0.0):
             root = math.sqrt(travel)
             e_s, e_t = self._odom_rng.normal(0.0, (k * root, kh * root))

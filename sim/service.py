@@ -101,9 +101,9 @@ class SimService:
     # -- publishing -----------------------------------------------------------------------
     def publish_odom(self) -> None:
         t = self.odom_stamp = self.core.time
-        self.pub_odom.put(convert.odom_to_msg(self.core.odom(),
-                                              self.node.header("odom", t, self.scan_seq,
-                                                                               frame="odom")))
+        self.pub_odom.put(convert.odom_to_msg(
+            self.core.odom(), self.node.header("odom", t, self.scan_seq, frame="odom"),
+            pose_covariance=self.core.odom_covariance()))
         self.pub_truth.put(convert.truth_to_msg(self.core.truth_pose(),
                                                 self.node.header("truth", t, self.scan_seq)))
 

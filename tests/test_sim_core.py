@@ -341,3 +341,24 @@ def test_beam_angles_edge_to_edge_or_evenly_round_a_full_turn():
     assert amin == pytest.approx(-math.pi / 2) and inc == pytest.approx(math.radians(1.0))
     amin, inc = beam_angles(360, 2 * math.pi)  # a 360 deg lidar: no beam twice
     assert amin == pytest.approx(-math.pi) and inc == pytest.approx(math.radians(1.0))
+
+
+def test_odometry_covariance_follows_the_drift_model():
+    """Variance odom_drift^2 x travel in x and y, odom_drift_heading^2 x travel in yaw (the
+    Odometry message carries it); zero with perfect odometry; kept across a checkpoint."""
+    perfect = make()
+    drive(perfect, 0.3, 0.0, 2.0)
+    assert perfect.odom_covariance() == [0.0] * 36
+    sim = make(odom_drift=0.03, odom_drift_heading=0.02)
+    drive(sim, 0.3, 0.0, 2.0)
+    cov = sim.odom_covariance()
+    travel = cov[0] / 0.03 ** 2
+    assert travel == pytest.approx(sim.path_length, rel=0.05)  # straight: travel is the path
+    assert cov[7] == cov[0] and cov[35] == pytest.approx(0.02 ** 2 * travel)
+    assert sum(1 for v in cov if v) == 3
+    again = make(odom_drift=0.03, odom_drift_heading=0.02)
+    again.resume(sim.checkpoint())
+    assert again.odom_covariance() == cov
+    older = {k: v for k, v in sim.checkpoint().items() if k != "sim_odom_travel"}
+    again.resume(older)  # a checkpoint written before the covariance: it starts from 0
+    assert again.odom_covariance() == [0.0] * 36
