@@ -92,6 +92,11 @@ def stamp(t: float) -> Any:
     return fm.Timestamp(sec=sec, nsec=min(999_999_999, int(round((t - sec) * 1e9))))
 
 
+def header_stamp(h: m.Header) -> Any:
+    """A message's stamp -> foxglove.Timestamp, copied (no float in between)."""
+    return _fm().Timestamp(sec=h.stamp.sec, nsec=h.stamp.nanosec)
+
+
 def _quat_z(theta: float) -> Any:
     return _fm().Quaternion(x=0.0, y=0.0, z=math.sin(theta / 2.0), w=math.cos(theta / 2.0))
 
@@ -117,7 +122,7 @@ def grid_to_fox(g: m.OccupancyGrid) -> Any:
     fields = [fm.PackedElementField(name=n, offset=i, type=u8)
               for i, n in enumerate(("red", "green", "blue", "alpha"))]
     i = g.info
-    return fm.Grid(timestamp=stamp(g.header.time), frame_id="map",
+    return fm.Grid(timestamp=header_stamp(g.header), frame_id="map",
                    pose=_pose(i.origin.position.x, i.origin.position.y,
                               m.yaw_of(i.origin.orientation)),
                    column_count=i.width,
@@ -130,7 +135,7 @@ def scan_to_fox(s: m.LaserScan) -> Any:
     fm = _fm()
     n = len(s.ranges)
     ranges = [r if math.isfinite(r) and r < s.range_max else math.inf for r in s.ranges]
-    return fm.LaserScan(timestamp=stamp(s.header.time), frame_id="laser", pose=_pose(0, 0),
+    return fm.LaserScan(timestamp=header_stamp(s.header), frame_id="laser", pose=_pose(0, 0),
                         start_angle=s.angle_min,
                         end_angle=s.angle_min + s.angle_increment * max(0, n - 1),  # not
                         #   angle_max: a driver that counts n increments would skew the beams
@@ -147,7 +152,7 @@ def graph_scene(topo: m.TopoGraph, rel: m.Reliability | None, p_reliable: float)
     """The topological map as one scene entity: edges, nodes coloured by kind and P, labels
     ``id(P)`` at the end nodes (those without a P yet are labelled with the id only)."""
     fm = _fm()
-    ts = stamp(topo.header.time)
+    ts = header_stamp(topo.header)
     p_of = {n.id: n.p for n in rel.nodes} if rel is not None else {}
     lines = [fm.LinePrimitive(type=fm.LinePrimitiveLineType.LineStrip, pose=_pose(0, 0),
                               thickness=2.0, scale_invariant=True,
@@ -176,7 +181,7 @@ def graph_scene(topo: m.TopoGraph, rel: m.Reliability | None, p_reliable: float)
 def plan_scene(p: m.Path) -> Any:
     """The path the controller follows and its target (an empty path deletes the line)."""
     fm = _fm()
-    ts = stamp(p.header.time)
+    ts = header_stamp(p.header)
     pts = [fm.Point3(x=q.pose.position.x, y=q.pose.position.y, z=0.03) for q in p.poses]
     lines, spheres = [], []
     if len(pts) >= 2:
@@ -240,7 +245,7 @@ class FoxScene:
                                             fm.Point3(x=p.x, y=p.y, z=0.02)],
                                     color=_color((0.95, 0.55, 0.0, 1.0)))
             out.append(("/viz/trail", fm.SceneUpdate(entities=[fm.SceneEntity(
-                timestamp=stamp(t.header.time), frame_id="map", id=f"trail-{self._trail_n}",
+                timestamp=header_stamp(t.header), frame_id="map", id=f"trail-{self._trail_n}",
                 lines=[line])])))
         return out
 
