@@ -428,6 +428,11 @@ class LocalizerParams(_P):
     #   lost at the window's edge, so ties (as along a corridor) go to odometry's guess. On
     #   office scans against a mapped grid, guesses off by up to 0.05 m: worst error 0.33 m
     #   without it, 0.10 m with it (median 0.050 / 0.047 m)
+    degenerate_ratio: Annotated[float, Meta(ge=0.0, le=1.0)] = 0.15  # a scan whose surfaces
+    #   pin the position this much less along one direction than across it (the eigenvalue
+    #   ratio of the point-to-line information, 0: a corridor) keeps odometry's guess along
+    #   that direction (core.py, step 5); 0: never. Tuned on the even-seed generated worlds
+    #   with drift, 0.10 / 0.15 / 0.25 (docs/benchmarks.md)
 
 
 class Params(_P):

@@ -11,7 +11,7 @@ import pytest
 from topoexplore.common.domain import GridMap, Pose, Scan
 from topoexplore.common.grid import GridGeometry
 from topoexplore.common.params import LocalizerParams
-from topoexplore.services.localizer.core import LocalizerCore
+from topoexplore.services.localizer.core import LocalizerCore, scan_conditioning
 
 RES = 0.05  # [m]
 N = 120
@@ -132,6 +132,55 @@ def test_along_a_featureless_corridor_the_guess_stands():
     assert m.ok
     assert abs(m.pose.y - y) < RES and abs(m.pose.theta - th) < 0.01  # across: corrected
     assert abs(m.pose.x - (x + 0.17)) < RES  # along: odometry's guess
+
+
+def corridor_scan(x: float, y: float, walls: tuple[float, float], rmax: float = 8.0) -> Scan:
+    """A forward 180° scan between two walls along x at y = walls[0], walls[1] [m]."""
+    ang = -math.pi / 2 + math.pi / 180 * np.arange(181)
+    r = np.array([(walls[0] - y) / math.sin(a) if math.sin(a) < -1e-9 else
+                  (walls[1] - y) / math.sin(a) if math.sin(a) > 1e-9 else math.inf
+                  for a in ang])
+    return Scan(np.where(r < rmax, r, np.inf), -math.pi / 2, math.pi / 180, 0.02, rmax)
+
+
+def test_scan_conditioning_finds_the_corridor_direction():
+    """Two parallel walls pin the position across them only (ratio about 0, the weak
+    direction along them); a room's scans pin it both ways."""
+    c = core()
+    walls = (40.5 * RES, 60.5 * RES)
+    ratio, weak = scan_conditioning(c._points(corridor_scan(3.0, 2.5, walls)))
+    assert ratio < 0.01 and abs(weak[0]) > 0.99  # along x, in the robot frame
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        x, y, th = rng.uniform(1.2, 5.0), rng.uniform(0.9, 2.6), rng.uniform(-math.pi, math.pi)
+        assert scan_conditioning(c._points(scan_at(x, y, th)))[0] > 0.2
+    assert scan_conditioning(np.zeros((2, 2)))[0] == 0.0  # too few points: no information
+
+
+@pytest.mark.parametrize("mapped_to", [64, 70, 80])  # [cells] 0.2, 0.5, 1.0 m ahead
+def test_the_map_edge_does_not_pull_the_pose_back_along_a_corridor(mapped_to):
+    """The map of the scans before this one ends a little ahead of the robot: end points
+    beyond its edge score nothing, and moving the pose back puts them on mapped wall. The
+    plain search takes that pull (the bias that lost metres on large-office); with the
+    degenerate-direction rule odometry's guess stands along the corridor, and the match
+    still corrects across it."""
+    n = 200
+    g = np.full((n, n), -1, np.int8)
+    g[41:60, :mapped_to] = 0
+    g[40, :mapped_to] = g[60, :mapped_to] = 100  # faces at y = 40.5 and 60.5 cells
+    grid = GridMap(g, GridGeometry(RES, 0.0, 0.0, n, n))
+    x, y = 3.0, 50.5 * RES
+    scan = corridor_scan(x, y, (40.5 * RES, 60.5 * RES))
+    plain = LocalizerCore(msgspec.structs.replace(LocalizerParams(), degenerate_ratio=0.0))
+    plain.set_map(grid)
+    assert plain.match(scan, Pose(x, y, 0.0)).pose.x < x - 0.2  # pulled back
+    c = LocalizerCore(LocalizerParams())
+    c.set_map(grid)
+    m = c.match(scan, Pose(x, y + 0.08, 0.0))
+    assert m.ok and m.conditioning < 0.01
+    assert abs(m.pose.x - x) < 0.01  # along: odometry's guess (the weak direction turns with
+    #   the matched heading)
+    assert abs(m.pose.y - y) < RES  # across: corrected
 
 
 def test_the_in_process_runner_runs_the_localizer():

@@ -12,7 +12,16 @@ search covers ``search_xy`` [m] and ``search_theta`` [rad] round the guess:
    best fine score beats every remaining bound: the result is the exact best of the fine
    search (branch and bound), found at a fraction of its cost;
 4. a match counts when enough end points scored and their mean likelihood reaches
-   ``min_score``; else the guess stands (``ok`` False).
+   ``min_score``; else the guess stands (``ok`` False);
+5. degenerate scans (Zhang, Kaess & Singh, "On degeneracy of optimization-based state
+   estimation problems", ICRA 2016: the solution is kept only in the directions the data
+   constrain): when the scan's own surfaces leave a direction nearly unconstrained
+   (:func:`scan_conditioning` below ``degenerate_ratio``: two parallel walls, a corridor or an
+   aisle), the match keeps odometry's guess along that direction. Scan-to-map matching is
+   biased there: the map of the scans before this one ends a little ahead of the robot, the
+   end points beyond its edge score nothing, and moving the pose back puts them on mapped
+   wall, so every scan pulled the estimate back along the corridor (large-office and the
+   generated warehouses lost metres this way; docs/benchmarks.md).
 
 Poses are the robot centre's (map frame); the laser sits ``laser_offset`` [m] ahead.
 """
@@ -36,6 +45,28 @@ class Match:
     ok: bool  # the match is trusted (enough points, score >= min_score)
     points: int  # end points used
     evaluated: int  # poses scored, coarse blocks and fine cells (the search's cost)
+    conditioning: float = 1.0  # weakest / strongest translation information (0..1)
+
+
+def scan_conditioning(pts: np.ndarray, gap: float = 0.25) -> tuple[float, np.ndarray]:
+    """How well a scan's surfaces pin a position (point-to-line information): each end
+    point with neighbours on both sides within ``gap`` [m] has a surface normal n (across the
+    line through its neighbours); the information is the sum of n n^T. Returns the ratio of its
+    eigenvalues, smallest over largest (0: two parallel walls, a corridor), and the unit
+    direction of the smallest, in the frame of ``pts``."""
+    if len(pts) < 3:
+        return 0.0, np.array([1.0, 0.0])
+    t = pts[2:] - pts[:-2]
+    near = (np.hypot(*(pts[1:-1] - pts[:-2]).T) < gap) & (np.hypot(*(pts[2:] - pts[1:-1]).T) < gap)
+    t = t[near]
+    ln = np.hypot(t[:, 0], t[:, 1])
+    t = t[ln > 1e-9] / ln[ln > 1e-9, None]
+    if len(t) < 2:
+        return 0.0, np.array([1.0, 0.0])
+    nx, ny = -t[:, 1], t[:, 0]
+    info = np.array([[nx @ nx, nx @ ny], [nx @ ny, ny @ ny]])
+    lam, vec = np.linalg.eigh(info)  # ascending
+    return float(max(lam[0], 0.0) / lam[1]), vec[:, 0]
 
 
 class LocalizerCore:
@@ -154,8 +185,18 @@ class LocalizerCore:
         pose = Pose(guess.x + (ix - n_xy) * res, guess.y + (iy - n_xy) * res,
                     float(thetas[t]))
         pose = self._refine(pts, pose, max_step=2.0 * res)
+        ratio, weak = scan_conditioning(pts)
+        if ratio < p.degenerate_ratio:
+            # along the weak direction the scan's surfaces say nearly nothing (a corridor):
+            # what pulled the match along it was no surface but the map's edge (step 5), so
+            # odometry's guess stands there; across it and in heading the match is refined
+            cs, sn = math.cos(pose.theta), math.sin(pose.theta)
+            ux, uy = cs * weak[0] - sn * weak[1], sn * weak[0] + cs * weak[1]  # map frame
+            along = (pose.x - guess.x) * ux + (pose.y - guess.y) * uy
+            pose = self._refine(pts, Pose(pose.x - along * ux, pose.y - along * uy,
+                                          pose.theta), max_step=2.0 * res, frozen=(ux, uy))
         return Match(Pose(pose.x, pose.y, math.remainder(pose.theta, 2 * math.pi)), score, True,
-                     n, evaluated)
+                     n, evaluated, ratio)
 
     def _bounds(self, base: list[tuple[np.ndarray, np.ndarray]], off: np.ndarray
                 ) -> np.ndarray:
@@ -194,7 +235,8 @@ class LocalizerCore:
         gy = ((1 - ax) * (v10 - v00) + ax * (v11 - v01)) / res
         return np.where(ok, val, 0.0), np.where(ok, gx, 0.0), np.where(ok, gy, 0.0)
 
-    def _refine(self, pts: np.ndarray, pose: Pose, max_step: float, iters: int = 10) -> Pose:
+    def _refine(self, pts: np.ndarray, pose: Pose, max_step: float, iters: int = 10,
+                frozen: tuple[float, float] | None = None) -> Pose:
         """Gauss-Newton on the bilinear field from the best pose of the search: the residual
         of each end point is 1 - its likelihood; steps stay within ``max_step`` [m] of where
         it started, and a step that scores worse ends it."""
@@ -214,6 +256,10 @@ class LocalizerCore:
             r = 1.0 - v
             A = J.T @ J + 1e-6 * np.eye(3)
             step = np.linalg.solve(A, J.T @ r)
+            if frozen is not None:  # no step along this direction
+                a = step[0] * frozen[0] + step[1] * frozen[1]
+                step[0] -= a * frozen[0]
+                step[1] -= a * frozen[1]
             nx, ny, nth = x + step[0], y + step[1], th + step[2]
             if math.hypot(nx - pose.x, ny - pose.y) > max_step:
                 break

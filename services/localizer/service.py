@@ -34,7 +34,9 @@ class LocalizerService:
         node.subscribe("scan", queue=True)
         self.correction = Pose(0.0, 0.0, 0.0)
         self.map_seq = -1
-        self.counts = {"matched": 0, "kept": 0, "no_map": 0}
+        # kept: no trusted match (the guess stands); degenerate: matched, but along a corridor
+        #   odometry's guess stands (core step 5)
+        self.counts = {"matched": 0, "kept": 0, "no_map": 0, "degenerate": 0}
         self.last_score = 0.0
         node.add_state(self.state)
 
@@ -64,6 +66,8 @@ class LocalizerService:
             if match.ok:
                 self.correction = compose(match.pose, inverse(odom))
                 self.counts["matched"] += 1
+                if match.conditioning < self.core.p.degenerate_ratio:
+                    self.counts["degenerate"] += 1
             else:
                 self.counts["kept"] += 1
         else:
