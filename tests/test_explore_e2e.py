@@ -101,6 +101,9 @@ def test_the_localizer_holds_the_map_together_under_drifting_odometry():
     assert on["pose_error_m"]["rms"] < 0.5 * off["pose_error_m"]["rms"], (on["pose_error_m"],
                                                                           off["pose_error_m"])
     assert "localizer is up" in (Path(on["_out"]) / "logs.txt").read_text()
+    loc = on["localizer"]  # its counters in report.json: nearly every scan matched
+    assert loc["matched"] > 0.9 * on["scans"] and 0 <= loc["degenerate"] <= loc["matched"], loc
+    assert off["localizer"] is None
 
 
 def test_same_seed_gives_same_report():

@@ -276,7 +276,8 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
                 first_motion: float | None = None,
                 memory: dict | None = None, cpu: dict | None = None,
                 recording: dict | None = None,
-                checkpoints: dict | None = None) -> dict[str, Any]:
+                checkpoints: dict | None = None,
+                localizer: dict | None = None) -> dict[str, Any]:
     """The report.json document. ``coverage``: share of the free cells the robot can map that
     the final map knows; ``coverage_free``: share of every free cell connected to the start."""
     rel = mon.rel
@@ -334,6 +335,9 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
         # per service keeping a checkpoint (runtime.state_dir): written, failed, size, time per
         # write [ms], and what a restart resumed (known cells, age of the checkpoint)
         "checkpoints": checkpoints or {},
+        # with the localizer: scans matched, kept (no trusted match: the guess stood), with
+        # no map yet, and matched with odometry's guess kept along a corridor (degenerate)
+        "localizer": localizer,
     }
 
 
@@ -382,6 +386,17 @@ def planner_robustness(state: dict) -> dict:
             "watchdog_approaches": wd.get("approaches", 0),
             "blocked_marks": bl.get("made", 0), "blocked_forgotten": bl.get("forgotten", 0),
             "replans": core.get("replans", 0)}
+
+
+def _localizer_counts(bus: Bus, keys: Keys) -> dict | None:
+    """The localizer's counters from its state queryable; None if it does not answer."""
+    from topoexplore.tools.livestate import StateError, fetch_state
+
+    try:
+        st = fetch_state(bus, keys, "localizer", timeout=1.0)
+    except StateError:
+        return None
+    return {k: st.get(k, 0) for k in ("matched", "kept", "no_map", "degenerate")}
 
 
 def _checkpoints(bus: Bus, keys: Keys) -> dict:
@@ -656,6 +671,7 @@ class Outcome:
     cpu: dict | None = None  # CPU seconds per process (Supervisor.cpu)
     recording: dict | None = None  # the recorder's counts (tools.record.Recorder.stats)
     checkpoints: dict | None = None  # per service: its checkpoint counters (_checkpoints)
+    localizer: dict | None = None  # the localizer's counters (_localizer_counts), when it runs
 
 
 class StackRun:
@@ -828,6 +844,8 @@ class StackRun:
             out.bad, out.lost = _message_counts(self.bus, self.setup.keys)
         out.planner = _planner_robustness(self.bus, self.setup.keys) if out.startup else None
         out.checkpoints = _checkpoints(self.bus, self.setup.keys) if out.startup else None
+        if out.startup and self.setup.params.localizer.enabled:
+            out.localizer = _localizer_counts(self.bus, self.setup.keys)
 
 
 # --- step 5: the report and the files ------------------------------------------------------
@@ -853,7 +871,7 @@ def write_results(args: argparse.Namespace, setup: Setup, truth: Truth, mon: Mon
                              planner=outcome.planner, warmup=outcome.warmup,
                              first_motion=outcome.first_motion, memory=outcome.memory,
                              cpu=outcome.cpu, recording=outcome.recording,
-                             checkpoints=outcome.checkpoints)
+                             checkpoints=outcome.checkpoints, localizer=outcome.localizer)
         title = (f"{args.world} / {args.strategy} / seed {args.seed}: "
                  f"{'finished' if outcome.finished else 'not finished'}, "
                  f"{report['path_length_m']:.1f} m, {report['sim_time_s']:.0f} s, "
