@@ -185,18 +185,24 @@ class LocalizerCore:
         pose = Pose(guess.x + (ix - n_xy) * res, guess.y + (iy - n_xy) * res,
                     float(thetas[t]))
         pose = self._refine(pts, pose, max_step=2.0 * res)
-        ratio, weak = scan_conditioning(pts)
-        if ratio < p.degenerate_ratio:
-            # along the weak direction the scan's surfaces say nearly nothing (a corridor):
-            # what pulled the match along it was no surface but the map's edge (step 5), so
-            # odometry's guess stands there; across it and in heading the match is refined
-            cs, sn = math.cos(pose.theta), math.sin(pose.theta)
-            ux, uy = cs * weak[0] - sn * weak[1], sn * weak[0] + cs * weak[1]  # map frame
-            along = (pose.x - guess.x) * ux + (pose.y - guess.y) * uy
-            pose = self._refine(pts, Pose(pose.x - along * ux, pose.y - along * uy,
-                                          pose.theta), max_step=2.0 * res, frozen=(ux, uy))
+        pose, ratio = self._hold_weak(pts, pose, guess)
         return Match(Pose(pose.x, pose.y, math.remainder(pose.theta, 2 * math.pi)), score, True,
                      n, evaluated, ratio)
+
+    def _hold_weak(self, pts: np.ndarray, pose: Pose, guess: Pose) -> tuple[Pose, float]:
+        """Step 5: where the scan's surfaces leave a direction nearly unconstrained (a
+        corridor), what pulled the match along it was no surface but the map's edge, so
+        odometry's guess stands there; across it and in heading the match is refined with that
+        direction held. Returns the pose and the scan's conditioning."""
+        ratio, weak = scan_conditioning(pts)
+        if ratio >= self.p.degenerate_ratio:
+            return pose, ratio
+        cs, sn = math.cos(pose.theta), math.sin(pose.theta)
+        ux, uy = cs * weak[0] - sn * weak[1], sn * weak[0] + cs * weak[1]  # map frame
+        along = (pose.x - guess.x) * ux + (pose.y - guess.y) * uy
+        held = Pose(pose.x - along * ux, pose.y - along * uy, pose.theta)
+        return self._refine(pts, held, max_step=2.0 * self._geom.resolution,
+                            frozen=(ux, uy)), ratio
 
     def _bounds(self, base: list[tuple[np.ndarray, np.ndarray]], off: np.ndarray
                 ) -> np.ndarray:
