@@ -180,15 +180,19 @@ class SimCore:
         """Odometry: pose and measured velocity."""
         return Odom(self.odom_pose(), *self._meas)
 
+    def _drift_rates(self) -> tuple[float, float]:
+        """The odometry random walks: translation [m/sqrt(m)], heading [rad/sqrt(m)] (the
+        heading one defaults to the translation one)."""
+        k = self.params.odom_drift
+        return k, k if self.params.odom_drift_heading is None else self.params.odom_drift_heading
+
     def odom_covariance(self) -> list[float]:
         """The covariance of :meth:`odom_pose` as the drift model has it (row-major 6 x 6 over
         x, y, z, roll, pitch, yaw, as nav_msgs/Odometry carries it): odom_drift^2 x travel
         [m^2] in x and in y, odom_drift_heading^2 x travel [rad^2] in yaw, travel counted as
         the drift counts it. Zero with perfect odometry. Not in it: wheel slip, and the
         position error a heading error grows into."""
-        p = self.params
-        k = p.odom_drift
-        kh = k if p.odom_drift_heading is None else p.odom_drift_heading
+        k, kh = self._drift_rates()
         cov = [0.0] * 36
         cov[0] = cov[7] = k * k * self._odom_travel
         cov[35] = kh * kh * self._odom_travel
@@ -304,9 +308,7 @@ class SimCore:
         translation [m] and heading_drift^2 * |travel| in heading [rad] (so the errors have
         sigma drift [m] and heading_drift [rad] after 1 m); travel counts a turn on the spot
         by the arc of the robot's rim."""
-        p = self.params
-        k = p.odom_drift
-        kh = k if p.odom_drift_heading is None else p.odom_drift_heading
+        k, kh = self._drift_rates()
         travel = abs(ds) + abs(dth) * self.robot.radius
         self._odom_travel += travel
         if travel > 0.0 and (k > 0.0 or kh > 0.0):
