@@ -74,6 +74,37 @@ def cells_for(length: float, resolution: float) -> int:
     return int(math.ceil(length / resolution - 1e-9))
 
 
+def ray_cells(r0: int, c0: int, r1: np.ndarray, c1: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cells of the integer Bresenham lines from (r0, c0) to each (r1[k], c1[k]), all at once.
+
+    The same cells in the same order as :func:`topoexplore.common.kernels.bresenham` (the
+    numba kernel steps an error term; ``tests/test_grid.py`` checks both on every line within
+    40 cells and on long random ones), in closed form. Along the major axis (the larger of
+    |dr| and |dc|; columns on a tie) step i of n = max(|dr|, |dc|) + 1 moves one cell; the
+    minor coordinate is ``minor0 + sign * floor((2 i b + a - 1) / (2 a))`` with a, b the
+    major and minor extents (a half-way point rounds down).
+
+    Returns ``(rows, cols, n)``: int64 arrays of shape (k, n.max()) and the cell count of
+    each line. Entries at i >= n[k] continue the line past its end and are not its cells.
+    """
+    r1 = np.asarray(r1, np.int64)
+    c1 = np.asarray(c1, np.int64)
+    dr, dc = np.abs(r1 - r0), np.abs(c1 - c0)
+    sr = np.where(r1 > r0, 1, -1)
+    sc = np.where(c1 > c0, 1, -1)
+    cmajor = dc >= dr
+    a = np.maximum(np.maximum(dr, dc), 1)[:, None]  # major extent (1 for a one-cell line)
+    b = np.minimum(dr, dc)[:, None]
+    n = np.maximum(dr, dc) + 1
+    i = np.arange(int(n.max()) if n.size else 0, dtype=np.int64)[None, :]
+    minor = (2 * i * b + a - 1) // (2 * a)
+    cm = cmajor[:, None]
+    rows = r0 + sr[:, None] * np.where(cm, minor, i)
+    cols = c0 + sc[:, None] * np.where(cm, i, minor)
+    return rows, cols, n
+
+
 def check_grid(data, geom: GridGeometry) -> np.ndarray:
     """The one grid check: a 2-D integer array of shape (geom.height, geom.width) and a geometry
     with a positive resolution and a finite origin. Returns the array; GridError otherwise."""

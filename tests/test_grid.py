@@ -15,8 +15,10 @@ from topoexplore.common.grid import (
     distance_transform,
     known_window,
     open_unknown,
+    ray_cells,
     unknown_mask,
 )
+from topoexplore.common.kernels import bresenham
 
 
 def ref_unknown(g: np.ndarray) -> np.ndarray:
@@ -155,3 +157,43 @@ def test_cells_for_a_length():
     assert cells_for(0.51, 0.1) == 6
     assert cells_for(0.3, 0.05) == 6
     assert cells_for(0.0, 0.1) == 0
+
+
+def _kernel_line(r0: int, c0: int, r1: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+    rows = np.empty(max(abs(r1 - r0), abs(c1 - c0)) + 1, np.int64)
+    cols = np.empty_like(rows)
+    n = bresenham(r0, c0, r1, c1, rows, cols)
+    return rows[:n], cols[:n]
+
+
+def _check_ray_cells(r0: int, c0: int, r1: np.ndarray, c1: np.ndarray) -> None:
+    rows, cols, n = ray_cells(r0, c0, r1, c1)
+    assert rows.dtype == cols.dtype == n.dtype == np.int64
+    assert rows.shape == cols.shape == (len(r1), int(n.max()))
+    for k in range(len(r1)):
+        want_r, want_c = _kernel_line(r0, c0, int(r1[k]), int(c1[k]))
+        assert n[k] == len(want_r)
+        assert np.array_equal(rows[k, :n[k]], want_r), (r0, c0, r1[k], c1[k])
+        assert np.array_equal(cols[k, :n[k]], want_c), (r0, c0, r1[k], c1[k])
+
+
+def test_ray_cells_is_the_bresenham_kernel_on_every_short_line():
+    """The closed form gives the numba kernel's cells, in order, for every end point within
+    40 cells of the start (all octants, ties, one-cell lines)."""
+    d = np.arange(-40, 41)
+    r1, c1 = (a.ravel() for a in np.meshgrid(d, d, indexing="ij"))
+    _check_ray_cells(0, 0, r1, c1)
+    _check_ray_cells(17, -5, r1 + 17, c1 - 5)  # and not only from the origin
+
+
+def test_ray_cells_is_the_bresenham_kernel_on_long_lines():
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        r0, c0 = (int(v) for v in rng.integers(-3000, 3000, 2))
+        _check_ray_cells(r0, c0, r0 + rng.integers(-2500, 2500, 200),
+                         c0 + rng.integers(-2500, 2500, 200))
+
+
+def test_ray_cells_of_no_line():
+    rows, cols, n = ray_cells(4, 5, np.zeros(0, np.int64), np.zeros(0, np.int64))
+    assert rows.shape == cols.shape == (0, 0) and n.shape == (0,)

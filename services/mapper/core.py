@@ -32,8 +32,11 @@ Model (inverse sensor model in log-odds form, Thrun et al. "Probabilistic Roboti
   only where their hits lie at most ``surface_step`` apart: farther apart, a gap between them
   (a door no beam went through) cannot be told from wall. Without such a line (a lone hit,
   no-return neighbours) a beam clears every crossed cell as before.
-- The int8 occupancy (ROS values: -1 never touched, else round(100 p)) is kept current cell by
-  cell inside the numba kernel, so no whole-grid conversion ever happens per scan.
+- The int8 occupancy (ROS values: -1 never touched, else round(100 p)) is kept current for
+  the cells a scan updates, so no whole-grid conversion ever happens per scan.
+- numpy only (no numba kernel): all rays of a scan are traced at once in closed form
+  (:func:`integrate_cells`). The mapper process then loads no numba and no LLVM, about 100 MB
+  less resident memory (docs/benchmarks.md, "Start-up and memory per service").
 
 The grid starts as an ``initial_size`` square centred on the first pose (cell boundaries on
 multiples of the resolution) and grows by ``grow_margin`` on a side a beam would leave, moving
@@ -47,11 +50,9 @@ import math
 from collections.abc import Mapping
 
 import numpy as np
-from numba import njit
 
 from topoexplore.common.domain import GridMap, Pose, Scan
-from topoexplore.common.grid import GridGeometry
-from topoexplore.common.kernels import bresenham, line_length
+from topoexplore.common.grid import GridGeometry, ray_cells
 from topoexplore.common.params import MapperParams
 
 __all__ = [
@@ -64,9 +65,6 @@ __all__ = [
     "logodds_to_int8",
     "prob_to_logodds",
 ]
-
-_STAMP_LIMIT = 2**31 - 2  # scan stamps are int32; wrap (and clear) before overflowing
-
 
 class ScanError(ValueError):
     """A scan or pose is inconsistent (no beams, NaN, negative range, absurd pose, ...)."""
@@ -157,86 +155,102 @@ def surface_normals(ex: np.ndarray, ey: np.ndarray, hit: np.ndarray, max_step: f
     return ok, near, nx, ny, lo, hi
 
 
-# --- the numba kernel ----------------------------------------------------------------------
+# --- one scan into the grid (numpy) -------------------------------------------------------
+
+_CHUNK = 1 << 20  # [cells] ray cells traced at once: bounds the temporary arrays of a scan
 
 
-@njit(cache=True, nogil=True)
-def _apply(logodds, occ, r, c, delta, l_min, l_max):  # pragma: no cover - compiled
-    v = logodds[r, c] + delta
-    if v < l_min:
-        v = l_min
-    elif v > l_max:
-        v = l_max
-    logodds[r, c] = v
-    occ[r, c] = np.int8(math.floor(100.0 / (1.0 + math.exp(-v)) + 0.5))
+def _apply(logodds: np.ndarray, occ: np.ndarray, flat: np.ndarray, delta: float,
+           l_min: float, l_max: float) -> None:
+    """Add ``delta`` to the log-odds of the cells ``flat`` (flat indices, each once), clamp,
+    and keep their int8 occupancy current (the sum and the probability in float64)."""
+    lo, oc = logodds.reshape(-1), occ.reshape(-1)
+    v = np.clip(lo[flat].astype(np.float64) + delta, l_min, l_max)
+    lo[flat] = v
+    oc[flat] = np.floor(100.0 / (1.0 + np.exp(-v)) + 0.5).astype(np.int8)
 
 
-@njit(cache=True, nogil=True)
-def _integrate_kernel(logodds, occ, stamp, scan_id, r0, c0, er, ec, hit,
-                      l_free, l_occ, l_min, l_max, surf, near, hc, hr, nx, ny, lo, hi,
-                      reach):  # pragma: no cover - compiled
+def _on_surface(rows: np.ndarray, cols: np.ndarray, n_free: np.ndarray, k0: int, r0: int,
+                c0: int, er: np.ndarray, ec: np.ndarray, surf: tuple) -> np.ndarray:
+    """Mask (beam, step) of the ray cells of beams k0.. that a beam does not clear: within
+    ``reach`` of its own hit, or of a neighbour's hit where near[j], and crossed by the known
+    stretch of that hit's surface (the arguments of :meth:`MapperCore._surfaces`).
+
+    Only a few steps of a ray can be within reach of a point: the major coordinate of step i
+    is exact (major0 + sign * i), so |major0 + sign * i + 0.5 - p_major| <= reach bounds i to
+    a window of floor(2 reach) + 1 steps; the exact test runs on that window only.
+    """
+    ok, near, hc, hr, nx, ny, lo, hi, reach = surf
+    m, length = rows.shape
+    n = ok.shape[0]
+    on = np.zeros((m, length), bool)
+    k = np.arange(k0, k0 + m)
+    cmajor = np.abs(ec[k] - c0) >= np.abs(er[k] - r0)
+    m0 = np.where(cmajor, c0, r0)
+    s = np.where(cmajor, np.where(ec[k] > c0, 1, -1), np.where(er[k] > r0, 1, -1))
+    steps = np.arange(int(math.floor(2.0 * reach)) + 4)[None, :]
+    for o in (-1, 0, 1):
+        j = np.clip(k + o, 0, n - 1)
+        use = (k + o >= 0) & (k + o < n) & ok[j] & (near[j] | (o == 0))
+        t = s * (np.where(cmajor, hc[j], hr[j]) - 0.5 - m0)
+        i = (np.ceil(t - reach).astype(np.int64) - 1)[:, None] + steps
+        inside = use[:, None] & (i >= 0) & (i < n_free[:, None])
+        b, i = np.nonzero(inside)[0], i[inside]
+        jb = j[b]
+        ax = cols[b, i] + 0.5 - hc[jb]
+        ay = rows[b, i] + 0.5 - hr[jb]
+        u = ny[jb] * ax - nx[jb] * ay  # along the surface from the hit
+        # the line crosses the cell: centre closer than the cell's half extent along the
+        # normal (less 0.05 cell, so a face on a cell edge does not)
+        hit = ((ax * ax + ay * ay <= reach * reach)
+               & (np.abs(nx[jb] * ax + ny[jb] * ay)
+                  < 0.5 * (np.abs(nx[jb]) + np.abs(ny[jb])) - 0.05)
+               & (lo[jb] - 0.5 <= u) & (u <= hi[jb] + 0.5))
+        on[b[hit], i[hit]] = True
+    return on
+
+
+def integrate_cells(logodds: np.ndarray, occ: np.ndarray, scratch: np.ndarray, r0: int,
+                    c0: int, er: np.ndarray, ec: np.ndarray, hit: np.ndarray, l_free: float,
+                    l_occ: float, l_min: float, l_max: float, surf: tuple
+                    ) -> tuple[int, int, int, int]:
     """Apply one scan in place; return the touched window (row0, row1, col0, col1), half-open.
 
-    Bresenham (:func:`topoexplore.common.kernels.bresenham`) from (r0, c0) to each
-    (er[k], ec[k]); all indices must be inside the grid. Where surf[k], the hit is at
-    (hc[k], hr[k]) in cell units (column, row; cell (r, c) spans [c, c+1) x [r, r+1)) on a
-    straight surface of unit normal (nx[k], ny[k]), known from lo[k] to hi[k] [cells] along
-    its tangent (ny[k], -nx[k]) from the hit; a beam does not clear the cells within reach
-    [cells] of its own hit, or of a neighbour's hit where near[j], that the known stretch of
-    that surface passes through. ``stamp[r, c] == scan_id`` marks a
-    cell already updated in this scan.
+    Each beam k is the Bresenham line (:func:`topoexplore.common.grid.ray_cells`) from the
+    laser's cell (r0, c0) to its end cell (er[k], ec[k]); every index must be inside the grid.
+    The end cell of a hit gets ``l_occ``; every other cell of a line gets ``l_free``, except
+    the cells :func:`_on_surface` keeps (when ``surf``'s reach > 0). Each cell is updated at
+    most once per scan, and a cell hit in this scan is not cleared by another beam. ``scratch``
+    is an int32 array of the grid's shape whose contents do not matter (it marks the cells
+    seen in this scan: the last position in the list of free cells, -1 for a hit).
     """
     h, w = logodds.shape
-    rmin, rmax, cmin, cmax = h, -1, w, -1
     n = er.shape[0]
-    for k in range(n):  # pass 1: hits (take precedence within the scan)
-        if hit[k]:
-            r = er[k]
-            c = ec[k]
-            if stamp[r, c] != scan_id:
-                stamp[r, c] = scan_id
-                _apply(logodds, occ, r, c, l_occ, l_min, l_max)
-                rmin = min(rmin, r)
-                rmax = max(rmax, r)
-                cmin = min(cmin, c)
-                cmax = max(cmax, c)
-    cap = 1  # line buffers sized for the longest ray
-    for k in range(n):
-        cap = max(cap, line_length(r0, c0, er[k], ec[k]))
-    rows = np.empty(cap, np.int64)
-    cols = np.empty(cap, np.int64)
-    for k in range(n):  # pass 2: free cells along each ray (a hit's own cell is not free)
-        m = bresenham(r0, c0, er[k], ec[k], rows, cols)
-        if hit[k]:
-            m -= 1
-        for i in range(m):
-            r = rows[i]
-            c = cols[i]
-            on = False  # does the surface this beam or a neighbour hit pass through the cell?
-            for j in range(max(k - 1, 0), min(k + 2, n) if reach > 0.0 else 0):
-                if surf[j] and (j == k or near[j]):
-                    ax = c + 0.5 - hc[j]
-                    ay = r + 0.5 - hr[j]
-                    u = ny[j] * ax - nx[j] * ay  # along the surface from the hit
-                    # the line crosses the cell: centre closer than the cell's half extent
-                    # along the normal (less 0.05 cell, so a face on a cell edge does not)
-                    if (ax * ax + ay * ay <= reach * reach and abs(nx[j] * ax + ny[j] * ay)
-                            < 0.5 * (abs(nx[j]) + abs(ny[j])) - 0.05
-                            and lo[j] - 0.5 <= u <= hi[j] + 0.5):
-                        on = True
-                        break
-            if on:
-                continue
-            if stamp[r, c] != scan_id:
-                stamp[r, c] = scan_id
-                _apply(logodds, occ, r, c, l_free, l_min, l_max)
-                rmin = min(rmin, r)
-                rmax = max(rmax, r)
-                cmin = min(cmin, c)
-                cmax = max(cmax, c)
-    if rmax < 0:
+    n_free = np.maximum(np.maximum(np.abs(er - r0), np.abs(ec - c0)) + 1 - hit, 0)
+    hits = er[hit] * w + ec[hit]
+    free = []
+    per = max(1, _CHUNK // max(1, int(n_free.max(initial=0)) + 1))
+    for k0 in range(0, n, per):  # beams in chunks: rows x steps stays under _CHUNK cells
+        k1 = min(n, k0 + per)
+        rows, cols, _ = ray_cells(r0, c0, er[k0:k1], ec[k0:k1])
+        keep = np.arange(rows.shape[1])[None, :] < n_free[k0:k1, None]
+        if surf[-1] > 0.0:
+            keep &= ~_on_surface(rows, cols, n_free[k0:k1], k0, r0, c0, er, ec, surf)
+        free.append(rows[keep] * w + cols[keep])
+    flat = np.concatenate(free) if free else np.zeros(0, np.int64)
+    mark = scratch.reshape(-1)
+    pos = np.arange(flat.size, dtype=np.int32)
+    mark[flat] = pos  # the last occurrence of a cell wins ...
+    mark[hits] = -1  # ... and a hit in this scan takes precedence over every free
+    flat = flat[mark[flat] == pos]
+    hits = np.unique(hits)
+    _apply(logodds, occ, hits, l_occ, l_min, l_max)
+    _apply(logodds, occ, flat, l_free, l_min, l_max)
+    cells = np.concatenate((hits, flat))
+    if cells.size == 0:
         return 0, 0, 0, 0
-    return rmin, rmax + 1, cmin, cmax + 1
+    r, c = np.divmod(cells, w)
+    return int(r.min()), int(r.max()) + 1, int(c.min()), int(c.max()) + 1
 
 
 def grow_axis(lo: int, hi: int, n: int, margin: int, limit: int) -> tuple[int, int]:
@@ -282,8 +296,7 @@ class MapperCore:
         self._off_r = 0  # [cells]
         self._l = np.zeros((0, 0), np.float32)  # log-odds
         self._occ = np.zeros((0, 0), np.int8)  # ROS int8 cache, -1 = never touched
-        self._stamp = np.zeros((0, 0), np.int32)  # last scan id that updated the cell
-        self._scan_id = 0
+        self._scratch = np.zeros((0, 0), np.int32)  # integrate_cells' per-cell marks
         self.scans = 0  # scans integrated (including ones with no usable beam)
         self.grown = 0  # times the grid grew
 
@@ -362,7 +375,7 @@ class MapperCore:
         core._l = lo
         core._occ = np.full(g.shape, -1, np.int8)
         core._occ[known] = logodds_to_int8(lo[known])
-        core._stamp = np.zeros(g.shape, np.int32)
+        core._scratch = np.zeros(g.shape, np.int32)
         return core
 
     # -- checkpoints (issue 14: a restarted mapper keeps its map) -------------------------------
@@ -408,7 +421,7 @@ class MapperCore:
         core._off_c, core._off_r, core.scans, core.grown = (int(v) for v in counts)
         core._l = lo.copy()
         core._occ = occ.copy()
-        core._stamp = np.zeros(lo.shape, np.int32)
+        core._scratch = np.zeros(lo.shape, np.int32)
         return core
 
     def adopt(self, newer: GridMap) -> int:
@@ -486,18 +499,11 @@ class MapperCore:
             cols += dc
             changed_shape = True
         self.scans += 1
-        self._scan_id += 1
-        if self._scan_id >= _STAMP_LIMIT:
-            self._stamp[:] = 0
-            self._scan_id = 1
-        window = _integrate_kernel(
-            self._l, self._occ, self._stamp, np.int64(self._scan_id),
-            np.int64(rows[-1]), np.int64(cols[-1]),
-            np.ascontiguousarray(rows[:-1]), np.ascontiguousarray(cols[:-1]),
-            np.ascontiguousarray(hit, dtype=np.bool_),
-            float(self.params.l_free), float(self.params.l_occ),
-            float(self.params.l_min), float(self.params.l_max),
-            *self._surfaces(ex, ey, hit),
+        window = integrate_cells(
+            self._l, self._occ, self._scratch, int(rows[-1]), int(cols[-1]), rows[:-1],
+            cols[:-1], np.asarray(hit, dtype=bool), float(self.params.l_free),
+            float(self.params.l_occ), float(self.params.l_min), float(self.params.l_max),
+            self._surfaces(ex, ey, hit),
         )
         if changed_shape:
             h, w = self._l.shape
@@ -505,11 +511,11 @@ class MapperCore:
         return tuple(int(v) for v in window)
 
     def _surfaces(self, ex: np.ndarray, ey: np.ndarray, hit: np.ndarray) -> tuple:
-        """The kernel's surface arguments (surf, near, hc, hr, nx, ny, lo, hi, reach; lengths
+        """:func:`integrate_cells`' surface arguments (surf, near, hc, hr, nx, ny, lo, hi, reach; lengths
         in cells) for the end points ex, ey [m] in the current grid (:func:`surface_normals`);
         empty when surface_reach is 0."""
         reach = float(self.params.surface_reach) / self._res
-        if reach <= 0.0:  # the kernel reads none of them: empty arrays of the right types
+        if reach <= 0.0:  # none of them is read: empty arrays of the right types
             z, b = np.zeros(0), np.zeros(0, bool)
             return b, b, z, z, z, z, z, z, 0.0
         ok, near, nx, ny, lo, hi = surface_normals(ex, ey, hit, self.params.surface_step)
@@ -529,7 +535,7 @@ class MapperCore:
     def _alloc(self, shape: tuple[int, int]) -> None:
         self._l = np.zeros(shape, np.float32)
         self._occ = np.full(shape, -1, np.int8)
-        self._stamp = np.zeros(shape, np.int32)
+        self._scratch = np.zeros(shape, np.int32)
 
     def _grow(self, rmin: int, rmax: int, cmin: int, cmax: int) -> tuple[int, int]:
         """Grow so that rows rmin..rmax and cols cmin..cmax fit, plus grow_margin on each side
@@ -548,23 +554,14 @@ class MapperCore:
             )
         nh = h + add_r0 + add_r1
         nw = w + add_c0 + add_c1
-        old_l, old_occ, old_st = self._l, self._occ, self._stamp
+        old_l, old_occ = self._l, self._occ
         self._alloc((nh, nw))
         self._l[add_r0:add_r0 + h, add_c0:add_c0 + w] = old_l
         self._occ[add_r0:add_r0 + h, add_c0:add_c0 + w] = old_occ
-        self._stamp[add_r0:add_r0 + h, add_c0:add_c0 + w] = old_st
         self._off_r -= add_r0
         self._off_c -= add_c0
         self.grown += 1
         return add_r0, add_c0
 
 
-# Entry kernels and the argument types this core calls them with (common.warm).
-WARM = {
-    "_integrate_kernel": (
-        "(float32[:, ::1], int8[:, ::1], int32[:, ::1], int64, int64, int64, int64[::1],"
-        " int64[::1], boolean[::1], float64, float64, float64, float64, boolean[::1],"
-        " boolean[::1], float64[::1], float64[::1], float64[::1], float64[::1], float64[::1],"
-        " float64[::1], float64)",),
-}
-WARM_MODULES = (__name__,)  # modules whose WARM kernels this core runs
+WARM_MODULES: tuple[str, ...] = ()  # no numba kernels (common.warm)
