@@ -60,7 +60,9 @@ def test_explores_world_to_the_end(world):
         assert (out / name).stat().st_size > 0, name
     # memory and CPU of every process, read from /proc before the stack stopped
     for svc in ("mapper", "topology", "reliability", "planner", "controller", "sim", "router"):
-        assert 0 < r["memory_mb"][svc]["rss_mb"] <= r["memory_mb"][svc]["peak_mb"], svc
+        mem = r["memory_mb"][svc]
+        assert 0 < mem["rss_mb"] <= mem["peak_mb"], svc
+        assert 0 < mem["private_mb"] <= mem["pss_mb"] <= mem["rss_mb"] + 0.1, svc
         assert r["cpu_s"][svc]["user_s"] > 0, svc
     # the supervisor warmed the kernels first; each service had its kernels before it was up
     assert r["warmup_s"] > 0 and r["first_motion_s"] > r["startup_s"] > 0, r

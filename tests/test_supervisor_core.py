@@ -98,6 +98,9 @@ def test_process_memory_and_cpu_from_proc():
 
     mem, cpu = proc_memory(os.getpid()), proc_cpu(os.getpid())
     assert mem is not None and 0 < mem["rss_mb"] <= mem["peak_mb"]
+    # the proportional and private shares (Linux >= 4.14) are parts of the resident set
+    assert 0 < mem["private_mb"] <= mem["pss_mb"] <= mem["rss_mb"] + 0.1
+    assert 0 <= mem["shmem_mb"] <= mem["rss_mb"]
     assert cpu is not None and cpu["user_s"] > 0 and cpu["sys_s"] >= 0
     assert proc_memory(2**22 + 12345) is None and proc_cpu(2**22 + 12345) is None
 

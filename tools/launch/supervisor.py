@@ -113,20 +113,47 @@ def proc_cpu(pid: int) -> dict[str, float] | None:
 
 
 def proc_memory(pid: int) -> dict[str, float] | None:
-    """{"rss_mb", "peak_mb"} of a process from /proc/<pid>/status (VmRSS, VmHWM); None when
-    unreadable (gone, not Linux)."""
+    """Memory of a process [MB]; None when unreadable (gone, not Linux).
+
+    - ``rss_mb`` / ``peak_mb``: resident now and the kernel's high-water mark (VmRSS, VmHWM);
+    - ``shmem_mb``: the part of rss_mb that is shared memory (RssShmem: zenoh's buffer pools,
+      which every process on the host that reads from a pool maps too);
+    - ``pss_mb``: the proportional share (smaps_rollup Pss): every page shared by n processes
+      counts 1/n, so the stack's pss_mb add up to what it really holds, while rss_mb counts
+      the same pages of numba's LLVM, OpenCV, zenoh and the pools once per process;
+    - ``private_mb``: pages no other process maps (Private_Clean + Private_Dirty), what
+      stopping this process alone frees.
+    """
     try:
         text = Path(f"/proc/{pid}/status").read_text()
     except OSError:
         return None
+    kb = _kb_fields(text, ("VmRSS", "VmHWM", "RssShmem"))
+    if "VmRSS" not in kb or "VmHWM" not in kb:
+        return None
+    out = {"rss_mb": round(kb["VmRSS"] / 1024, 1), "peak_mb": round(kb["VmHWM"] / 1024, 1)}
+    if "RssShmem" in kb:
+        out["shmem_mb"] = round(kb["RssShmem"] / 1024, 1)
+    try:
+        roll = _kb_fields(Path(f"/proc/{pid}/smaps_rollup").read_text(),
+                          ("Pss", "Private_Clean", "Private_Dirty"))
+    except OSError:  # an older kernel, or not allowed: the status figures only
+        return out
+    if "Pss" in roll:
+        out["pss_mb"] = round(roll["Pss"] / 1024, 1)
+    if "Private_Clean" in roll and "Private_Dirty" in roll:
+        out["private_mb"] = round((roll["Private_Clean"] + roll["Private_Dirty"]) / 1024, 1)
+    return out
+
+
+def _kb_fields(text: str, keys: tuple[str, ...]) -> dict[str, float]:
+    """``Key:   123 kB`` lines of a /proc file -> {key: 123.0} for the wanted keys."""
     kb = {}
     for line in text.splitlines():
         key, _, value = line.partition(":")
-        if key in ("VmRSS", "VmHWM"):
+        if key in keys and value.split():
             kb[key] = float(value.split()[0])
-    if len(kb) < 2:
-        return None
-    return {"rss_mb": round(kb["VmRSS"] / 1024, 1), "peak_mb": round(kb["VmHWM"] / 1024, 1)}
+    return kb
 
 
 def profile_dir() -> Path:
@@ -450,8 +477,9 @@ class Supervisor:
             }
 
     def memory(self) -> dict[str, dict[str, float]]:
-        """Resident memory of each running child (and the router): ``rss_mb`` now and
-        ``peak_mb`` (the kernel's high-water mark, VmHWM) [MB]. Linux only; {} elsewhere."""
+        """Memory of each running child (and the router), :func:`proc_memory`'s figures:
+        ``rss_mb`` now, ``peak_mb`` (VmHWM), ``shmem_mb``, ``pss_mb``, ``private_mb`` [MB].
+        Linux only; {} elsewhere."""
         return self._per_process(proc_memory)
 
     def cpu(self) -> dict[str, dict[str, float]]:
