@@ -67,8 +67,18 @@ def make_config(
     listen: str | list[str] | None = None,
     config_file: str | None = None,
     wait_for_router: bool = False,
+    shared_memory: bool = False,
 ) -> zenoh.Config:
-    """Build a Zenoh config. A config file, when given, is the base; mode/endpoints override it."""
+    """Build a Zenoh config. A config file, when given, is the base; mode, endpoints and
+    ``shared_memory`` override it.
+
+    zenoh's shared-memory transport (on by default in zenoh: payloads over 3 KB go through a
+    16 MB pool per process, mapped by every process that reads from it) is off unless
+    ``shared_memory``: here it saved 2-4 % of the CPU of a large-office run and cost about
+    100 MB resident and 60 MB proportional memory over the stack (docs/benchmarks.md,
+    "Memory"). Both ends of a link need it on (``bus.shared_memory``, for the services and
+    the router alike); a link where one end has it off carries copies.
+    """
     import json
 
     try:
@@ -90,6 +100,7 @@ def make_config(
             # a client connects to named endpoints: it has no reason to answer multicast
             # scouting on every interface (it did: a Hello to anyone who asks)
             cfg.insert_json5("scouting/multicast/enabled", "false")
+        cfg.insert_json5("transport/shared_memory/enabled", json.dumps(bool(shared_memory)))
         _apply_credentials(cfg, mode)
     except BusError:
         raise
@@ -232,14 +243,16 @@ class Bus:
     # -- construction helpers -------------------------------------------------------------
     @classmethod
     def client(cls, connect: str = DEFAULT_ENDPOINT, name: str = "", config_file: str | None = None,
-               wait_for_router: bool = False) -> Bus:
+               wait_for_router: bool = False, shared_memory: bool = False) -> Bus:
         return cls(make_config("client", connect=connect, config_file=config_file,
-                               wait_for_router=wait_for_router), name)
+                               wait_for_router=wait_for_router, shared_memory=shared_memory),
+                   name)
 
     @classmethod
     def router(cls, listen: str = DEFAULT_ENDPOINT, name: str = "router",
-               config_file: str | None = None) -> Bus:
-        return cls(make_config("router", connect=None, listen=listen, config_file=config_file), name)
+               config_file: str | None = None, shared_memory: bool = False) -> Bus:
+        return cls(make_config("router", connect=None, listen=listen, config_file=config_file,
+                               shared_memory=shared_memory), name)
 
     def __enter__(self) -> Bus:
         return self

@@ -352,7 +352,7 @@ class Node:
         self._pending_params: Params | None = None
         self._live_lock = threading.Lock()
         self.bus = Bus.client(params.bus.connect, name=service, config_file=zenoh_config,
-                              wait_for_router=True)
+                              wait_for_router=True, shared_memory=params.bus.shared_memory)
         self._seq: dict[str, int] = {}
         self.chaos = Chaos(params.runtime)
         self.add_live(CHAOS_LIVE, lambda p: self.chaos.configure(p.runtime))

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 import time
 
 from tests.conftest import pid_alive
@@ -224,3 +225,44 @@ def test_clients_do_not_answer_multicast_scouting(endpoint):
             assert not zids & set(hellos), hellos
         finally:
             quiet.close()
+
+
+def test_shared_memory_is_off_unless_asked_and_both_settings_deliver(endpoint, tmp_path):
+    """make_config: zenoh's shared-memory transport off by default, on with shared_memory,
+    and our setting overrides a config file's (like mode and endpoints). A 200 kB payload
+    (over zenoh's 3 kB threshold) arrives intact through a router either way."""
+    import json
+
+    from topoexplore.common.bus import make_config
+
+    def shm(cfg) -> bool:
+        return json.loads(cfg.get_json("transport/shared_memory/enabled"))
+
+    assert not shm(make_config("client", connect=endpoint))
+    assert shm(make_config("client", connect=endpoint, shared_memory=True))
+    assert shm(make_config("router", connect=None, listen=endpoint, shared_memory=True))
+    f = tmp_path / "z.json5"
+    f.write_text('{transport: {shared_memory: {enabled: true}}}')
+    assert not shm(make_config("client", connect=endpoint, config_file=str(f)))
+    payload = bytes(range(256)) * 800
+    for on in (False, True):
+        with Bus.router(endpoint, shared_memory=on), \
+                Bus.client(endpoint, shared_memory=on) as a, \
+                Bus.client(endpoint, shared_memory=on) as b:
+            got: list[bytes] = []
+            done = threading.Event()
+
+            def take(sample, got=got, done=done):
+                got.append(bytes(sample.payload.to_bytes()))
+                done.set()
+
+            sub = b.session.declare_subscriber("shmtest/x", take)
+            try:
+                pub = a.session.declare_publisher("shmtest/x")
+                deadline = time.monotonic() + 10
+                while not done.is_set() and time.monotonic() < deadline:
+                    pub.put(payload)
+                    done.wait(0.2)
+                assert got and got[0] == payload, on
+            finally:
+                sub.undeclare()

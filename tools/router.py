@@ -18,12 +18,15 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="topoexplore router", description=__doc__)
     ap.add_argument("--listen", default=DEFAULT_ENDPOINT, help="endpoint(s) to listen on")
     ap.add_argument("--zenoh-config", default=None, help="Zenoh JSON5 config file (base)")
+    ap.add_argument("--shared-memory", action="store_true",
+                    help="zenoh's shared-memory transport on (bus.shared_memory)")
     args = ap.parse_args(argv)
     init_logging()
     stop = threading.Event()
     stop_on_signals(stop.set)  # no lock in a signal handler: back-to-back signals deadlocked
     try:
-        bus = Bus.router(args.listen, config_file=args.zenoh_config)
+        bus = Bus.router(args.listen, config_file=args.zenoh_config,
+                         shared_memory=args.shared_memory)
     except BusError as exc:
         print(f"topoexplore router: {exc}", file=sys.stderr)
         return 2

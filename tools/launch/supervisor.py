@@ -186,6 +186,7 @@ class Supervisor:
         except ParamError:  # the children say what is wrong, each in one line
             params = Params()
         self.profile = select(profile, params)
+        self.shared_memory = params.bus.shared_memory  # the router's, like the services'
         self.keys = keys
         self.endpoint = endpoint
         self.params_file = params_file
@@ -293,6 +294,8 @@ class Supervisor:
         cmd = [sys.executable, "-u", "-m", "topoexplore.tools.router", "--listen", self.endpoint]
         if self.router_config or self.zenoh_config:
             cmd += ["--zenoh-config", self.router_config or self.zenoh_config]
+        if self.shared_memory:
+            cmd.append("--shared-memory")
         self.router = self._spawn("router", cmd)
         self._wait_router_port()
 
