@@ -179,6 +179,12 @@ def test_bench_faults_refuses_unknown_faults():
 # --- a mapper killed mid-run ---------------------------------------------------------------------
 
 
+# The kill tests run this world: several rooms, so the services have state worth keeping
+# (reliable places, a map of a few thousand cells) well before it is done, in about 300 s of
+# sim time (office takes 811 s: these tests were three of the suite's four slowest).
+KILL_WORLD = "small-house"
+
+
 def _state(bus: Bus, keys: Keys, service: str) -> dict | None:
     from topoexplore.tools.livestate import StateError, fetch_state
 
@@ -207,13 +213,13 @@ def _reap(run: subprocess.Popen) -> None:
 
 @pytest.mark.parametrize("service", ["mapper", "sim"])
 def test_a_service_killed_mid_run_resumes(tmp_path, endpoint, namespace, service):
-    """SIGKILL the mapper or the simulator of a lockstep office run once they have written
+    """SIGKILL the mapper or the simulator of a lockstep run once they have written
     checkpoints: the supervisor restarts it, it resumes (the map; the robot, its clock and
     its path), and the run finishes as it would have."""
     out = tmp_path / "run"
     keys = Keys(namespace, "robot1")
     run = subprocess.Popen([sys.executable, "-m", "topoexplore.tools.cli", "run", "--world",
-                            "office", "--lockstep", "--quiet", "--out", str(out), "--connect",
+                            KILL_WORLD, "--lockstep", "--quiet", "--out", str(out), "--connect",
                             endpoint, "--namespace", namespace, "--max-sim-time", "2000"],
                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                            text=True, start_new_session=True)
@@ -364,7 +370,7 @@ def test_checkpoints_that_do_not_fit_are_refused(updates, name):
 
 
 def test_topology_reliability_planner_killed_together_resume(tmp_path, endpoint, namespace):
-    """SIGKILL topology, reliability and the planner at once in a lockstep office run: each
+    """SIGKILL topology, reliability and the planner at once in a lockstep run: each
     restarts from its checkpoint (node ids, beliefs, the planner's memory) and the run
     finishes. Right after the restart, reliability still knows the places that were
     reliable, under the same ids."""
@@ -372,7 +378,7 @@ def test_topology_reliability_planner_killed_together_resume(tmp_path, endpoint,
     keys = Keys(namespace, "robot1")
     victims = ("topology", "reliability", "planner")
     run = subprocess.Popen([sys.executable, "-m", "topoexplore.tools.cli", "run", "--world",
-                            "office", "--lockstep", "--quiet", "--out", str(out), "--connect",
+                            KILL_WORLD, "--lockstep", "--quiet", "--out", str(out), "--connect",
                             endpoint, "--namespace", namespace, "--max-sim-time", "2000"],
                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                            text=True, start_new_session=True)
