@@ -74,9 +74,9 @@ def make_config(
 
     zenoh's shared-memory transport (on by default in zenoh: payloads over 3 KB go through a
     16 MB pool per process, mapped by every process that reads from it) is off unless
-    ``shared_memory``: here it saved 2-4 % of the CPU of a large-office run and cost about
-    100 MB resident and 60 MB proportional memory over the stack (docs/benchmarks.md,
-    "Memory"). Both ends of a link need it on (``bus.shared_memory``, for the services and
+    ``shared_memory``: here it saved about 3 % of the CPU of an office or large-office run
+    and cost the stack 339 MB resident and 133 MB proportional memory on office
+    (docs/benchmarks.md, "Memory"). Both ends of a link need it on (``bus.shared_memory``, for the services and
     the router alike); a link where one end has it off carries copies.
     """
     import json

@@ -186,7 +186,7 @@ class BusParams(_P):
     robot: str = DEFAULT_ROBOT
     connect: str = DEFAULT_ENDPOINT
     shared_memory: bool = False  # zenoh's shared-memory transport between the processes of
-    # one host, services and router alike (common/bus.py make_config: off saves ~100 MB)
+    # one host, services and router alike (common/bus.py make_config: off saves ~130 MB)
 
     def __post_init__(self) -> None:
         check_segment(self.namespace, "namespace")

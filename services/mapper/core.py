@@ -35,8 +35,8 @@ Model (inverse sensor model in log-odds form, Thrun et al. "Probabilistic Roboti
 - The int8 occupancy (ROS values: -1 never touched, else round(100 p)) is kept current for
   the cells a scan updates, so no whole-grid conversion ever happens per scan.
 - numpy only (no numba kernel): all rays of a scan are traced at once in closed form
-  (:func:`integrate_cells`). The mapper process then loads no numba and no LLVM, about 100 MB
-  less resident memory (docs/benchmarks.md, "Start-up and memory per service").
+  (:func:`integrate_cells`). The mapper process then loads no numba and no LLVM: 213 -> 93 MB
+  resident on office (docs/benchmarks.md, "Memory").
 
 The grid starts as an ``initial_size`` square centred on the first pose (cell boundaries on
 multiples of the resolution) and grows by ``grow_margin`` on a side a beam would leave, moving
@@ -511,9 +511,9 @@ class MapperCore:
         return tuple(int(v) for v in window)
 
     def _surfaces(self, ex: np.ndarray, ey: np.ndarray, hit: np.ndarray) -> tuple:
-        """:func:`integrate_cells`' surface arguments (surf, near, hc, hr, nx, ny, lo, hi, reach; lengths
-        in cells) for the end points ex, ey [m] in the current grid (:func:`surface_normals`);
-        empty when surface_reach is 0."""
+        """The surface arguments of :func:`integrate_cells` (surf, near, hc, hr, nx, ny, lo, hi,
+        reach; lengths in cells) for the end points ex, ey [m] in the current grid
+        (:func:`surface_normals`); empty when surface_reach is 0."""
         reach = float(self.params.surface_reach) / self._res
         if reach <= 0.0:  # none of them is read: empty arrays of the right types
             z, b = np.zeros(0), np.zeros(0, bool)
