@@ -85,8 +85,11 @@ def test_explores_world_to_the_end(world):
 
 def test_a_360_degree_lidar_explores_too():
     """laser.model = lidar-360: the simulator becomes a 360-beam lidar (12 m, 10 Hz); the
-    mapper takes its scans as they come (no beam-count check against the SICK's 181)."""
-    r = explore("junction", sets=("laser.model=lidar-360",))
+    mapper takes its scans as they come (no beam-count check against the SICK's 181). On
+    dead-end: on junction the 360-degree lidar drives 48 m where the SICK drives 10 m, walls
+    seen at grazing angles (docs/benchmarks.md, "A 360° lidar"), which this test does not
+    judge."""
+    r = explore("dead-end", sets=("laser.model=lidar-360",))
     assert r["_exit"] == 0 and r["finished"] and r["coverage"] >= 0.95, r["_stderr"]
     assert r["collisions"] == 0
     assert "[laser] says" not in (Path(r["_out"]) / "logs.txt").read_text()
