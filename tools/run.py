@@ -753,7 +753,8 @@ class StackRun:
                               f"logs in {self.setup.out / 'logs.txt'}")
         self.sup.start_router()
         self.bus = bus = Bus.client(self.setup.endpoint, name="run",
-                                    config_file=args.zenoh_config, wait_for_router=True)
+                                    config_file=args.zenoh_config, wait_for_router=True,
+                                    shared_memory=self.setup.params.bus.shared_memory)
         bus.subscribe(keys.explore_status, m.ExploreStatus, lambda msg, k: mon.on_status(msg))
         bus.subscribe(keys.sim_status, m.SimStatus, lambda msg, k: mon.on_sim(msg))
         bus.subscribe(keys.truth, m.PoseStamped, lambda msg, k: mon.on_truth(msg))
