@@ -348,6 +348,10 @@ class PlannerParams(_P):
     # go to the frontier groups that remain (docs/design.md, "Completion phase")
     completion_min_size: NonNeg = 1.0  # [m] ... those at least this long
     completion_near: NonNeg = 4.0  # [m] ... or shorter (down to min_frontier_size) and this near
+    completion_openings: NonNeg = 0.0  # [m] ... or shorter still and farther, an opening
+    #   (a door seen only from afar: the robot's body fits into the unknown there and the
+    #   unknown widens behind it) not yet looked into squarely from this close; its goal is
+    #   the nearest place to do so; 0: off (docs/design.md "Openings")
     completion_pocket_area: NonNeg = 1.5  # [m^2] ... and not next to a smaller enclosed pocket
     completion_pocket_share: Annotated[float, Meta(ge=0.0, le=1.0)] = 0.01  # ... unless the
     #   robot can reach completion_min_size of its edge (look into it) and it is at least this

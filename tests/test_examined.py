@@ -86,6 +86,28 @@ def test_examined_cells_are_no_frontier_for_the_map_view():
     assert again.free[face].all()  # still free for paths
 
 
+def test_two_memories_keep_their_own_checkpoint_arrays():
+    """The planner keeps two: the examined cells and the cells looked into
+    (completion_openings); a checkpoint without the second is refused, as any that does not
+    fit (the service then starts afresh)."""
+    from topoexplore.common.checkpoint import CheckpointError
+    from topoexplore.common.params import PlannerParams, RobotParams
+    from topoexplore.services.planner.core import PlannerCore
+
+    cls, geom = wall_room()
+    ex, looked = examined(views=1), Examined(2.0, 1.4, math.pi / 4, 1, name="looked")
+    ex.observe(2.05, 2.05, -math.pi / 2, cls, geom)
+    arrays = {**ex.checkpoint(), **looked.checkpoint()}
+    assert set(arrays) == {"examined_closed", "examined_count", "looked_closed", "looked_count"}
+    again = Examined(2.0, 1.4, math.pi / 4, 1, name="looked")
+    again.restore(arrays)
+    assert again.mask(geom) is None
+    core = PlannerCore(PlannerParams(completion_openings=2.0), RobotParams(), 0.9, Occupancy())
+    old = {k: v for k, v in core.checkpoint().items() if not k.startswith("looked")}
+    with pytest.raises(CheckpointError, match="looked_closed"):
+        core.restore(old)
+
+
 def test_off_means_nothing_is_examined():
     cls, geom = wall_room()
     ex = Examined(0.0, 1.4, math.pi / 4, 1)

@@ -19,6 +19,7 @@ from topoexplore.services.planner.core import PlannerCore
 from topoexplore.services.planner.decision import Action, Decision
 from topoexplore.services.planner.mapview import MapView
 from topoexplore.services.planner.strategies.base import Config
+from topoexplore.services.planner.strategies.frontier import is_opening
 
 RADIUS = RobotParams().radius
 
@@ -740,6 +741,94 @@ def test_completion_ignores_short_groups_unless_near():
     g[30:33, 29] = 0
     out = tiny.update(0.0, (1.05, 3.05, 0.0), known_left_half_topo(), rel(done), grid(g, geom))
     assert out.state == "done", out.status.reason
+
+
+def gap_room(lo: int, hi: int):
+    """half_known_room walled off at column 29 but for the free rows lo..hi-1 of the wall."""
+    g, geom = half_known_room()
+    g[1:59, 29] = 100
+    g[lo:hi, 29] = 0
+    return g, geom
+
+
+def test_completion_counts_a_short_opening_until_the_robot_has_looked_into_it():
+    """completion_openings: a 0.7 m gap (a group under completion_min_size) that the robot's
+    body fits through counts however far away, until the robot has looked into it squarely
+    from within that range; then it is a short group like any other."""
+    g, geom = gap_room(28, 35)
+    done = {1: 0.95, 2: 0.95}
+    pose = (1.05, 3.05, 0.0)  # 1.85 m from the gap, facing it
+    off = PlannerCore(params(completion_near=0.5))
+    assert off.update(0.0, pose, known_left_half_topo(), rel(done), grid(g, geom)).state == "done"
+    far = PlannerCore(params(completion_near=0.5, completion_openings=1.5))
+    out = far.update(0.0, pose, known_left_half_topo(), rel(done), grid(g, geom))
+    assert out.state == "exploring" and "completion" in out.status.reason, out.status.reason
+    assert far.snapshot()["looked_into"] == 0
+    # the goal: the nearest place to look into it from, not the gap itself: facing a cell
+    # in the middle of the gap (rows 30-32) from within 1.5 m, at most 45 degrees off its
+    # unknown side (+x)
+    gx, gy = out.route.target_xy
+    th = out.route.goal_heading
+    assert th is not None and abs(th) <= math.pi / 4 + 1e-9
+    dist = (2.95 - gx) / math.cos(th)
+    assert dist <= 1.5 + 1e-9 and 3.0 <= gy + dist * math.sin(th) <= 3.3, (gx, gy, th)
+    assert gx < 1.6, (gx, gy)  # on the robot's side of that cone (it stands at x 1.05)
+    assert "looked into from" in out.status.reason
+    close = PlannerCore(params(completion_near=0.5, completion_openings=2.5))
+    out = close.update(0.0, pose, known_left_half_topo(), rel(done), grid(g, geom))
+    assert out.state == "done", out.status.reason
+    assert "or openings" in out.status.reason
+    assert close.snapshot()["looked_into"] == 7
+    away = PlannerCore(params(completion_near=0.5, completion_openings=2.5))
+    out = away.update(0.0, (1.05, 3.05, math.pi), known_left_half_topo(), rel(done),
+                      grid(g, geom))  # the same place, its back to the gap: not looked into
+    assert out.state == "exploring", out.status.reason
+
+
+def gap_group(view: MapView, lo: int, hi: int) -> tuple[np.ndarray, gs.FrontierGroup]:
+    """The frontier cells of gap_room's gap (a mask on the view's cropped grid) and the
+    group they make."""
+    gap = np.zeros(view.free.shape, dtype=bool)
+    ys = np.arange(lo, hi) * 0.1 + 0.05
+    gap[view.geom.world_to_cell(np.full(hi - lo, 2.95), ys)] = True
+    cells = np.stack([np.full(hi - lo, 2.95), ys], axis=1)
+    return gap, gs.FrontierGroup(1, hi - lo, (2.95, float(ys.mean())), cells, None, None,
+                                 math.inf, math.inf)
+
+
+@pytest.mark.parametrize("lo, hi, fits", [(28, 35, True), (29, 33, True), (29, 32, False),
+                                          (30, 31, False)])
+def test_an_opening_is_a_gap_the_body_fits_through(lo, hi, fits):
+    """MapView.openings at 0.1 m: fit 0.2 m (robot.radius 0.2 + body_margin 0.05 less half a
+    cell) lets a gap of 4 free cells through, not one of 3 (the narrow passages' rule)."""
+    g, geom = gap_room(lo, hi)
+    view = MapView(grid(g, geom), Occupancy())
+    fit = Config(PlannerParams(), 0.2, 0.9).fit(0.1)
+    mouth, wide = view.openings(fit)
+    gap, group = gap_group(view, lo, hi)
+    assert not (mouth & ~gap).any()  # the room's open edges beside the gap are walled
+    assert not (wide & ~mouth).any()
+    assert is_opening(view, fit, group) == fits
+    if fits:
+        mid = view.geom.world_to_cell(2.95, (lo + hi) / 2 * 0.1)
+        assert wide[mid]  # the middle of the gap (its ends are too near the jambs)
+        looked = MapView(grid(g, geom), Occupancy(), looked=lambda gm: gap)
+        assert not looked.openings(fit)[0].any()
+        assert not is_opening(looked, fit, group)
+
+
+@pytest.mark.parametrize("flanks, door", [((), True), ((27,), True), ((27, 35), False)])
+def test_an_opening_widens_behind_a_channel_does_not(flanks, door):
+    """A 0.7 m gap in a wall is a door when the unknown widens behind it, on one side at
+    least (a door in a room's corner has the room's side wall flush with one jamb); with a
+    wall seen along both sides of the way in (a recess beside furniture whose face was never
+    hit, a channel), the way stays as narrow as its mouth: no opening."""
+    g, geom = gap_room(28, 35)
+    for row in flanks:
+        g[row, 29:45] = 100
+    view = MapView(grid(g, geom), Occupancy())
+    fit = Config(PlannerParams(), 0.2, 0.9).fit(0.1)
+    assert is_opening(view, fit, gap_group(view, 28, 35)[1]) == door
 
 
 def test_stop_when_mapped_ends_with_open_end_nodes_once_no_frontier_is_left():

@@ -105,6 +105,9 @@ class PlannerCore:
                                     params.blocked_memory)
         self._examined = Examined(params.examine_range, params.examine_bearing,
                                   params.examine_angle, params.examine_views)
+        self._looked = Examined(params.completion_openings, params.examine_bearing,
+                                params.examine_angle, 1, name="looked")  # frontier cells
+        #   looked into squarely from close: no opening for the completion rules
         self._last_t: float | None = None
         self._last_eval_t = -math.inf
         self._had_path = False
@@ -131,9 +134,11 @@ class PlannerCore:
         self._blockages.observe(t, x, y, th, tg is not None and tg.arrived_t is None)
         self._view = None if grid is None else MapView(grid, self.occ,
                                                         self._blockages.active(t),
-                                                        self._examined.mask)
+                                                        self._examined.mask,
+                                                        self._looked.mask)
         if self._view is not None:
             self._examined.observe(x, y, th, self._view.classes, self._view.geom)
+            self._looked.observe(x, y, th, self._view.classes, self._view.geom)
         rem = None if tg is None else tg.remaining(x, y)  # [m] the robot located on its
         #   path: _narrowed judges what is ahead, the watchdog how near the target is
         self._narrowed_now = tg is not None and self._narrowed(tg)
@@ -202,7 +207,8 @@ class PlannerCore:
         The target, its path and the timers are not kept: a restarted planner chooses again
         from the next update."""
         return {**self._blacklist.checkpoint(), **self._blockages.checkpoint(),
-                **self._examined.checkpoint(), **self._watchdog.checkpoint(),
+                **self._examined.checkpoint(), **self._looked.checkpoint(),
+                **self._watchdog.checkpoint(),
                 "planner_counts": np.array([self._plan_id, self._replans, self._updates],
                                            np.int64)}
 
@@ -214,6 +220,7 @@ class PlannerCore:
         self._blacklist.restore(arrays)
         self._blockages.restore(arrays)
         self._examined.restore(arrays)
+        self._looked.restore(arrays)
         self._watchdog.restore(arrays)
         self._plan_id, self._replans, self._updates = (int(v) for v in counts)
 
@@ -242,6 +249,7 @@ class PlannerCore:
             "watchdog": self._watchdog.snapshot(),
             "blocked": self._blockages.snapshot(),
             "examined": self._examined.snapshot(),
+            "looked_into": self._looked.snapshot()["examined"],
             "candidates": st.candidates if st else 0,
             "end_nodes": st.end_nodes if st else 0,
             "reliable": st.reliable if st else 0,

@@ -49,8 +49,10 @@ def _keys(geom: GridGeometry, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
 class Examined:
     """The examined frontier cells of one exploration; ``reach`` <= 0 disables the rule."""
 
-    def __init__(self, reach: float, bearing: float, angle: float, views: int):
+    def __init__(self, reach: float, bearing: float, angle: float, views: int,
+                 name: str = "examined"):
         self.reach = reach  # [m]
+        self.name = name  # of its checkpoint arrays (two trackers share a planner's)
         self.bearing = bearing  # [rad]
         self.cos_angle = math.cos(angle)
         self.views = views
@@ -98,7 +100,7 @@ class Examined:
         if not ok.any():
             return 0
         idx = np.nonzero(ok)[0]
-        seen = _line_of_sight(win[1:-1, 1:-1] == FREE, (rr - r0, cc - c0), rows[idx], cols[idx])
+        seen = line_of_sight(win[1:-1, 1:-1] == FREE, (rr - r0, cc - c0), rows[idx], cols[idx])
         idx = idx[seen]
         if len(idx) == 0:
             return 0
@@ -131,13 +133,13 @@ class Examined:
         return out
 
     def checkpoint(self) -> dict[str, np.ndarray]:
-        return {"examined_closed": self._closed_arr.copy(),
-                "examined_count": np.array(sorted(self._count.items()), np.int64).reshape(
+        return {f"{self.name}_closed": self._closed_arr.copy(),
+                f"{self.name}_count": np.array(sorted(self._count.items()), np.int64).reshape(
                     len(self._count), 2)}
 
     def restore(self, arrays: dict[str, np.ndarray]) -> None:
-        closed = checked(arrays, "examined_closed", "i", (None,)).astype(np.int64)
-        count = checked(arrays, "examined_count", "i", (None, 2)).astype(np.int64)
+        closed = checked(arrays, f"{self.name}_closed", "i", (None,)).astype(np.int64)
+        count = checked(arrays, f"{self.name}_count", "i", (None, 2)).astype(np.int64)
         if (count[:, 1] < 0).any():
             raise CheckpointError("planner checkpoint: examined counts out of range")
         self._closed = set(closed.tolist())
@@ -148,7 +150,7 @@ class Examined:
         return {"examined": len(self._closed), "viewed": len(self._count)}
 
 
-def _line_of_sight(free: np.ndarray, start: tuple[int, int], rows: np.ndarray,
+def line_of_sight(free: np.ndarray, start: tuple[int, int], rows: np.ndarray,
                    cols: np.ndarray) -> np.ndarray:
     """For each target cell (rows[k], cols[k]) of the window: is every cell the segment from
     the start cell's centre to the target's centre passes (sampled every quarter cell, the

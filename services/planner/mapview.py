@@ -30,6 +30,8 @@ from topoexplore.services.planner import graph as gr
 from topoexplore.services.planner import gridsearch as gs
 
 NEAR_MARGIN = 0.5  # [m] obstacles this far outside a window still count (:meth:`MapView.near`)
+OPENING_DEPTH = 1.0  # how far behind an opening its widening is judged, in robot widths
+#   (2 x fit, :meth:`MapView.openings`)
 
 
 class _once:
@@ -55,11 +57,13 @@ class MapView:
 
     def __init__(self, grid: GridMap, occ: Occupancy,
                  blocked: Sequence[tuple[float, float, float]] = (),
-                 examined: Callable[[GridGeometry], np.ndarray | None] | None = None):
+                 examined: Callable[[GridGeometry], np.ndarray | None] | None = None,
+                 looked: Callable[[GridGeometry], np.ndarray | None] | None = None):
         self._grid = grid
         self.occ = occ
         self.blocked = tuple(blocked)  # (x, y, r) [m]: discs learned to be impassable
         self._examined = examined  # geom -> the examined frontier cells (:mod:`.examined`)
+        self._looked = looked  # geom -> the frontier cells looked into from close
         self._open: dict[tuple[int, int | None, int, int], tuple[Any, np.ndarray]] = {}
         self._passable: dict[float, np.ndarray] = {}
         self._memo: dict[Any, Any] = {}
@@ -151,6 +155,53 @@ class MapView:
                 self.data, pocket_cells, self.occ.p_free, self.occ.p_occ, reach, min_reach,
                 min_area))
         return hit[1]
+
+    def openings(self, fit: float) -> tuple[np.ndarray, np.ndarray]:
+        """(mouth, wide): where the frontier may be a door seen only from afar
+        (docs/design.md, "Openings"), less the cells the robot has looked into squarely from
+        close (the ``looked`` memory); :func:`strategies.frontier.is_opening` judges a group
+        by them.
+
+        - mouth: frontier cells (:attr:`frontier_free` beside :attr:`unknown`) where the
+          body fits into the unknown: the cell and an unknown 4-neighbour n each have a
+          point at least fit [m] from every occupied cell (:attr:`best_clearance`, as
+          narrow passages are judged), so a speck in a wall (a gap of k cells has about
+          k / 2 cells of best clearance) has none;
+        - wide: mouth cells where, through such an n in direction d, the way on along d
+          for OPENING_DEPTH x 2 fit [m] (about the robot's diameter) is unknown with no
+          occupied cell, and the best clearance there is at least a quarter of that depth
+          more than at n (beyond the grid counts as open). Behind a door the nearest
+          obstacles are its jambs, so from its middle the clearance grows as
+          sqrt(c^2 + depth^2) (doors up to 1.9 m wide pass); in a recess between a wall and
+          a piece of furniture whose face was never hit, or any channel with a wall seen
+          along it, it stays as narrow as at the middle of its mouth."""
+        return self.memo(("openings", fit), lambda: self._openings(fit))
+
+    def _openings(self, fit: float) -> tuple[np.ndarray, np.ndarray]:
+        res = self.geom.resolution
+        depth = OPENING_DEPTH * 2.0 * fit  # [m]
+        k = max(1, int(round(depth / res)))
+        best = self.best_clearance
+        roomy = best + 1e-6 >= fit
+        h, w = roomy.shape
+        m = k + 1  # padding: beyond the grid is unknown, free of obstacles, roomy
+        unk = np.pad(self.unknown, m, constant_values=True)
+        occ = np.pad(self.occupied, m, constant_values=False)
+        clear = np.pad(best, m, constant_values=np.inf)
+        front = gs.frontier_mask(self.frontier_free, self.unknown) & roomy
+        looked = None if self._looked is None else self._looked(self.geom)
+        if looked is not None:
+            front &= ~looked
+        mouth, wide = np.zeros_like(front), np.zeros_like(front)
+        for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+            def at(a: np.ndarray, i: int, dr: int = dr, dc: int = dc) -> np.ndarray:
+                return a[m + i * dr:m + i * dr + h, m + i * dc:m + i * dc + w]
+            into = front & at(unk, 1) & (at(clear, 1) + 1e-6 >= fit)
+            mouth |= into
+            for i in range(2, k + 2):
+                into &= ~at(occ, i)
+            wide |= into & (at(clear, k + 1) >= at(clear, 1) + depth / 4.0)
+        return mouth, wide
 
     @_once
     def free_cells(self) -> int:

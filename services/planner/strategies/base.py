@@ -65,6 +65,8 @@ class Candidate:
     partial: bool = False  # the path stops at a narrow passage before the target
     face: tuple[float, float] | None = None  # [m] point to face at the end of the path
     narrow: bool = False  # the path goes through a narrow passage (the frontier fallback)
+    opening: bool = False  # a frontier group that counts only as an opening not yet looked
+    #   into (completion_openings)
 
     def detached(self) -> Candidate:
         """This candidate without its lazy path: what an :class:`Update` carries as the target

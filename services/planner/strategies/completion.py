@@ -13,8 +13,11 @@
 
 Only groups of at least ``completion_min_size`` count, or shorter ones (down to
 ``min_frontier_size``) whose path is at most ``completion_near``, and none next to an enclosed
-unknown pocket smaller than ``completion_pocket_area``. Both searches run at most once per
-``frontier_period``.
+unknown pocket smaller than ``completion_pocket_area``. With ``completion_openings`` > 0, a
+shorter group farther away counts too when it may be a door seen only from afar (an opening,
+:func:`.frontier.opening_mouth`, docs/design.md "Openings"): its goal is the nearest place to
+look into it from, and it is the last trip (:func:`_openings_last`; for "the map is complete",
+:meth:`Completion.openings`). Both searches run at most once per ``frontier_period``.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from topoexplore.services.planner.strategies.frontier import frontier_evaluation
 
 COMPLETION_NOTE = " (completion: no end node left)"
 NEAR_NOTE = " (near the robot: before it is left behind)"
+OPENING_NOTE = " (the map is complete but for it)"
 
 
 class Completion:
@@ -39,6 +43,7 @@ class Completion:
         self._mapped_t = -math.inf  # map-complete check: time [s] of the last check ...
         self._mapped_ok = False  # ... its answer ...
         self.why = ""  # ... and the frontier summary behind it
+        self._openings: Evaluation | None = None  # ... and the openings it left
         self._near_ev: Evaluation | None = None  # frontier groups near the robot ...
         self._near_t = -math.inf  # ... searched at this time [s]
 
@@ -51,7 +56,7 @@ class Completion:
                 and u.may_reuse(self.cfg.params.frontier_period, self._t)):
             fe = cached  # following a completion target: keep the last search
         else:
-            fe = self._search(u)
+            fe = _openings_last(self._search(u))
             for c in fe.cands:
                 c.label = f"{c.label}{COMPLETION_NOTE}"
             self._ev, self._t = fe, u.t
@@ -84,20 +89,38 @@ class Completion:
         return self._near_ev if self._near_ev.cands else None
 
     def mapped(self, u: Update) -> bool:
-        """Is no frontier left by the completion rules? First a cheap pass (a reachable group
-        of completion_min_size or more, no path costs, means no); the full search (path
-        lengths for the shorter groups within completion_near) only without one."""
+        """Is no frontier left by the completion rules, openings not yet looked into aside
+        (:meth:`openings`)? First a cheap pass (a reachable group of completion_min_size or
+        more, no path costs, means no); the full search (path lengths for the shorter groups
+        within completion_near, the openings) only without one."""
         if 0.0 <= u.t - self._mapped_t < self.cfg.params.frontier_period:
             return self._mapped_ok
         self._mapped_t = u.t
+        self._openings = None
         quick = self._search(u, quick=True)
         if quick.failed is None and quick.cands:
             self._mapped_ok = False
             return False
         fe = self._search(u)
-        self._mapped_ok = fe.failed is None and not fe.cands
+        self._mapped_ok = fe.failed is None and all(c.opening for c in fe.cands)
         self.why = fe.done
+        if self._mapped_ok and fe.cands:
+            for c in fe.cands:
+                c.label += OPENING_NOTE
+            self._openings = fe
         return self._mapped_ok
+
+    def openings(self, ev: Evaluation) -> Evaluation | None:
+        """After :meth:`mapped` said yes: the openings not yet looked into that it left, as
+        the candidates (as in the completion phase) instead of ev's end nodes, so
+        that a door seen only from afar is looked into before "done" without a visit to
+        every end node first; None without any."""
+        fe = self._openings
+        if fe is None or not fe.cands:
+            return None
+        groups, nodes = fe.status_of, ev.status_of
+        return dataclasses.replace(fe, end_nodes=ev.end_nodes, reliable=ev.reliable,
+                                   status_of=lambda c: nodes(c) if c.id >= 0 else groups(c))
 
     def _search(self, u: Update, quick: bool = False) -> Evaluation:
         """The frontier groups the completion rules count. quick: only the long groups, and
@@ -105,4 +128,15 @@ class Completion:
         p = self.cfg.params
         return frontier_evaluation(self.cfg, u, max(p.min_frontier_size, p.completion_min_size),
                                    p.completion_pocket_area, 0.0 if quick else p.completion_near,
-                                   reach_only=quick)
+                                   reach_only=quick,
+                                   openings=not quick and p.completion_openings > 0)
+
+
+def _openings_last(fe: Evaluation) -> Evaluation:
+    """fe without its openings (:attr:`Candidate.opening`) while it has other candidates: an
+    opening seen only from afar is the last trip, since a robot passing by on the way to
+    the others often looks into it (and then it is none)."""
+    if any(c.opening for c in fe.cands) and not all(c.opening for c in fe.cands):
+        fe.cands = [c for c in fe.cands if not c.opening]
+    return fe
+

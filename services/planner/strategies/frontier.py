@@ -16,7 +16,9 @@ from typing import Any
 import numpy as np
 
 from topoexplore.common.grid import cells_for
+from topoexplore.common.params import PlannerParams
 from topoexplore.services.planner import gridsearch as gs
+from topoexplore.services.planner.examined import line_of_sight
 from topoexplore.services.planner.mapview import MapView
 from topoexplore.services.planner.strategies.base import Candidate, Config, Evaluation, Update
 
@@ -26,12 +28,13 @@ NARROW_PENALTY = 4.0  # cells the robot's body fits but under the margin: this m
 
 
 def frontier_evaluation(cfg: Config, u: Update, min_size: float | None = None,
-                        pocket_area: float = 0.0, near: float = 0.0, reach_only: bool = False
-                        ) -> Evaluation:
+                        pocket_area: float = 0.0, near: float = 0.0, reach_only: bool = False,
+                        openings: bool = False) -> Evaluation:
     """Frontier groups on u.view as candidates: those at least min_size [m] long (default
     min_frontier_size), and the shorter ones (down to min_frontier_size) whose path is at
-    most near [m]; with pocket_area > 0 [m^2], not those bordering a smaller enclosed unknown
-    pocket. reach_only: no path costs, only which groups are reachable at all (see
+    most near [m], and with openings the shorter ones beside an opening not yet looked into
+    (:meth:`MapView.openings`); with pocket_area > 0 [m^2], not those bordering a smaller
+    enclosed unknown pocket. reach_only: no path costs, only which groups are reachable at all (see
     :func:`gridsearch.grid_search`).
 
     Paths keep the clearance margin (cells with clearance >= robot radius + margin); only
@@ -42,25 +45,25 @@ def frontier_evaluation(cfg: Config, u: Update, min_size: float | None = None,
     stop; only groups of completion_min_size or longer count there. reach_only asks that
     second question directly."""
     if reach_only:
-        return _evaluate(cfg, u, min_size, pocket_area, near, True, True)
+        return _evaluate(cfg, u, min_size, pocket_area, near, True, True, openings)
     if u.target is not None and u.target.narrow:  # following a narrow-passage target: the
-        return _narrow(cfg, u, min_size, pocket_area, near)  # search that found it
-    ev = _evaluate(cfg, u, min_size, pocket_area, near, False, False)
+        return _narrow(cfg, u, min_size, pocket_area, near, openings)  # search that found it
+    ev = _evaluate(cfg, u, min_size, pocket_area, near, False, False, openings)
     if ev.failed is None and not ev.cands and ev.unreachable:
-        narrow = _narrow(cfg, u, min_size, pocket_area, near)
+        narrow = _narrow(cfg, u, min_size, pocket_area, near, openings)
         if narrow.cands:
             return narrow
     return ev
 
 
-def _narrow(cfg: Config, u: Update, min_size: float | None, pocket_area: float, near: float
-            ) -> Evaluation:
+def _narrow(cfg: Config, u: Update, min_size: float | None, pocket_area: float, near: float,
+            openings: bool = False) -> Evaluation:
     """The search through narrow passages too: only for groups of completion_min_size or
-    longer (a real opening, worth the way through a tight spot; a sliver of unknown behind
-    furniture is not)."""
+    longer, or openings (a real opening, worth the way through a tight spot; a sliver of
+    unknown behind furniture is not)."""
     p = cfg.params
     size = max(p.min_frontier_size if min_size is None else min_size, p.completion_min_size)
-    ev = _evaluate(cfg, u, size, pocket_area, 0.0, False, True)
+    ev = _evaluate(cfg, u, size, pocket_area, 0.0, False, True, openings)
     for c in ev.cands:
         c.label += " through a narrow passage"
         c.narrow = True
@@ -78,12 +81,12 @@ def nearest_frontier_evaluation(cfg: Config, u: Update) -> Evaluation:
 
 
 def _evaluate(cfg: Config, u: Update, min_size: float | None, pocket_area: float, near: float,
-              reach_only: bool, narrow: bool) -> Evaluation:
+              reach_only: bool, narrow: bool, openings: bool = False) -> Evaluation:
     """frontier_evaluation with or without narrow passages."""
     p = cfg.params
     view = u.view
     min_size = p.min_frontier_size if min_size is None else min_size
-    floor = min(min_size, p.min_frontier_size) if near > 0 else min_size
+    floor = min(min_size, p.min_frontier_size) if near > 0 or openings else min_size
     ev = Evaluation()
     search = (robot_reach(cfg, u) if narrow and reach_only
               else robot_search(cfg, u, narrow, reach_only))
@@ -95,15 +98,23 @@ def _evaluate(cfg: Config, u: Update, min_size: float | None, pocket_area: float
     unknown = open_unknown(cfg, u, pocket_area) if pocket_area > 0 else view.unknown
     groups, dropped = gs.find_frontiers(view.frontier_free, unknown, view.geom, search, floor,
                                         p.potential_scale, p.gain_scale)
-    unreachable, black = 0, 0
+    fit = cfg.fit(res)
+    unreachable, black, doors = 0, 0, 0
     for g in groups:
-        if g.size * res < min_size - 1e-9 and not (
-                g.goal_xy is not None and g.path_length <= near):
+        short = g.size * res < min_size - 1e-9 and not (
+            g.goal_xy is not None and g.path_length <= near)
+        mouth = (opening_mouth(view, fit, g) if short and openings and g.goal_xy is not None
+                 else None)
+        door = mouth is not None
+        doors += door
+        if short and not door:
             dropped += 1
         elif g.goal_xy is None:
             unreachable += 1
         else:
             c = _candidate(g, search, res, p.potential_scale)
+            if mouth is not None:
+                _look_from_afar(c, view, search, mouth, p)
             if u.blacklisted(c):
                 black += 1
             else:
@@ -111,7 +122,10 @@ def _evaluate(cfg: Config, u: Update, min_size: float | None, pocket_area: float
     done = "no frontier left"
     if dropped:
         done += f" ({dropped} group(s) shorter than {min_size:g} m ignored" + (
-            f", unless within {near:g} m)" if near > 0 and floor < min_size else ")")
+            f", unless within {near:g} m" if near > 0 and floor < min_size else "") + (
+            ", or openings" if openings else "") + ")"
+    if doors:
+        done += f"; {doors} shorter opening(s) counted"
     if black:
         done += f"; {black} blacklisted"
     if unreachable:
@@ -121,6 +135,68 @@ def _evaluate(cfg: Config, u: Update, min_size: float | None, pocket_area: float
     ev.status_of = lambda c: "was cleared (no frontier group there any more)"
     ev.path_ok = path_fits(view, search.clearance, cfg.radius)
     return ev
+
+
+def is_opening(view: MapView, fit: float, g: gs.FrontierGroup) -> bool:
+    """May frontier group g be a door seen only from afar (:meth:`MapView.openings`, for
+    the robot's body fit [m])?"""
+    return opening_mouth(view, fit, g) is not None
+
+
+def opening_mouth(view: MapView, fit: float, g: gs.FrontierGroup) -> tuple[int, int] | None:
+    """The cell (row, col) of group g where it is judged an opening, or None: at the middle
+    of its mouth (of its mouth cells, those with the greatest best clearance, within half a
+    cell), a cell behind which the unknown widens."""
+    mouth, wide = view.openings(fit)
+    rows, cols = view.geom.world_to_cell(g.cells_xy[:, 0], g.cells_xy[:, 1])
+    at = mouth[rows, cols]
+    if not at.any():
+        return None
+    rows, cols = rows[at], cols[at]
+    best = view.best_clearance[rows, cols]
+    mid = best >= best.max() - 0.5 * view.geom.resolution
+    hit = np.nonzero(wide[rows[mid], cols[mid]])[0]
+    return None if len(hit) == 0 else (int(rows[mid][hit[0]]), int(cols[mid][hit[0]]))
+
+
+def viewpoint(view: MapView, search: gs.GridSearch, cell: tuple[int, int], reach: float,
+              angle: float) -> tuple[int, int] | None:
+    """The reachable cell nearest by path from which the robot looks into the opening at
+    cell (row, col) as the ``looked`` memory counts it (:mod:`..examined`): within reach
+    [m], the line of sight within angle [rad] of the direction of one of the cell's unknown
+    4-neighbours, and only free cells between. None if there is none."""
+    res, (r0, c0) = view.geom.resolution, cell
+    n = int(math.ceil(reach / res))
+    h, w = view.free.shape
+    a0, a1, b0, b1 = max(0, r0 - n), min(h, r0 + n + 1), max(0, c0 - n), min(w, c0 + n + 1)
+    dist = search.dist[a0:a1, b0:b1]
+    rr, cc = np.nonzero(np.isfinite(dist))
+    if len(rr) == 0:
+        return None
+    dr, dc = (r0 - a0) - rr, (c0 - b0) - cc  # [cells] viewpoint -> the opening
+    length = np.hypot(dr, dc)
+    ok = (length <= reach / res) & (length > 0)
+    square = np.zeros(len(rr), dtype=bool)
+    cos_a = math.cos(angle)
+    unknown = view.unknown
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for d_r, d_c in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+            nr, nc = r0 + d_r, c0 + d_c
+            if not (0 <= nr < h and 0 <= nc < w) or unknown[nr, nc]:
+                square |= (dr * d_r + dc * d_c) / length >= cos_a
+    ok &= square
+    idx = np.nonzero(ok)[0]
+    if len(idx) == 0:
+        return None
+    idx = idx[np.argsort(dist[rr[idx], cc[idx]], kind="stable")]
+    free = view.free[a0:a1, b0:b1]
+    for chunk in range(0, len(idx), 64):  # nearest first, a batch at a time
+        part = idx[chunk:chunk + 64]
+        seen = line_of_sight(free, (r0 - a0, c0 - b0), rr[part], cc[part])
+        if seen.any():
+            k = part[int(np.argmax(seen))]
+            return int(rr[k] + a0), int(cc[k] + b0)
+    return None
 
 
 def open_unknown(cfg: Config, u: Update, pocket_area: float) -> np.ndarray:
@@ -149,6 +225,24 @@ def robot_search(cfg: Config, u: Update, narrow: bool = False, reach_only: bool 
     return view.search(u.x, u.y, hard, fit=cfg.fit(view.geom.resolution),
                        soft_radius=SOFT_RADIUS_FACTOR * hard, soft_penalty=SOFT_PENALTY,
                        narrow_penalty=NARROW_PENALTY if narrow else None, reach_only=reach_only)
+
+
+def _look_from_afar(c: Candidate, view: MapView, search: gs.GridSearch,
+                    mouth: tuple[int, int], p: PlannerParams) -> None:
+    """Candidate c of an opening at cell mouth: its goal becomes the nearest place to look
+    into it from (:func:`viewpoint`, within completion_openings), facing it."""
+    c.opening = True
+    c.label += " (an opening not yet looked into)"
+    vp = viewpoint(view, search, mouth, p.completion_openings, p.examine_angle)
+    if vp is None:
+        return
+    d = float(search.dist[vp])
+    c.cost -= c.scale * (c.dist - d)
+    c.x, c.y = (float(v) for v in view.geom.cell_to_world(*vp))
+    c.dist = d
+    c.path = lambda: search.path_to(*vp)
+    c.face = tuple(float(v) for v in view.geom.cell_to_world(*mouth))
+    c.label += f", looked into from ({c.x:.2f}, {c.y:.2f})"
 
 
 def _candidate(g: gs.FrontierGroup, search: gs.GridSearch, res: float, scale: float

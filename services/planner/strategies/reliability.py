@@ -38,6 +38,9 @@ class Reliability(Topological):
             beside = [c for c in ev.cands if self.beside_unknown(u, c.x, c.y, r)]
             if beside:  # the frontier rules miss it (fragmented by noise, short, narrow)
                 return dataclasses.replace(ev, cands=beside)
+            openings = self.completion.openings(ev)
+            if openings is not None:  # a door seen only from afar: look before "done"
+                return openings
             return Evaluation(end_nodes=ev.end_nodes, reliable=ev.reliable, done=(
                 f"the map is complete ({self.completion.why}); {len(ev.cands)} end node(s) "
                 f"below P {self.cfg.p_reliable:g} left unvisited, none beside unexplored "
