@@ -19,7 +19,7 @@ from topoexplore.services.planner.core import PlannerCore
 from topoexplore.services.planner.decision import Action, Decision
 from topoexplore.services.planner.mapview import MapView
 from topoexplore.services.planner.strategies.base import Config
-from topoexplore.services.planner.strategies.frontier import is_opening
+from topoexplore.services.planner.strategies.frontier import opening_mouth
 
 RADIUS = RobotParams().radius
 
@@ -808,13 +808,13 @@ def test_an_opening_is_a_gap_the_body_fits_through(lo, hi, fits):
     gap, group = gap_group(view, lo, hi)
     assert not (mouth & ~gap).any()  # the room's open edges beside the gap are walled
     assert not (wide & ~mouth).any()
-    assert is_opening(view, fit, group) == fits
+    assert (opening_mouth(view, fit, group) is not None) == fits
     if fits:
         mid = view.geom.world_to_cell(2.95, (lo + hi) / 2 * 0.1)
         assert wide[mid]  # the middle of the gap (its ends are too near the jambs)
         looked = MapView(grid(g, geom), Occupancy(), looked=lambda gm: gap)
         assert not looked.openings(fit)[0].any()
-        assert not is_opening(looked, fit, group)
+        assert opening_mouth(looked, fit, group) is None
 
 
 @pytest.mark.parametrize("flanks, door", [((), True), ((27,), True), ((27, 35), False)])
@@ -828,7 +828,7 @@ def test_an_opening_widens_behind_a_channel_does_not(flanks, door):
         g[row, 29:45] = 100
     view = MapView(grid(g, geom), Occupancy())
     fit = Config(PlannerParams(), 0.2, 0.9).fit(0.1)
-    assert is_opening(view, fit, gap_group(view, 28, 35)[1]) == door
+    assert (opening_mouth(view, fit, gap_group(view, 28, 35)[1]) is not None) == door
 
 
 def test_stop_when_mapped_ends_with_open_end_nodes_once_no_frontier_is_left():

@@ -159,8 +159,8 @@ class MapView:
     def openings(self, fit: float) -> tuple[np.ndarray, np.ndarray]:
         """(mouth, wide): where the frontier may be a door seen only from afar
         (docs/design.md, "Openings"), less the cells the robot has looked into squarely from
-        close (the ``looked`` memory); :func:`strategies.frontier.is_opening` judges a group
-        by them.
+        close (the ``looked`` memory); :func:`strategies.frontier.opening_mouth` judges a
+        group by them.
 
         - mouth: frontier cells (:attr:`frontier_free` beside :attr:`unknown`) where the
           body fits into the unknown: the cell and an unknown 4-neighbour n each have a
@@ -172,9 +172,9 @@ class MapView:
           occupied cell, and the best clearance there is at least a quarter of that depth
           more than at n (beyond the grid counts as open). Behind a door the nearest
           obstacles are its jambs, so from its middle the clearance grows as
-          sqrt(c^2 + depth^2) (doors up to 1.9 m wide pass); in a recess between a wall and
-          a piece of furniture whose face was never hit, or any channel with a wall seen
-          along it, it stays as narrow as at the middle of its mouth."""
+          sqrt(c^2 + depth^2) (doors up to 1.9 m wide pass); in a channel with a wall seen
+          along both sides (a recess between a wall and a piece of furniture whose face was
+          never hit) it stays as narrow as at the middle of its mouth."""
         return self.memo(("openings", fit), lambda: self._openings(fit))
 
     def _openings(self, fit: float) -> tuple[np.ndarray, np.ndarray]:

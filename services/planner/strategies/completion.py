@@ -139,4 +139,3 @@ def _openings_last(fe: Evaluation) -> Evaluation:
     if any(c.opening for c in fe.cands) and not all(c.opening for c in fe.cands):
         fe.cands = [c for c in fe.cands if not c.opening]
     return fe
-

@@ -137,14 +137,9 @@ def _evaluate(cfg: Config, u: Update, min_size: float | None, pocket_area: float
     return ev
 
 
-def is_opening(view: MapView, fit: float, g: gs.FrontierGroup) -> bool:
-    """May frontier group g be a door seen only from afar (:meth:`MapView.openings`, for
-    the robot's body fit [m])?"""
-    return opening_mouth(view, fit, g) is not None
-
-
 def opening_mouth(view: MapView, fit: float, g: gs.FrontierGroup) -> tuple[int, int] | None:
-    """The cell (row, col) of group g where it is judged an opening, or None: at the middle
+    """May frontier group g be a door seen only from afar (:meth:`MapView.openings`, for the
+    robot's body fit [m])? The cell (row, col) where it is judged one, or None: at the middle
     of its mouth (of its mouth cells, those with the greatest best clearance, within half a
     cell), a cell behind which the unknown widens."""
     mouth, wide = view.openings(fit)
