@@ -149,6 +149,27 @@ def distance_transform(src: np.ndarray) -> np.ndarray:
     return dst
 
 
+def reframe(arr: np.ndarray, old: GridGeometry, new: GridGeometry, fill=0) -> np.ndarray:
+    """A layer kept beside a growing map, moved into the map's new geometry: the cells the two
+    share keep their values, new cells get ``fill``. Geometries of the same resolution whose
+    origins differ by whole cells (as the mapper grows its grid); otherwise the layer cannot
+    be carried over and comes back all ``fill``."""
+    out = np.full((new.height, new.width), fill, dtype=arr.dtype)
+    if old.resolution != new.resolution:
+        return out
+    fr, fc = ((old.origin_y - new.origin_y) / new.resolution,
+              (old.origin_x - new.origin_x) / new.resolution)
+    r0, c0 = round(fr), round(fc)
+    if abs(fr - r0) > 1e-6 or abs(fc - c0) > 1e-6:
+        return out
+    # the overlap in the new grid's cells, and where it lies in the old one
+    nr0, nc0 = max(r0, 0), max(c0, 0)
+    nr1, nc1 = min(r0 + old.height, new.height), min(c0 + old.width, new.width)
+    if nr1 > nr0 and nc1 > nc0:
+        out[nr0:nr1, nc0:nc1] = arr[nr0 - r0:nr1 - r0, nc0 - c0:nc1 - c0]
+    return out
+
+
 def crop_known(grid: np.ndarray, geom: GridGeometry, margin: int = 1
                ) -> tuple[np.ndarray, GridGeometry]:
     """The part of the grid (a view) that holds every observed cell (value != -1), grown by

@@ -434,6 +434,11 @@ class LocalizerParams(_P):
     #   lost at the window's edge, so ties (as along a corridor) go to odometry's guess. On
     #   office scans against a mapped grid, guesses off by up to 0.05 m: worst error 0.33 m
     #   without it, 0.10 m with it (median 0.050 / 0.047 m)
+    directional: bool = True  # an end point scores only on wall faces seen from a side its
+    #   beam can reach (core.py, step 0): a thin wall mapped from one side no longer pulls a
+    #   scan from the other side a cell off. With drift, pose RMS geometric mean 0.151 -> 0.110
+    #   m on the held-back generated worlds (0.161 -> 0.121 on the tuning half), office 0.093
+    #   -> 0.118 (docs/benchmarks.md)
     degenerate_ratio: Annotated[float, Meta(ge=0.0, le=1.0)] = 0.15  # a scan whose surfaces
     #   pin the position this much less along one direction than across it (the eigenvalue
     #   ratio of the point-to-line information, 0: a corridor) keeps odometry's guess along

@@ -16,6 +16,7 @@ from topoexplore.common.grid import (
     known_window,
     open_unknown,
     ray_cells,
+    reframe,
     unknown_mask,
 )
 from topoexplore.common.kernels import bresenham
@@ -197,3 +198,21 @@ def test_ray_cells_is_the_bresenham_kernel_on_long_lines():
 def test_ray_cells_of_no_line():
     rows, cols, n = ray_cells(4, 5, np.zeros(0, np.int64), np.zeros(0, np.int64))
     assert rows.shape == cols.shape == (0, 0) and n.shape == (0,)
+
+
+def test_reframe_keeps_a_layer_in_place_as_the_map_grows():
+    """A layer beside a map, moved into the map's grown geometry, keeps its cells where they
+    were in world coordinates; shrinking crops it; a geometry off by a part of a cell or of
+    another resolution cannot take it (all fill)."""
+    old = GridGeometry(0.1, 0.0, 0.0, 4, 3)
+    a = np.arange(12, dtype=np.uint8).reshape(3, 4) + 1
+    grown = GridGeometry(0.1, -0.2, -0.1, 7, 5)  # 2 cells west, 1 south, wider and taller
+    b = reframe(a, old, grown)
+    assert b.shape == (5, 7) and b.dtype == np.uint8
+    assert np.array_equal(b[1:4, 2:6], a) and b.sum() == a.sum()
+    assert np.array_equal(reframe(b, grown, old), a)  # and back
+    part = GridGeometry(0.1, 0.1, 0.1, 2, 2)  # inside the old one
+    assert np.array_equal(reframe(a, old, part), a[1:3, 1:3])
+    assert not reframe(a, old, GridGeometry(0.1, 0.05, 0.0, 4, 3)).any()
+    assert not reframe(a, old, GridGeometry(0.05, 0.0, 0.0, 8, 6)).any()
+    assert (reframe(a, old, GridGeometry(0.1, 5.0, 5.0, 2, 2), fill=7) == 7).all()  # apart

@@ -11,7 +11,14 @@ import pytest
 from topoexplore.common.domain import GridMap, Pose, Scan
 from topoexplore.common.grid import GridGeometry
 from topoexplore.common.params import LocalizerParams
-from topoexplore.services.localizer.core import LocalizerCore, scan_conditioning
+from topoexplore.services.localizer.core import (
+    NORTH,
+    SOUTH,
+    WEST,
+    LocalizerCore,
+    scan_conditioning,
+    surface_sides,
+)
 
 RES = 0.05  # [m]
 N = 120
@@ -148,12 +155,12 @@ def test_scan_conditioning_finds_the_corridor_direction():
     direction along them); a room's scans pin it both ways."""
     c = core()
     walls = (40.5 * RES, 60.5 * RES)
-    ratio, weak = scan_conditioning(c._points(corridor_scan(3.0, 2.5, walls)))
+    ratio, weak = scan_conditioning(c._points(corridor_scan(3.0, 2.5, walls))[0])
     assert ratio < 0.01 and abs(weak[0]) > 0.99  # along x, in the robot frame
     rng = np.random.default_rng(3)
     for _ in range(20):
         x, y, th = rng.uniform(1.2, 5.0), rng.uniform(0.9, 2.6), rng.uniform(-math.pi, math.pi)
-        assert scan_conditioning(c._points(scan_at(x, y, th)))[0] > 0.2
+        assert scan_conditioning(c._points(scan_at(x, y, th))[0])[0] > 0.2
     assert scan_conditioning(np.zeros((2, 2)))[0] == 0.0  # too few points: no information
 
 
@@ -173,7 +180,7 @@ def test_the_map_edge_does_not_pull_the_pose_back_along_a_corridor(mapped_to):
     scan = corridor_scan(x, y, (40.5 * RES, 60.5 * RES))
     plain = LocalizerCore(msgspec.structs.replace(LocalizerParams(), degenerate_ratio=0.0))
     plain.set_map(grid)
-    assert plain.match(scan, Pose(x, y, 0.0)).pose.x < x - 0.2  # pulled back
+    assert plain.match(scan, Pose(x, y, 0.0)).pose.x < x - 0.1  # pulled back
     c = LocalizerCore(LocalizerParams())
     c.set_map(grid)
     m = c.match(scan, Pose(x, y + 0.08, 0.0))
@@ -193,3 +200,125 @@ def test_the_in_process_runner_runs_the_localizer():
     off = run("paper-room", "reliability", 0, drift, 300.0)
     assert on["finished"] and on["collisions"] == 0
     assert on["pose_rms_m"] < 0.15 and off["pose_rms_m"] > 3 * on["pose_rms_m"], (on, off)
+
+
+def _cast(x: float, y: float, th: float, segs: list, beams: int = 181, rmax: float = 8.0
+          ) -> Scan:
+    """A forward 180° scan from (x, y, th) of the line segments ``segs``."""
+    ang = -math.pi / 2 + math.pi / (beams - 1) * np.arange(beams)
+    r = np.full(beams, np.inf)
+    for i, a in enumerate(th + ang):
+        c, s = math.cos(a), math.sin(a)
+        for (ax, ay), (bx, by) in segs:
+            ex, ey = bx - ax, by - ay
+            den = c * ey - s * ex
+            if abs(den) < 1e-12:
+                continue
+            t = ((ax - x) * ey - (ay - y) * ex) / den
+            u = ((ax - x) * s - (ay - y) * c) / den
+            if 0 < t < r[i] and 0 <= u <= 1:
+                r[i] = t
+    return Scan(np.where(r < rmax, r, np.inf), -math.pi / 2, math.pi / (beams - 1), 0.02, rmax)
+
+
+def thin_wall_seen_from_the_north() -> tuple[GridMap, list]:
+    """A room 0.1 m cells, its north wall 0.1 m thick, faces at y = 5.05 and 5.15 m: in the map
+    only the north face's row (5.1-5.2 m) is a wall, as when it was mapped from the corridor
+    beyond it, and the row of the south face was cleared (beams through a door); the west
+    and east walls (x = 1.05, 8.95 m) as seen from inside."""
+    n = 100
+    g = np.full((n, n), -1, np.int8)
+    g[20:51, 11:89] = 0  # the room (rows 20..50, y 2.0-5.1 m), the south face's row free
+    g[51, 5:95] = 100  # the north face's row
+    g[52:60, 5:95] = 0  # the corridor beyond it
+    g[20:51, 10] = g[20:51, 89] = 100  # west and east walls' faces (x 1.0-1.1, 8.9-9.0)
+    segs = [((0.5, 5.05), (9.5, 5.05)), ((1.05, 2.0), (1.05, 5.05)), ((8.95, 2.0), (8.95, 5.05))]
+    return GridMap(g, GridGeometry(0.1, 0.0, 0.0, n, n)), segs
+
+
+def test_a_thin_wall_mapped_from_the_other_side_does_not_pull_the_scan_onto_its_far_face():
+    """Step 0: the scan from the room ends on the wall's south face, a cell short of the only
+    face in the map. Faces scored from every side pull the pose a cell north (the whole-cell
+    errors on office); with the sides recorded (beams travelling south ended on that row),
+    the room's scan does not score on it and the pose stays."""
+    grid, segs = thin_wall_seen_from_the_north()
+    x, y, th = 5.0, 3.5, math.pi / 2  # facing the wall
+    scan = _cast(x, y, th, segs)
+    plain = LocalizerCore(msgspec.structs.replace(LocalizerParams(), directional=False))
+    plain.set_map(grid)
+    assert plain.match(scan, Pose(x, y, th)).pose.y > y + 0.07  # pulled onto the far face
+    c = LocalizerCore(LocalizerParams())
+    c.set_map(grid)
+    assert c.match(scan, Pose(x, y, th)).pose.y > y + 0.07  # no record yet: every side counts
+    # the corridor's scans, facing south, ended on the wall's row: its side is recorded
+    north = [((0.5, 5.15), (9.5, 5.15))]
+    for cx in (2.0, 4.0, 6.0, 8.0):
+        c.observe(_cast(cx, 5.8, -math.pi / 2, north), Pose(cx, 5.8, -math.pi / 2))
+    c.set_map(grid)
+    m = c.match(scan, Pose(x, y, th))
+    assert not m.ok and m.pose == Pose(x, y, th)  # what is left (the side walls) is too little
+    c = LocalizerCore(msgspec.structs.replace(LocalizerParams(), min_score=0.2))
+    c.set_map(grid)
+    for cx in (2.0, 4.0, 6.0, 8.0):
+        c.observe(_cast(cx, 5.8, -math.pi / 2, north), Pose(cx, 5.8, -math.pi / 2))
+    c.set_map(grid)
+    m = c.match(scan, Pose(x + 0.1, y, th + 0.03))  # the side walls correct x and heading
+    assert m.ok and abs(m.pose.y - y) < 0.02 and abs(m.pose.x - x) < 0.03, m
+    assert abs(m.pose.theta - th) < 0.01
+
+
+def test_the_sides_follow_a_growing_map_and_go_where_it_is_cleared():
+    """The record is kept in the map's geometry: a map grown by whole cells keeps it where it
+    was (in world coordinates); a cell the map has since seen free loses it."""
+    grid, _ = thin_wall_seen_from_the_north()
+    c = LocalizerCore(LocalizerParams())
+    c.set_map(grid)
+    north = [((0.5, 5.15), (9.5, 5.15))]
+    c.observe(_cast(5.0, 5.8, -math.pi / 2, north), Pose(5.0, 5.8, -math.pi / 2))
+    before = c._hits.copy()
+    assert (before[51, 35:65] == NORTH).all()  # seen from above
+    assert set(np.unique(before[51])) == {0, NORTH}  # far away the hits are too sparse
+    assert before.sum() == before[51].sum()  # only the wall's row
+    big = np.full((140, 120), -1, np.int8)
+    big[20:120, 10:110] = grid.data  # grown by 2 m west and south
+    c.set_map(GridMap(big, GridGeometry(0.1, -1.0, -2.0, 120, 140)))
+    assert np.array_equal(c._hits[20:120, 10:110], before)
+    big[71, 40:60] = 0  # part of the wall seen free since
+    c.set_map(GridMap(big, GridGeometry(0.1, -1.0, -2.0, 120, 140)))
+    assert not c._hits[71, 40:60].any() and c._hits[71, 60:75].all()
+
+
+def test_surface_sides_are_the_normals_turned_to_the_laser():
+    """End points along a wall on y = 4 seen from below: its south side, however flat the
+    beams; along a wall at 45°, two sides; a lone point: none."""
+    x = np.array([1.0, 2.0, 3.0, 4.0]) * 0.1
+    ox, oy = 0.2, 1.0  # the laser, below the wall
+    for y, lo in ((np.full(4, 4.0), SOUTH), (np.full(4, -2.0), NORTH)):
+        dx, dy = x - ox, y - oy
+        got = surface_sides(x, y, dx / np.hypot(dx, dy), dy / np.hypot(dx, dy))
+        assert list(got) == [0, lo, lo, 0]  # the ends have one neighbour only
+    d = np.array([0.0, 0.1, 0.2]) / math.sqrt(2)
+    x, y = 2.0 + d, 2.0 - d  # a wall running south-east, seen from the origin
+    assert surface_sides(x, y, x / np.hypot(x, y), y / np.hypot(x, y))[1] == WEST | SOUTH
+    far = np.array([0.0, 1.0, 2.0])
+    assert not surface_sides(far, far, np.ones(3), np.zeros(3)).any()
+
+
+@pytest.mark.parametrize("res,sigma", [(0.1, 0.05), (0.05, 0.05), (0.1, 0.2), (0.01, 0.5)])
+def test_the_likelihood_field_is_that_of_the_distance_to_the_faces(res, sigma):
+    """Rings of dilations give exp(-d^2 / 2 sigma^2) of d = the distance to the nearest face
+    cell less half a cell, as a Euclidean distance transform does (a wide spread takes the
+    transform itself), 0 below the floor."""
+    from topoexplore.common.grid import distance_transform
+    from topoexplore.services.localizer.core import FIELD_FLOOR, likelihood_field
+
+    rng = np.random.default_rng(1)
+    face = np.zeros((90, 110), bool)
+    face[rng.integers(0, 90, 40), rng.integers(0, 110, 40)] = True
+    face[30, 10:80] = face[10:70, 55] = True
+    d = np.maximum(distance_transform((~face).astype(np.uint8)) * res - 0.5 * res, 0.0)
+    want = np.exp(-0.5 * (d / sigma) ** 2)
+    want[want < FIELD_FLOOR] = 0.0
+    got = likelihood_field(face, res, sigma)
+    assert got.dtype == np.float32 and got.shape == face.shape
+    assert np.abs(got - want).max() < 1e-6

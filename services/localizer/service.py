@@ -26,7 +26,7 @@ class LocalizerService:
     def __init__(self, node: Node):
         self.node = node
         P = node.params
-        self.core = LocalizerCore(P.localizer, P.laser.offset, P.mapper.p_occ)
+        self.core = LocalizerCore(P.localizer, P.laser.offset, P.mapper.p_occ, P.mapper.p_free)
         self.odom = OdomBuffer()  # odometry as it is: the correction is made here
         self.pub = node.publisher("map_odom")
         node.subscribe_odom(self.odom)
@@ -60,8 +60,9 @@ class LocalizerService:
         if grid is not None and grid.header.seq != self.map_seq:
             self.core.set_map(convert.grid_from_msg(grid))
             self.map_seq = grid.header.seq
+        scan_d = convert.scan_from_msg(scan)
         if self.core.ready:
-            match = self.core.match(convert.scan_from_msg(scan), compose(self.correction, odom))
+            match = self.core.match(scan_d, compose(self.correction, odom))
             self.last_score = match.score
             if match.ok:
                 self.correction = compose(match.pose, inverse(odom))
@@ -72,6 +73,8 @@ class LocalizerService:
                 self.counts["kept"] += 1
         else:
             self.counts["no_map"] += 1
+        # the sides of the faces this scan met, at the pose it is mapped at (core step 0)
+        self.core.observe(scan_d, compose(self.correction, odom))
         self.pub.put(convert.correction_to_msg(self.correction, self.node.header(
             "map_odom", scan.header.time, scan.header.src_seq, frame="map")))
         self.node.processed += 1

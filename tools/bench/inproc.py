@@ -85,7 +85,7 @@ class _Localized:
     pose is odometry's. ``errors``: [m] the estimate against the truth, once per scan."""
 
     def __init__(self, P: Params, hop: Callable):
-        self.core = LocalizerCore(P.localizer, P.laser.offset, P.mapper.p_occ) \
+        self.core = LocalizerCore(P.localizer, P.laser.offset, P.mapper.p_occ, P.mapper.p_free) \
             if P.localizer.enabled else None
         self.hop = hop
         self.correction = Pose(0.0, 0.0, 0.0)
@@ -103,6 +103,7 @@ class _Localized:
                     self.correction = self.hop(compose(match.pose, inverse(odom)),
                                                convert.correction_to_msg,
                                                convert.correction_from_msg, m.TransformStamped)
+            self.core.observe(scan, compose(self.correction, odom))
         pose = compose(self.correction, odom) if self.core is not None else odom
         self.errors.append(math.hypot(pose.x - truth.x, pose.y - truth.y))
         return pose

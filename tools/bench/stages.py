@@ -189,7 +189,8 @@ def _cores(strategy: str = "reliability") -> SimpleNamespace:
         frontier=PlannerCore(msgspec.structs.replace(P.planner, strategy="frontier"), P.robot,
                              P.reliability.p_reliable, occ),
         controller=ControllerCore(P.controller, P.robot),
-        localizer=LocalizerCore(P.localizer, P.laser.offset, P.mapper.p_occ))
+        localizer=LocalizerCore(P.localizer, P.laser.offset, P.mapper.p_occ,
+                                P.mapper.p_free))
 
 
 def _topology_cold(grid: GridMap, clean: GridMap, start, repeats: int) -> dict[str, float]:
@@ -257,6 +258,8 @@ def _localize(loc, mapper, occ, pose, scan, rng, stages, times) -> None:
             r[hit] += rng.normal(0.0, 0.01, int(hit.sum()))
             s = Scan(r, -math.pi, inc, 0.02, 8.0)
         m = _timed(times, stage, loc.match, s, guess)
+        if stage == "localizer":  # the sides its faces were seen from (core step 0)
+            loc.observe(s, pose)
         times.setdefault(f"{stage}-error", []).append(math.hypot(m.pose.x - pose.x,
                                                                  m.pose.y - pose.y))
 
