@@ -148,21 +148,35 @@ def _rings(resolution: float, sigma: float) -> tuple[tuple[np.ndarray, float], .
 def likelihood_field(face: np.ndarray, resolution: float, sigma: float) -> np.ndarray:
     """float32 exp(-d^2 / 2 sigma^2) of d [m], the distance to the nearest ``face`` cell's
     edge (half a cell from its centre, where a hit lies in the cell it marks); 0 where it is
-    below FIELD_FLOOR. One binary dilation per ring round the faces (the same values as a
-    Euclidean distance transform, at a quarter of its cost on a 1000² map)."""
-    rings = _rings(float(resolution), float(sigma))
-    if not rings:  # a spread of many cells: the distance transform
+    below FIELD_FLOOR: ``lut[level]`` of :func:`likelihood_levels`, or for a spread over more
+    than MAX_RINGS distances, from a Euclidean distance transform."""
+    if not _rings(float(resolution), float(sigma)):
         d = distance_transform((~face).astype(np.uint8)) * resolution
         d = np.maximum(d - 0.5 * resolution, 0.0)
         f = np.exp(-0.5 * (d / sigma) ** 2).astype(np.float32)
         return np.where(f >= FIELD_FLOOR, f, 0.0).astype(np.float32)
+    level, lut = likelihood_levels(face, resolution, sigma)
+    return lut[level]
+
+
+def likelihood_levels(face: np.ndarray, resolution: float, sigma: float
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The likelihood field as uint8 levels and the float32 table of their values: one binary
+    dilation per ring round the faces (a distance transform's values at about a quarter of
+    its cost on a 1000² map, a quarter of the memory). Levels rise with the likelihood, so a
+    max over levels is a max over likelihoods (the coarse fields are dilations of levels).
+    Beyond MAX_RINGS, the transform's values in 255 steps."""
+    rings = _rings(float(resolution), float(sigma))
+    if not rings:
+        f = likelihood_field(face, resolution, sigma)
+        return (np.round(f * 255.0).astype(np.uint8),
+                (np.arange(256) / 255.0).astype(np.float32))
     src = face.astype(np.uint8)
     level = np.zeros_like(src)  # len(rings) - the nearest ring reaching the cell, 0: none
     m = len(rings)
     for k, (kernel, _) in enumerate(rings):
         np.maximum(level, cv2.dilate(src, kernel) * np.uint8(m - k), out=level)
-    lut = np.array([0.0] + [w for _, w in reversed(rings)], np.float32)
-    return lut[level]
+    return level, np.array([0.0] + [w for _, w in reversed(rings)], np.float32)
 
 
 class LocalizerCore:
@@ -172,10 +186,12 @@ class LocalizerCore:
         self.laser_offset = laser_offset  # [m]
         self.p_occ = p_occ  # a cell at or above this occupancy (0..1) is a wall
         self.p_free = p_free  # below this: known free (a face recorded there is gone)
-        # float32 (fields, H, W) fine likelihood fields, one per quadrant of the beam's heading
-        # (one when not directional); the coarse ones: the max over each coarse block's reach
+        # uint8 (fields, H, W) fine likelihood fields as levels (likelihood_levels), one per
+        # quadrant of the beam's heading (one when not directional); the coarse ones: the max
+        # over each coarse block's reach; _lut: the likelihood of each level
         self._field: np.ndarray | None = None
         self._coarse: np.ndarray | None = None
+        self._lut: np.ndarray | None = None
         self._geom = None
         self._hits: np.ndarray | None = None  # uint8 (H, W): the sides each cell was seen from
         self._hits_geom = None
@@ -214,7 +230,7 @@ class LocalizerCore:
                 fields.append(fields[same])
                 coarse.append(coarse[same])
                 continue
-            f = likelihood_field(side, g.resolution, self.p.sigma)
+            f, self._lut = likelihood_levels(side, g.resolution, self.p.sigma)
             fields.append(f)
             # the coarse field at cell (r, c) holds the max of the fine field over the block
             # of translations [r, r + c) x [c, c + c) (a grey dilation, anchor at the corner)
@@ -306,7 +322,7 @@ class LocalizerCore:
             vr = (rr >= 0) & (rr < H)
             vc = (cc >= 0) & (cc < W)
             rr, cc = np.clip(rr, 0, H - 1), np.clip(cc, 0, W - 1)
-            vals = self._field[b0[None, None, :], rr[:, None, :], cc[None, :, :]]
+            vals = self._lut[self._field[b0[None, None, :], rr[:, None, :], cc[None, :, :]]]
             vals = np.where(vr[:, None, :] & vc[None, :, :], vals, 0.0)
             raw = vals.sum(axis=2)  # (c rows, c cols)
             iy = by * c + fine
@@ -361,7 +377,8 @@ class LocalizerCore:
             vr = (rr > -c) & (rr < H)  # a block whose corner lies just off the map still
             vc = (cc > -c) & (cc < W)  # reaches into it: its bound is the edge block's
             rr, cc = np.clip(rr, 0, H - 1), np.clip(cc, 0, W - 1)
-            vals = self._coarse[b0[None, None, :], rr[:, None, :], cc[None, :, :]]  # (by, bx, n)
+            vals = self._lut[self._coarse[b0[None, None, :], rr[:, None, :],
+                                          cc[None, :, :]]]  # (by, bx, n)
             vals = np.where(vr[:, None, :] & vc[None, :, :], vals, 0.0)
             bounds[t] = vals.sum(axis=2)
         return bounds
@@ -378,9 +395,9 @@ class LocalizerCore:
         H, W = self._field.shape[1:]
         ok = (r0 >= 0) & (r0 < H - 1) & (c0 >= 0) & (c0 < W - 1)
         r0, c0 = np.where(ok, r0, 0), np.where(ok, c0, 0)
-        f = self._field
-        v00, v01 = f[b, r0, c0], f[b, r0, c0 + 1]
-        v10, v11 = f[b, r0 + 1, c0], f[b, r0 + 1, c0 + 1]
+        f, lut = self._field, self._lut
+        v00, v01 = lut[f[b, r0, c0]], lut[f[b, r0, c0 + 1]]
+        v10, v11 = lut[f[b, r0 + 1, c0]], lut[f[b, r0 + 1, c0 + 1]]
         val = (1 - ay) * ((1 - ax) * v00 + ax * v01) + ay * ((1 - ax) * v10 + ax * v11)
         gx = ((1 - ay) * (v01 - v00) + ay * (v11 - v10)) / res
         gy = ((1 - ax) * (v10 - v00) + ax * (v11 - v01)) / res
