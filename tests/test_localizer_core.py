@@ -37,12 +37,10 @@ def room() -> GridMap:
     return GridMap(g, GridGeometry(RES, 0.0, 0.0, N, N))
 
 
-def _ray(x: float, y: float, a: float) -> float:
+def _ray_segs(x: float, y: float, a: float, segs: list) -> float:
+    """[m] from (x, y) along heading ``a`` to the nearest of the line segments (inf: none)."""
     c, s = math.cos(a), math.sin(a)
     best = math.inf
-    segs = [((LO, LO), (HI, LO)), ((HI, LO), (HI, HI)), ((HI, HI), (LO, HI)), ((LO, HI), (LO, LO))]
-    x0, y0, x1, y1 = BOX
-    segs += [((x0, y0), (x1, y0)), ((x1, y0), (x1, y1)), ((x1, y1), (x0, y1)), ((x0, y1), (x0, y0))]
     for (ax, ay), (bx, by) in segs:
         ex, ey = bx - ax, by - ay
         den = c * ey - s * ex
@@ -53,6 +51,13 @@ def _ray(x: float, y: float, a: float) -> float:
         if t > 0 and 0 <= u <= 1:
             best = min(best, t)
     return best
+
+
+def _ray(x: float, y: float, a: float) -> float:
+    segs = [((LO, LO), (HI, LO)), ((HI, LO), (HI, HI)), ((HI, HI), (LO, HI)), ((LO, HI), (LO, LO))]
+    x0, y0, x1, y1 = BOX
+    segs += [((x0, y0), (x1, y0)), ((x1, y0), (x1, y1)), ((x1, y1), (x0, y1)), ((x0, y1), (x0, y0))]
+    return _ray_segs(x, y, a, segs)
 
 
 def scan_at(x: float, y: float, th: float, beams: int = 181, fov: float = math.pi,
@@ -206,18 +211,7 @@ def _cast(x: float, y: float, th: float, segs: list, beams: int = 181, rmax: flo
           ) -> Scan:
     """A forward 180° scan from (x, y, th) of the line segments ``segs``."""
     ang = -math.pi / 2 + math.pi / (beams - 1) * np.arange(beams)
-    r = np.full(beams, np.inf)
-    for i, a in enumerate(th + ang):
-        c, s = math.cos(a), math.sin(a)
-        for (ax, ay), (bx, by) in segs:
-            ex, ey = bx - ax, by - ay
-            den = c * ey - s * ex
-            if abs(den) < 1e-12:
-                continue
-            t = ((ax - x) * ey - (ay - y) * ex) / den
-            u = ((ax - x) * s - (ay - y) * c) / den
-            if 0 < t < r[i] and 0 <= u <= 1:
-                r[i] = t
+    r = np.array([_ray_segs(x, y, a, segs) for a in th + ang])
     return Scan(np.where(r < rmax, r, np.inf), -math.pi / 2, math.pi / (beams - 1), 0.02, rmax)
 
 
