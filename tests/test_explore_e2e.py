@@ -15,14 +15,13 @@ import os
 import re
 import subprocess
 import sys
-from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from functools import cache
 from pathlib import Path
 
 import pytest
 
-from tests.conftest import REPO, free_port
+from tests.conftest import REPO, free_port, needs, started_ahead
 
 OUT = Path(os.environ.get("TOPOEXPLORE_TEST_OUT", f"/tmp/topoexplore-e2e-{os.getpid()}"))
 DETERMINISTIC = ["finished", "stop_reason", "sim_time_s", "path_length_m", "coverage",
@@ -70,33 +69,13 @@ def explore(*args, **kw) -> dict:
     return fut.result() if fut is not None else _explore(*run)
 
 
-def needs(runs: Callable[..., list[Run]]):
-    """Declares the runs a test asks explore() for (a function of its parameters), so that
-    they can start before it."""
-    def mark(fn):
-        fn.runs = runs
-        return fn
-    return mark
-
-
 @pytest.fixture(scope="module", autouse=True)
 def _two_at_a_time(request):
     """Starts the runs of this module's selected tests, two at a time, the longest first."""
-    wanted: list[Run] = []
-    for item in request.session.items:
-        runs = getattr(getattr(item, "function", None), "runs", None)
-        if item.module is not request.module or runs is None:
-            continue
-        callspec = getattr(item, "callspec", None)
-        wanted += [r for r in runs(**(callspec.params if callspec else {})) if r not in wanted]
-    wanted.sort(key=lambda r: r[0] not in LONGEST)
-    pool = ThreadPoolExecutor(2)
-    try:
-        _started.update({r: pool.submit(_explore, *r) for r in wanted})
+    with started_ahead(request, _explore, lambda run: run[0] in LONGEST) as started:
+        _started.update(started)
         yield
-    finally:
         _started.clear()
-        pool.shutdown(cancel_futures=True)
 
 
 @pytest.mark.parametrize("world", ["paper-room", "dead-end", "junction", "office"])
