@@ -183,6 +183,11 @@ def test_bench_faults_refuses_unknown_faults():
 # (reliable places, a map of a few thousand cells) well before it is done, in about 300 s of
 # sim time (office takes 811 s: these tests were three of the suite's four slowest).
 KILL_WORLD = "small-house"
+# [s] wall time the lockstep sim waits for a command before it steps on (runtime.
+# lockstep_timeout; default 10 s): a killed service loses the scan or map it held, and the sim
+# waits this long for the command that will never come. Steps take a few ms to at most a few
+# hundred ms here, so 3 s still only ever fires for a lost message.
+STALL_S = 3.0
 
 
 def _state(bus: Bus, keys: Keys, service: str) -> dict | None:
@@ -220,7 +225,8 @@ def test_a_service_killed_mid_run_resumes(tmp_path, endpoint, namespace, service
     keys = Keys(namespace, "robot1")
     run = subprocess.Popen([sys.executable, "-m", "topoexplore.tools.cli", "run", "--world",
                             KILL_WORLD, "--lockstep", "--quiet", "--out", str(out), "--connect",
-                            endpoint, "--namespace", namespace, "--max-sim-time", "2000"],
+                            endpoint, "--namespace", namespace, "--max-sim-time", "2000",
+                            "--set", f"runtime.lockstep_timeout={STALL_S}"],
                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                            text=True, start_new_session=True)
     try:
@@ -385,7 +391,8 @@ def test_topology_reliability_planner_killed_together_resume(tmp_path, endpoint,
     victims = ("topology", "reliability", "planner")
     run = subprocess.Popen([sys.executable, "-m", "topoexplore.tools.cli", "run", "--world",
                             KILL_WORLD, "--lockstep", "--quiet", "--out", str(out), "--connect",
-                            endpoint, "--namespace", namespace, "--max-sim-time", "2000"],
+                            endpoint, "--namespace", namespace, "--max-sim-time", "2000",
+                            "--set", f"runtime.lockstep_timeout={STALL_S}"],
                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                            text=True, start_new_session=True)
 
