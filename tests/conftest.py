@@ -6,13 +6,17 @@ every process started is stopped at the end of its test (no orphans).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
 import subprocess
 import sys
 import uuid
+from collections.abc import Callable, Hashable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -97,3 +101,40 @@ def pid_alive(pid: int) -> bool:
             return f.read().split(")")[-1].split()[0] != "Z"
     except OSError:
         return False
+
+
+# --- slow independent work, started ahead two at a time -----------------------------------------
+
+
+def needs(keys: Callable[..., list[Hashable]]):
+    """Declares the slow work a test will wait for (see :func:`started_ahead`), as a function
+    of the test's parameters that returns the work's keys."""
+
+    def mark(fn):
+        fn.needs = keys
+        return fn
+
+    return mark
+
+
+@contextlib.contextmanager
+def started_ahead(request, work: Callable[..., Any],
+                  first: Callable[[tuple], bool] = lambda _key: False,
+                  workers: int = 2) -> Iterator[dict[tuple, Future]]:
+    """In a module fixture: runs ``work(*key)`` for the keys that this module's selected
+    tests declare with :func:`needs`, ``workers`` at a time, those with ``first(key)`` true
+    first; yields {key: future}. A lockstep run keeps about one core busy (the sim waits for
+    each scan's command, so the stages take turns), so two of them share a 2-core machine."""
+    keys: list[tuple] = []
+    for item in request.session.items:
+        declared = getattr(getattr(item, "function", None), "needs", None)
+        if item.module is not request.module or declared is None:
+            continue
+        callspec = getattr(item, "callspec", None)
+        keys += [k for k in declared(**(callspec.params if callspec else {})) if k not in keys]
+    keys.sort(key=lambda k: not first(k))
+    pool = ThreadPoolExecutor(workers)
+    try:
+        yield {k: pool.submit(work, *k) for k in keys}
+    finally:
+        pool.shutdown(cancel_futures=True)

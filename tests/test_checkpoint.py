@@ -9,12 +9,13 @@ import signal
 import subprocess
 import sys
 import time
+import uuid
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.conftest import REPO
+from tests.conftest import REPO, free_port, needs, started_ahead
 from tests.test_mapper_core import params, room_ranges, scan
 from topoexplore.common import checkpoint as ck
 from topoexplore.common.bus import Bus
@@ -183,6 +184,12 @@ def test_bench_faults_refuses_unknown_faults():
 # (reliable places, a map of a few thousand cells) well before it is done, in about 300 s of
 # sim time (office takes 811 s: these tests were three of the suite's four slowest).
 KILL_WORLD = "small-house"
+VICTIMS = ("topology", "reliability", "planner")  # killed together
+# [s] wall time the lockstep sim waits for a command before it steps on (runtime.
+# lockstep_timeout; default 10 s): a killed service loses the scan or map it held, and the sim
+# waits this long for the command that will never come. Steps take a few ms to at most a few
+# hundred ms here, so 3 s still only ever fires for a lost message.
+STALL_S = 3.0
 
 
 def _state(bus: Bus, keys: Keys, service: str) -> dict | None:
@@ -211,18 +218,24 @@ def _reap(run: subprocess.Popen) -> None:
             run.wait(timeout=10)
 
 
-@pytest.mark.parametrize("service", ["mapper", "sim"])
-def test_a_service_killed_mid_run_resumes(tmp_path, endpoint, namespace, service):
-    """SIGKILL the mapper or the simulator of a lockstep run once they have written
-    checkpoints: the supervisor restarts it, it resumes (the map; the robot, its clock and
-    its path), and the run finishes as it would have."""
+def _start(out: Path, endpoint: str, namespace: str) -> subprocess.Popen:
+    """A lockstep run of KILL_WORLD whose sim steps on STALL_S after a scan whose command
+    will never come: a service killed with it in hand lost it."""
+    return subprocess.Popen([sys.executable, "-m", "topoexplore.tools.cli", "run", "--world",
+                             KILL_WORLD, "--lockstep", "--quiet", "--out", str(out),
+                             "--connect", endpoint, "--namespace", namespace,
+                             "--max-sim-time", "2000", "--set",
+                             f"runtime.lockstep_timeout={STALL_S}"],
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, start_new_session=True)
+
+
+def _killed_mid_run(tmp_path: Path, endpoint: str, namespace: str, service: str) -> dict:
+    """The run of test_a_service_killed_mid_run_resumes: `service` SIGKILLed once it and the
+    mapper have written checkpoints; what was known then, and the run's report."""
     out = tmp_path / "run"
     keys = Keys(namespace, "robot1")
-    run = subprocess.Popen([sys.executable, "-m", "topoexplore.tools.cli", "run", "--world",
-                            KILL_WORLD, "--lockstep", "--quiet", "--out", str(out), "--connect",
-                            endpoint, "--namespace", namespace, "--max-sim-time", "2000"],
-                           cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                           text=True, start_new_session=True)
+    run = _start(out, endpoint, namespace)
     try:
         with Bus.client(endpoint, wait_for_router=True) as bus:
             deadline, st, mp = time.monotonic() + 120, None, None
@@ -238,14 +251,42 @@ def test_a_service_killed_mid_run_resumes(tmp_path, endpoint, namespace, service
     finally:
         _reap(run)
     report = json.loads(Path(out / "report.json").read_text())
-    assert report["finished"] and report["restarts"] >= 1, stdout[-2000:]
+    return {"report": report, "stdout": stdout, "st": st, "known_at_kill": known_at_kill}
+
+
+@pytest.fixture(scope="module")
+def kill_runs(request, tmp_path_factory):
+    """The kill tests' runs, started when the first of them starts, two at a time (each keeps
+    about one core busy), the longest first; the tests that wait for them all come before the
+    real-time test after them, so it runs alone."""
+    runs = {"mid-run": _killed_mid_run, "together": _killed_together}
+
+    def work(kind: str, *args):
+        return runs[kind](tmp_path_factory.mktemp("-".join((kind, *args))),
+                          f"tcp/127.0.0.1:{free_port()}", f"test{uuid.uuid4().hex[:10]}", *args)
+
+    tmp_path_factory.getbasetemp()  # made here: made by two threads at once, one is lost
+
+    with started_ahead(request, work, lambda key: key[0] == "together") as started:
+        yield started
+
+
+@pytest.mark.parametrize("service", ["mapper", "sim"])
+@needs(lambda service: [("mid-run", service)])
+def test_a_service_killed_mid_run_resumes(kill_runs, service):
+    """SIGKILL the mapper or the simulator of a lockstep run once they have written
+    checkpoints: the supervisor restarts it, it resumes (the map; the robot, its clock and
+    its path), and the run finishes as it would have."""
+    run = kill_runs[("mid-run", service)].result()
+    report, st = run["report"], run["st"]
+    assert report["finished"] and report["restarts"] >= 1, run["stdout"][-2000:]
     assert report["coverage"] >= 0.95 and report["collisions"] == 0
     ck = report["checkpoints"][service]
     assert ck["failed"] == 0 and ck["resumed_age_s"] is not None, ck
     if service == "mapper":
         # it resumed the map it had: the checkpoint, then the cells of its last map (kept by
         # the planner and reliability) that changed after it; known cells never become unknown
-        assert ck["resumed_cells"] >= known_at_kill, (ck, known_at_kill)
+        assert ck["resumed_cells"] >= run["known_at_kill"], (ck, run["known_at_kill"])
     else:
         # one clock and one path: at most checkpoint_every (1 s of sim time) of motion lost
         assert report["path_length_m"] >= st["path_length"] - 0.3, (report, st)
@@ -375,37 +416,41 @@ def test_checkpoints_that_do_not_fit_are_refused(updates, name):
                 {k: v for k, v in good.items() if k != key})
 
 
-def test_topology_reliability_planner_killed_together_resume(tmp_path, endpoint, namespace):
-    """SIGKILL topology, reliability and the planner at once in a lockstep run: each
-    restarts from its checkpoint (node ids, beliefs, the planner's memory) and the run
-    finishes. Right after the restart, reliability still knows the places that were
-    reliable, under the same ids."""
+def _killed_together(tmp_path: Path, endpoint: str, namespace: str) -> dict:
+    """The run of test_topology_reliability_planner_killed_together_resume: the three
+    SIGKILLed at once once reliability holds two reliable places and has checkpointed them;
+    reliability's state right after its restart must still hold them."""
     out = tmp_path / "run"
     keys = Keys(namespace, "robot1")
-    victims = ("topology", "reliability", "planner")
-    run = subprocess.Popen([sys.executable, "-m", "topoexplore.tools.cli", "run", "--world",
-                            KILL_WORLD, "--lockstep", "--quiet", "--out", str(out), "--connect",
-                            endpoint, "--namespace", namespace, "--max-sim-time", "2000"],
-                           cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                           text=True, start_new_session=True)
+    run = _start(out, endpoint, namespace)
 
     def reliable(st: dict) -> set[int]:
         return {int(k) for k, v in st["nodes"]["nodes"].items() if v["reliable"]}
+
+    def checkpoints(bus: Bus, keys: Keys, default: int) -> int:  # reliability's, so far
+        st = _state(bus, keys, "reliability")
+        return st["checkpoint"]["written"] if st else default
 
     try:
         with Bus.client(endpoint, wait_for_router=True) as bus:
             deadline, sts = time.monotonic() + 120, {}
             while time.monotonic() < deadline:
-                sts = {s: _state(bus, keys, s) for s in victims}
+                sts = {s: _state(bus, keys, s) for s in VICTIMS}
                 if all(sts.values()) and all(st["checkpoint"]["written"] >= 3
                                              for st in sts.values()) \
                         and len(reliable(sts["reliability"])) >= 2:
                     break
                 time.sleep(0.2)
             assert all(sts.values()) and len(reliable(sts["reliability"])) >= 2, sts
-            for s in victims:
-                os.kill(sts[s]["pid"], signal.SIGKILL)
             before = reliable(sts["reliability"])
+            # kill once reliability has written a checkpoint after that state: a checkpoint
+            # comes every checkpoint_every (1 s) of wall time, in which a lockstep run can
+            # make more than one place reliable
+            written, deadline = sts["reliability"]["checkpoint"]["written"], time.monotonic() + 30
+            while time.monotonic() < deadline and checkpoints(bus, keys, written) <= written:
+                time.sleep(0.05)
+            for s in VICTIMS:
+                os.kill(sts[s]["pid"], signal.SIGKILL)
             deadline, after = time.monotonic() + 60, None
             while time.monotonic() < deadline:
                 st = _state(bus, keys, "reliability")
@@ -414,16 +459,26 @@ def test_topology_reliability_planner_killed_together_resume(tmp_path, endpoint,
                     break
                 time.sleep(0.05)
             assert after is not None and after["checkpoint"]["resumed_age_s"] is not None
-            # the checkpoint is at most checkpoint_every (1 s) older than the state read
-            # before the kill: nearly every reliable place is still reliable, same id
+            # the checkpoint is newer than the state read before the kill: nearly every place
+            # reliable then is still reliable, same id (one may have lost it in between)
             assert len(reliable(after) & before) >= len(before) - 1, (before, reliable(after))
         stdout, _ = run.communicate(timeout=400)
     finally:
         _reap(run)
-    report = json.loads(Path(out / "report.json").read_text())
-    assert report["finished"] and report["restarts"] >= 3, stdout[-2000:]
+    return {"report": json.loads(Path(out / "report.json").read_text()), "stdout": stdout}
+
+
+@needs(lambda: [("together",)])
+def test_topology_reliability_planner_killed_together_resume(kill_runs):
+    """SIGKILL topology, reliability and the planner at once in a lockstep run: each
+    restarts from its checkpoint (node ids, beliefs, the planner's memory) and the run
+    finishes. Right after the restart, reliability still knows the places that were
+    reliable, under the same ids."""
+    run = kill_runs[("together",)].result()
+    report = run["report"]
+    assert report["finished"] and report["restarts"] >= 3, run["stdout"][-2000:]
     assert report["coverage"] >= 0.95 and report["collisions"] == 0
-    for s in victims:
+    for s in VICTIMS:
         c = report["checkpoints"][s]
         assert c["failed"] == 0 and c["resumed_age_s"] is not None, (s, c)
 

@@ -1,7 +1,10 @@
 """End to end, all processes, lockstep: `topoexplore run` explores each world to the end.
 
 Runs are cached per session (one run per world/strategy/seed/repeat), so the comparison and
-determinism tests reuse them.
+determinism tests reuse them. A lockstep run keeps about one core busy (its stages take
+turns), so the runs the selected tests of this module need are started two at a time when the
+module begins (`_two_at_a_time`); each test waits for its own. Lockstep runs do not depend on
+timing, so a run's report is the same either way.
 """
 
 from __future__ import annotations
@@ -12,27 +15,40 @@ import os
 import re
 import subprocess
 import sys
+from concurrent.futures import Future
 from functools import cache
 from pathlib import Path
 
 import pytest
 
-from tests.conftest import REPO, free_port
+from tests.conftest import REPO, free_port, needs, started_ahead
 
 OUT = Path(os.environ.get("TOPOEXPLORE_TEST_OUT", f"/tmp/topoexplore-e2e-{os.getpid()}"))
 DETERMINISTIC = ["finished", "stop_reason", "sim_time_s", "path_length_m", "coverage",
                  "map_accuracy", "collisions", "end_nodes_seen", "end_nodes_visited",
                  "end_nodes_accepted_remote", "targets", "scans"]
+LONGEST = ("office",)  # started first, so that no long run starts last
+LIDAR_360 = ("laser.model=lidar-360",)
+DRIFT = ("sim.odom_drift=0.03",)
+
+Run = tuple[str, str, int, int, tuple[str, ...]]
+
+
+def run_of(world: str, strategy: str = "reliability", seed: int = 0, repeat: int = 0,
+           sets: tuple[str, ...] = ()) -> Run:
+    return (world, strategy, seed, repeat, tuple(sets))
 
 
 @cache
-def explore(world: str, strategy: str = "reliability", seed: int = 0, repeat: int = 0,
-            sets: tuple[str, ...] = ()) -> dict:
+def _explore(world: str, strategy: str, seed: int, repeat: int, sets: tuple[str, ...]) -> dict:
     tag = hashlib.sha1("\n".join(sets).encode()).hexdigest()[:8] if sets else "defaults"
-    out = OUT / f"{world}-{strategy}-{seed}-{repeat}-{tag}"
+    name = f"{world}-{strategy}-{seed}-{repeat}-{tag}"
+    out = OUT / name
+    # each run its own router and namespace: two run at once and must not hear each other
+    ns = f"e2e{os.getpid()}{hashlib.sha1(name.encode()).hexdigest()[:8]}"
     cmd = [sys.executable, "-m", "topoexplore.tools.cli", "run", "--world", world, "--strategy", strategy,
            "--seed", str(seed), "--lockstep", "--quiet", "--out", str(out),
-           "--connect", f"tcp/127.0.0.1:{free_port()}", "--namespace", f"e2e{os.getpid()}",
+           "--connect", f"tcp/127.0.0.1:{free_port()}", "--namespace", ns,
            "--max-sim-time", "1500", *(a for kv in sets for a in ("--set", kv))]
     r = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600,
                        env=dict(os.environ))
@@ -43,7 +59,27 @@ def explore(world: str, strategy: str = "reliability", seed: int = 0, repeat: in
     return report
 
 
+_started: dict[Run, Future] = {}
+
+
+def explore(*args, **kw) -> dict:
+    """The report of a lockstep run: the one started ahead (`_two_at_a_time`), else run now."""
+    run = run_of(*args, **kw)
+    fut = _started.get(run)
+    return fut.result() if fut is not None else _explore(*run)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _two_at_a_time(request):
+    """Starts the runs of this module's selected tests, two at a time, the longest first."""
+    with started_ahead(request, _explore, lambda run: run[0] in LONGEST) as started:
+        _started.update(started)
+        yield
+        _started.clear()
+
+
 @pytest.mark.parametrize("world", ["paper-room", "dead-end", "junction", "office"])
+@needs(lambda world: [run_of(world)])
 def test_explores_world_to_the_end(world):
     r = explore(world)
     assert r["_exit"] == 0 and r["finished"], r["_stderr"]
@@ -83,24 +119,26 @@ def test_explores_world_to_the_end(world):
     assert re.search(rf"^\[supervisor\] {stamp} mapper is up", logs, re.M)
 
 
+@needs(lambda: [run_of("dead-end", sets=LIDAR_360)])
 def test_a_360_degree_lidar_explores_too():
     """laser.model = lidar-360: the simulator becomes a 360-beam lidar (12 m, 10 Hz); the
     mapper takes its scans as they come (no beam-count check against the SICK's 181). On
     dead-end: on junction the 360-degree lidar drives 48 m where the SICK drives 10 m, walls
     seen at grazing angles (docs/benchmarks.md, "A 360° lidar"), which this test does not
     judge."""
-    r = explore("dead-end", sets=("laser.model=lidar-360",))
+    r = explore("dead-end", sets=LIDAR_360)
     assert r["_exit"] == 0 and r["finished"] and r["coverage"] >= 0.95, r["_stderr"]
     assert r["collisions"] == 0
     assert "[laser] says" not in (Path(r["_out"]) / "logs.txt").read_text()
 
 
+@needs(lambda: [run_of("paper-room", sets=(*DRIFT, "localizer.enabled=true")),
+                run_of("paper-room", sets=DRIFT)])
 def test_the_localizer_holds_the_map_together_under_drifting_odometry():
     """sim.odom_drift = 0.03: with the localizer (a scan matcher correcting odometry for every
     service) the run maps better and knows where it is far better than without."""
-    drift = ("sim.odom_drift=0.03",)
-    on = explore("paper-room", sets=(*drift, "localizer.enabled=true"))
-    off = explore("paper-room", sets=drift)
+    on = explore("paper-room", sets=(*DRIFT, "localizer.enabled=true"))
+    off = explore("paper-room", sets=DRIFT)
     assert on["_exit"] == 0 and on["finished"] and on["coverage"] >= 0.95, on["_stderr"]
     assert on["collisions"] == 0 and on["map_accuracy"] > off["map_accuracy"]
     assert on["pose_error_m"]["samples"] > 100
@@ -112,12 +150,14 @@ def test_the_localizer_holds_the_map_together_under_drifting_odometry():
     assert off["localizer"] is None
 
 
+@needs(lambda: [run_of("paper-room"), run_of("paper-room", repeat=1)])
 def test_same_seed_gives_same_report():
     a, b = explore("paper-room"), explore("paper-room", repeat=1)
     assert {k: a[k] for k in DETERMINISTIC} == {k: b[k] for k in DETERMINISTIC}
 
 
 @pytest.mark.parametrize("world", ["junction", "paper-room"])
+@needs(lambda world: [run_of(world), run_of(world, "all-end-nodes")])
 def test_reliability_travels_less_than_all_end_nodes(world):
     rel = explore(world, "reliability")
     allend = explore(world, "all-end-nodes")
@@ -127,6 +167,7 @@ def test_reliability_travels_less_than_all_end_nodes(world):
         assert rel["end_nodes_accepted_remote"] >= 1, rel
 
 
+@needs(lambda: [run_of("dead-end")])
 def test_in_process_pipeline_reproduces_the_bus_run():
     """`topoexplore bench inproc` (the tuning tool) calls the cores in the order the services
     run them in lockstep: the same path, sim time and coverage as the real processes."""

@@ -11,6 +11,7 @@ import subprocess
 import sys
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import msgspec
@@ -343,14 +344,16 @@ def _replay(path: Path, *extra: str) -> subprocess.CompletedProcess:
 
 def test_replay_reproduces_the_recorded_outputs(recorded):
     out, _ns, _report = recorded
-    r = _replay(out / "run.mcap", "--through", "mapper,topology,reliability,planner")
+    with ThreadPoolExecutor(3) as pool:  # three processes, each replaying alone: at once
+        r, changed, bad = pool.map(lambda extra: _replay(out / "run.mcap", *extra), [
+            ("--through", "mapper,topology,reliability,planner"),
+            ("--through", "topology,reliability", "--scans", "150",
+             "--set", "topology.spur_length=0.7"),
+            ("--through", "planner", "--set", "planner.nope=1")])
     assert r.returncode == 0, r.stdout + r.stderr[-2000:]
     assert "identical" in r.stdout and "map " in r.stdout and "plan " in r.stdout
     # a changed parameter: the first divergence, named by scan, topic and field
-    r = _replay(out / "run.mcap", "--through", "topology,reliability", "--scans", "150",
-                "--set", "topology.spur_length=0.7")
-    assert r.returncode == 1, r.stdout + r.stderr[-2000:]
-    assert re.search(r"FIRST DIVERGENCE at scan \d+, topo message #\d+: .+: recorded", r.stdout), \
-        r.stdout
-    bad = _replay(out / "run.mcap", "--through", "planner", "--set", "planner.nope=1")
+    assert changed.returncode == 1, changed.stdout + changed.stderr[-2000:]
+    assert re.search(r"FIRST DIVERGENCE at scan \d+, topo message #\d+: .+: recorded",
+                     changed.stdout), changed.stdout
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
