@@ -163,6 +163,8 @@ class Monitor:
 
     def on_plan(self, msg: m.Path) -> None:
         with self.lock:
+            if self._late(msg):
+                return  # a plan for a scan after the one that ended the run
             self.plan = msg
             if not msg.poses:
                 return
