@@ -329,17 +329,15 @@ def open_unknown(grid: np.ndarray, pocket_cells: int = 0, p_free: float = 0.35,
 
 def _reachable_border(labels: np.ndarray, reach: np.ndarray, n: int) -> np.ndarray:
     """Per label 0..n-1: how many reach cells are 4-adjacent to a cell of that label (each
-    cell counted once per label)."""
-    h, w = labels.shape
-    rr, cc = np.nonzero(reach)
-    keys = []
-    for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-        r, c = rr + dr, cc + dc
-        ok = (r >= 0) & (r < h) & (c >= 0) & (c < w)
-        lab = labels[r[ok], c[ok]].astype(np.int64)
-        keys.append((rr[ok].astype(np.int64) * w + cc[ok]) * n + lab)
-    uniq = np.unique(np.concatenate(keys)) if keys else np.zeros(0, dtype=np.int64)
-    return np.bincount(uniq % n, minlength=n)
+    cell counted once per label): the four neighbours' labels of each reach cell, sorted, a
+    label counted where it differs from the one before."""
+    pad = np.pad(labels, 1, constant_values=n)  # n: outside the grid, not counted
+    nb = np.stack([pad[2:, 1:-1][reach], pad[:-2, 1:-1][reach], pad[1:-1, 2:][reach],
+                   pad[1:-1, :-2][reach]])
+    nb.sort(axis=0)
+    first = np.ones(nb.shape, dtype=bool)
+    first[1:] = nb[1:] != nb[:-1]
+    return np.bincount(nb[first], minlength=n + 1)[:n]
 
 
 def near_frontier(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, radius: float,

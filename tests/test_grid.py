@@ -97,6 +97,37 @@ def test_a_pocket_is_kept_where_the_robot_can_reach_enough_of_its_border():
     assert open_unknown(g, 100, reach=free, min_reach=10, min_area=37).sum() == 0  # too small
 
 
+def test_reachable_border_counts_each_reachable_cell_once_per_label():
+    from topoexplore.common.grid import _reachable_border
+
+    rng = np.random.default_rng(5)
+    for _ in range(60):
+        h, w = rng.integers(1, 25, 2)
+        labels = rng.integers(0, 6, (h, w)).astype(np.int32)
+        reach = rng.random((h, w)) < 0.5
+        want = np.zeros(6, np.int64)
+        for r, c in zip(*np.nonzero(reach), strict=True):
+            beside = {int(labels[r + dr, c + dc]) for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1))
+                      if 0 <= r + dr < h and 0 <= c + dc < w}
+            for k in beside:
+                want[k] += 1
+        assert np.array_equal(_reachable_border(labels, reach, 6), want)
+
+
+def test_best_clearance_is_the_greatest_of_the_four_sub_cells():
+    from topoexplore.common.grid import distance_transform
+    from topoexplore.services.planner.gridsearch import best_clearance_map
+
+    rng = np.random.default_rng(6)
+    for _ in range(40):
+        occ = rng.random(tuple(rng.integers(1, 30, 2))) < rng.uniform(0.01, 0.3)
+        h, w = occ.shape
+        fine = np.repeat(np.repeat(occ, 2, axis=0), 2, axis=1)
+        d = distance_transform(np.where(fine, 0, 255).astype(np.uint8)) * np.float32(0.05)
+        want = d.reshape(h, 2, w, 2).max(axis=(1, 3)) if occ.any() else np.full((h, w), 1e6)
+        assert np.array_equal(best_clearance_map(occ, 0.1), want.astype(np.float32))
+
+
 def test_crop_known_keeps_a_ring_of_unknown_and_world_coordinates():
     geom = GridGeometry(0.1, -5.0, -2.0, 100, 60)
     g = np.full((60, 100), -1, np.int8)
