@@ -48,7 +48,7 @@ import cv2
 import numpy as np
 
 from topoexplore.common.domain import GridMap, Pose, Scan
-from topoexplore.common.grid import distance_transform, free_mask, reframe
+from topoexplore.common.grid import Occupancy, distance_transform, free_mask, reframe
 from topoexplore.common.params import LocalizerParams
 
 # the sides a wall cell has been seen from, by the normal of the face seen (bits)
@@ -181,11 +181,12 @@ def likelihood_levels(face: np.ndarray, resolution: float, sigma: float
 
 class LocalizerCore:
     def __init__(self, params: LocalizerParams, laser_offset: float = 0.0,
-                 p_occ: float = 0.65, p_free: float = 0.35):
+                 occ: Occupancy | None = None):
         self.p = params
         self.laser_offset = laser_offset  # [m]
-        self.p_occ = p_occ  # a cell at or above this occupancy (0..1) is a wall
-        self.p_free = p_free  # below this: known free (a face recorded there is gone)
+        # a cell at or above p_occ is a wall; below p_free known free (a face recorded there
+        # is gone)
+        self.occ = occ or Occupancy()
         # uint8 (fields, H, W) fine likelihood fields as levels (likelihood_levels), one per
         # quadrant of the beam's heading (one when not directional); the coarse ones: the max
         # over each coarse block's reach; _lut: the likelihood of each level
@@ -202,12 +203,12 @@ class LocalizerCore:
 
     def set_map(self, grid: GridMap) -> None:
         """Build the likelihood fields of a map (call when the map changed)."""
-        occ = grid.data >= round(100 * self.p_occ)
+        occ = grid.data >= round(100 * self.occ.p_occ)
         g = grid.geom
         if self.p.directional:
             hits = (np.zeros((g.height, g.width), np.uint8) if self._hits is None
                     else reframe(self._hits, self._hits_geom, g))
-            hits[free_mask(grid.data, self.p_free)] = 0  # cleared since: no surface there now
+            hits[free_mask(grid.data, self.occ.p_free)] = 0  # cleared since: no surface there now
             self._hits, self._hits_geom = hits, g
         if not occ.any():
             self._field = self._coarse = None

@@ -26,7 +26,7 @@ class LocalizerService:
     def __init__(self, node: Node):
         self.node = node
         P = node.params
-        self.core = LocalizerCore(P.localizer, P.laser.offset, P.mapper.p_occ, P.mapper.p_free)
+        self.core = LocalizerCore(P.localizer, P.laser.offset, P.mapper.occupancy)
         self.odom = OdomBuffer()  # odometry as it is: the correction is made here
         self.pub = node.publisher("map_odom")
         node.subscribe_odom(self.odom)

@@ -85,7 +85,7 @@ class _Localized:
     pose is odometry's. ``errors``: [m] the estimate against the truth, once per scan."""
 
     def __init__(self, P: Params, hop: Callable):
-        self.core = LocalizerCore(P.localizer, P.laser.offset, P.mapper.p_occ, P.mapper.p_free) \
+        self.core = LocalizerCore(P.localizer, P.laser.offset, P.mapper.occupancy) \
             if P.localizer.enabled else None
         self.hop = hop
         self.correction = Pose(0.0, 0.0, 0.0)

@@ -189,8 +189,7 @@ def _cores(strategy: str = "reliability") -> SimpleNamespace:
         frontier=PlannerCore(msgspec.structs.replace(P.planner, strategy="frontier"), P.robot,
                              P.reliability.p_reliable, occ),
         controller=ControllerCore(P.controller, P.robot),
-        localizer=LocalizerCore(P.localizer, P.laser.offset, P.mapper.p_occ,
-                                P.mapper.p_free))
+        localizer=LocalizerCore(P.localizer, P.laser.offset, P.mapper.occupancy))
 
 
 def _topology_cold(grid: GridMap, clean: GridMap, start, repeats: int) -> dict[str, float]:
