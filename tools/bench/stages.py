@@ -257,10 +257,10 @@ def _localize(loc, mapper, occ, pose, scan, rng, stages, times) -> None:
             r[hit] += rng.normal(0.0, 0.01, int(hit.sum()))
             s = Scan(r, -math.pi, inc, 0.02, 8.0)
         m = _timed(times, stage, loc.match, s, guess)
-        if stage == "localizer":  # the sides its faces were seen from (core step 0)
-            loc.observe(s, pose)
         times.setdefault(f"{stage}-error", []).append(math.hypot(m.pose.x - pose.x,
                                                                  m.pose.y - pose.y))
+    loc.observe(scan, pose)  # the sides of the faces the mapped scan met (core step 0), for
+    #   either stage run alone
 
 
 def _bench_size(n: int, repeats: int, stages: tuple[str, ...], seed: int) -> dict[str, dict]:
