@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from topoexplore.tools.bench import robust as rb
@@ -98,6 +99,53 @@ def test_the_papers_rule_is_compared_but_not_the_yardstick_nor_among_the_worst()
     assert a["held"]["strategies"]["reliability-paper"]["early-done"] == 1
 
 
+def test_simulator_seeds_pair_runs_per_world_and_seed_and_show_the_spread():
+    def sim(r, k):
+        return dict(r, sim_seed=k)
+
+    runs = [sim(run("a", "reliability", path=8.0), 0), sim(run("a", "frontier", path=10.0), 0),
+            sim(run("a", "reliability", path=12.0), 1), sim(run("a", "frontier", path=10.0), 1),
+            sim(run("b", "reliability", path=30.0, style="house"), 0),
+            sim(run("b", "frontier", path=10.0, style="house"), 0),
+            sim(run("b", "frontier", path=5.0, style="house"), 1),  # no reliability pair
+            sim(run("c", "reliability", path=6.0), 1), sim(run("c", "frontier", path=8.0), 1)]
+    a = rb.analyse(runs, ["reliability", "frontier"])["tune"]
+    rf = a["ratios"]["reliability/frontier"]
+    # a: (0.8 * 1.2) ** 0.5 over its two seeds, b: 3.0, c: 0.75; then over the three worlds
+    ra = (0.8 * 1.2) ** 0.5
+    assert rf["n"] == 3 and rf["pairs"] == 4
+    assert rf["worlds"]["a"] == round(ra, 3)
+    assert rf["geomean"] == pytest.approx((ra * 3.0 * 0.75) ** (1 / 3))
+    assert rf["low"] < rf["geomean"] < rf["high"]
+    logs = np.log([ra, 3.0, 0.75])  # Student's t with 2 degrees of freedom
+    half = 4.30 * np.std(logs, ddof=1) / np.sqrt(3)
+    assert rf["high"] == pytest.approx(np.exp(np.mean(logs) + half))
+    sp = a["sim_spread"]
+    assert sp["reliability"] == {"n": 1, "median": 1.5, "max": 1.5}
+    assert sp["frontier"]["n"] == 2 and sp["frontier"]["max"] == 2.0
+    over = a["over_2x_shortest"]
+    assert {"world": "b", "strategy": "reliability", "ratio": 3.0} in over
+    md = rb.summary({"created": "x", "command": "c", "jobs": 1, "wall_s": 1.0, "runs": runs,
+                     "analysis": {"tune": a}})
+    assert "over 3 world(s) where both finished, 4 run pairs" in md
+    assert "95 % interval" in md and "reliability 1.50, 1.50 (1)" in md
+    assert "| c/sim1 | reliability | finished |" in md  # the seed when it is not 0
+    assert rb.run_label(runs[2]) == "a/sim1" and rb.run_label(runs[0]) == "a"
+    one = rb.path_ratio(runs[:2], "reliability", "frontier")  # one world: no interval
+    assert one["low"] is None and one["high"] is None and one["pairs"] == 1
+
+
+def test_a_plan_runs_every_world_and_strategy_once_per_simulator_seed(tmp_path):
+    a = rb.build_parser().parse_args(["--half", "held", "--seeds", "1", "--max-area", "300",
+                                      "--strategies", "reliability,frontier",
+                                      "--sim-seeds", "2,0,2", "--corpus", str(tmp_path)])
+    plan, strategies = rb._plan(a)
+    assert strategies == ["reliability", "frontier"]
+    assert sorted((i.name, s, k) for i, s, k in plan) == sorted(
+        (w, s, k) for w in ("house-s1-18x14", "house-s1-18x14-n2")
+        for s in strategies for k in (0, 2))
+
+
 def test_summary_names_every_half_and_the_command():
     doc = {"created": "now", "command": "topoexplore bench robust", "jobs": 2, "runs": RUNS,
            "wall_s": 1.0, "analysis": rb.analyse(RUNS, ["reliability", "frontier",
@@ -111,6 +159,7 @@ def test_summary_names_every_half_and_the_command():
     ["--strategies", "greedy"], ["--jobs", "0"], ["--bus", "-1"], ["--half", "odd"],
     ["--set", "planner.no_such=1"], ["--quick", "--worlds", "no-such-world"], ["--bogus"],
     ["--seeds", "8"], ["--seeds", "x"], ["--max-area", "0"], ["--max-area", "nan"],
+    ["--sim-seeds", "-1"], ["--sim-seeds", "x"], ["--sim-seeds", ","], ["--sim-seeds", "1000"],
 ])
 def test_bad_arguments_one_line_exit_2(argv, tmp_path, capsys):
     out = tmp_path / "out"
@@ -200,6 +249,13 @@ def test_from_results_merges_halves_into_one_doc_with_small_pictures(tmp_path, c
     assert cv2.imread(str(pics[0])).shape[1] == rb.DOC_WIDTH
     assert "](img/robust/c-frontier.jpg)" in md
     assert (out / "pics" / "c-frontier.png").is_file()
+    # a second simulator seed of a run is another run, not a replacement
+    c = _results_dir(tmp_path / "c", [dict(run("a", "frontier", path=11.0), sim_seed=1)],
+                     "topoexplore bench robust --half tune --sim-seeds 1")
+    assert rb.main(["--from-results", str(a), str(b), str(c), "--out", str(out)]) == 0
+    merged = json.loads((out / "results.json").read_text())
+    assert sorted(r["path_length_m"] for r in merged["runs"] if r["world"] == "a"
+                  and r["strategy"] == "frontier") == [9.0, 11.0]
     capsys.readouterr()
     assert rb.main(["--from-results", str(tmp_path / "none")]) == 2
     assert "cannot read" in capsys.readouterr().err

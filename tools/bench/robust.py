@@ -1,7 +1,7 @@
 """``topoexplore bench robust``: every strategy on a corpus of buildings it was never tuned on.
 
-    topoexplore bench robust [--half tune|held|real|all] [--seeds 1,3] [--max-area M2]
-                             [--strategies ...] [--worlds ...] [--jobs 2] [--corpus DIR]
+    topoexplore bench robust [--half tune|held|real|all] [--seeds 1,3] [--sim-seeds 0,1,2]
+                             [--max-area M2] [--strategies ...] [--worlds ...] [--jobs 2] [--corpus DIR]
                              [--out DIR] [--set k=v ...] [--quick] [--bus N] [--no-progress]
                              [--doc docs/robustness.md]
     topoexplore bench robust --from-results DIR [DIR ...] [--out DIR] [--doc FILE.md]
@@ -18,6 +18,13 @@ inproc``: the cores the services run, in the same order), for speed; ``--bus N``
 of the runs (the smallest worlds) through the real processes (``topoexplore run --lockstep``)
 and compares outcome and path.
 
+``--sim-seeds`` runs every world and strategy once per simulator seed (the laser's noise; the
+world is the same). One exploration is chaotic: a single different choice early changes every
+trip after it, so one run per world measures a rule's effect together with that chance. Path
+ratios pair runs of the same world and simulator seed, average them per world (geometric mean
+over its seeds), then over the worlds, with a 95 % interval over the worlds; the spread of one
+strategy's path between the seeds of a world is reported beside it.
+
 Every run is classified: ``finished`` (done, coverage >= 0.95), ``early-done`` (done below
 that), ``failed`` (the planner gave up: the robot could not plan at all), ``livelock`` (the
 time limit came while the map had stopped growing for the last ``STAGNANT_S`` of sim time),
@@ -27,7 +34,7 @@ area (:func:`time_limit`).
 Writes to ``--out``: ``results.json`` (every run, the analysis, the corpus and the command),
 ``summary.md`` (tables per strategy and half, path ratios per world, the worst ten runs with
 their pictures), ``runs.jsonl`` (each run as it ends) and ``pics/<world>-<strategy>.png`` (the
-final map, graph and trail of every run). ``--doc`` writes the same report where the docs keep
+final map, graph and trail of every run; ``-sim<N>`` before ``.png`` for simulator seed N > 0). ``--doc`` writes the same report where the docs keep
 it, with the ten worst runs' pictures scaled down beside it; ``--from-results`` merges the
 results of several invocations (one per half, say) into one report without running anything.
 """
@@ -153,20 +160,24 @@ def time_limit(area: float) -> float:
 # one run
 
 
-def run_one(item: Item, strategy: str, sets: Sequence[str], pics: Path | None) -> dict:
-    """One in-process exploration with the figures the analysis needs."""
+def run_one(item: Item, strategy: str, sets: Sequence[str], pics: Path | None,
+            sim_seed: int = 0) -> dict:
+    """One in-process exploration with the figures the analysis needs (``sim_seed``: the
+    simulator's seed, ``sim.seed``)."""
     from topoexplore.tools.bench import inproc
 
     track = _Track()
     t0 = time.monotonic()
     try:
-        r = inproc.run(item.path, strategy, 0, tuple(sets), time_limit(item.area), track)
+        r = inproc.run(item.path, strategy, sim_seed, tuple(sets), time_limit(item.area),
+                       track)
     except Exception as exc:  # noqa: BLE001 - one broken run must not end the benchmark
         r = {"state": "error", "finished": False, "stop_reason": f"{type(exc).__name__}: {exc}",
              "path_length_m": None, "sim_time_s": None, "coverage": None,
              "coverage_free": None, "collisions": None}
     r.update(world=item.name, style=item.style, seed=item.seed, noise=item.noise,
-             half=item.half, strategy=strategy, area_m2=round(item.area, 1),
+             half=item.half, strategy=strategy, sim_seed=int(sim_seed),
+             area_m2=round(item.area, 1),
              limit_s=time_limit(item.area), wall_s=round(time.monotonic() - t0, 1),
              targets=track.targets, stagnant_s=track.stagnant_s())
     r["outcome"] = classify(r)
@@ -226,13 +237,14 @@ def _picture(item: Item, strategy: str, r: dict, track: _Track, pics: Path) -> s
     from topoexplore.tools.draw import Overlays, Style, render
 
     _t, pose, graph, beliefs, _plan, grid = track.last
-    title = (f"{item.name} / {strategy}: {r['outcome']}, {r['path_length_m']} m, coverage "
+    title = (f"{run_label(r)} / {strategy}: {r['outcome']}, {r['path_length_m']} m, coverage "
              f"{r['coverage']}")
     img = render(grid.data, grid.geom,
                  Overlays(topo=graph, rel=beliefs, robot_pose=tuple(pose),
                           trail=track.trail or None),
                  Style(crop=True, title=title))
-    name = f"{item.name}-{strategy}.png"
+    sim = int(r.get("sim_seed") or 0)
+    name = f"{item.name}-{strategy}" + (f"-sim{sim}" if sim else "") + ".png"
     write_png(pics / name, img)
     return f"pics/{name}"
 
@@ -241,6 +253,21 @@ def _picture(item: Item, strategy: str, r: dict, track: _Track, pics: Path) -> s
 # analysis (pure: the runs in, the figures out)
 
 OUTCOMES = ("finished", "early-done", "failed", "livelock", "timeout", "error")
+
+
+def sim_seed(r: dict) -> int:
+    """The run's simulator seed (0 for runs made before ``--sim-seeds``)."""
+    return int(r.get("sim_seed") or 0)
+
+
+def run_label(r: dict) -> str:
+    """The world's name, with ``/sim<N>`` for simulator seed N > 0."""
+    return r["world"] + (f"/sim{sim_seed(r)}" if sim_seed(r) else "")
+
+
+def run_key(r: dict) -> tuple[str, str, int]:
+    """What makes a run one of a kind in a report: world, strategy, simulator seed."""
+    return r["world"], r["strategy"], sim_seed(r)
 
 
 def _pct(values: list[float], q: float) -> float | None:
@@ -270,25 +297,57 @@ def strategy_table(runs: Sequence[dict], strategy: str) -> dict[str, Any]:
     return out
 
 
-def world_paths(runs: Sequence[dict]) -> dict[str, dict[str, float]]:
-    """{world: {strategy: path [m]}} of the runs that finished (outcome "finished")."""
-    out: dict[str, dict[str, float]] = {}
+def world_paths(runs: Sequence[dict]) -> dict[tuple[str, int], dict[str, float]]:
+    """{(world, simulator seed): {strategy: path [m]}} of the runs that finished (outcome
+    "finished")."""
+    out: dict[tuple[str, int], dict[str, float]] = {}
     for r in runs:
         if r["outcome"] == "finished" and r.get("path_length_m") is not None:
-            out.setdefault(r["world"], {})[r["strategy"]] = float(r["path_length_m"])
+            out.setdefault((r["world"], sim_seed(r)), {})[r["strategy"]] = \
+                float(r["path_length_m"])
     return out
+
+
+T95 = (12.71, 4.30, 3.18, 2.78, 2.57, 2.45, 2.36, 2.31, 2.26, 2.23, 2.20, 2.18, 2.16, 2.14,
+       2.13, 2.12, 2.11, 2.10, 2.09, 2.09)  # Student's t, 97.5 % quantile, 1..20 degrees
 
 
 def path_ratio(runs: Sequence[dict], num: str, den: str, style: str | None = None
                ) -> dict[str, Any]:
-    """Geometric mean of path(num) / path(den) over the worlds where both finished (with a
-    positive path); style limits it to one style."""
+    """path(num) / path(den) over the worlds where both finished (with a positive path); style
+    limits it to one style. Runs pair by world and simulator seed; a world's ratio is the
+    geometric mean over its pairs, and ``geomean`` the geometric mean over the worlds, with
+    ``low``..``high`` its 95 % interval (Student's t on the worlds' log ratios; None below
+    two worlds). ``n``: worlds, ``pairs``: run pairs."""
     styles = {r["world"]: r["style"] for r in runs}
-    ratios = {w: p[num] / p[den] for w, p in world_paths(runs).items()
-              if num in p and den in p and p[den] > 0 and p[num] > 0
-              and (style is None or styles[w] == style)}
-    return {"geomean": geometric_mean(ratios.values()), "n": len(ratios),
-            "worlds": {w: round(v, 3) for w, v in sorted(ratios.items())}}
+    logs: dict[str, list[float]] = {}
+    for (w, _sim), p in world_paths(runs).items():
+        if num in p and den in p and p[den] > 0 and p[num] > 0 and (
+                style is None or styles[w] == style):
+            logs.setdefault(w, []).append(math.log(p[num] / p[den]))
+    per_world = {w: math.exp(sum(v) / len(v)) for w, v in logs.items()}
+    out: dict[str, Any] = {"geomean": geometric_mean(per_world.values()), "n": len(per_world),
+                           "pairs": sum(len(v) for v in logs.values()), "low": None,
+                           "high": None,
+                           "worlds": {w: round(v, 3) for w, v in sorted(per_world.items())}}
+    if len(per_world) >= 2:
+        x = np.log(np.fromiter(per_world.values(), np.float64))
+        half = T95[min(len(x) - 1, len(T95)) - 1] * float(np.std(x, ddof=1)) / math.sqrt(len(x))
+        out["low"], out["high"] = (math.exp(float(np.mean(x)) + s * half) for s in (-1.0, 1.0))
+    return out
+
+
+def sim_spread(runs: Sequence[dict], strategy: str) -> dict[str, Any]:
+    """How far one strategy's path moves between simulator seeds of the same world: per world
+    with at least two finished seeds, the longest path over the shortest; the median and the
+    largest of that over the worlds (None without such a world)."""
+    by: dict[str, list[float]] = {}
+    for (w, _sim), p in world_paths(runs).items():
+        if p.get(strategy, 0.0) > 0:
+            by.setdefault(w, []).append(p[strategy])
+    spread = [max(v) / min(v) for v in by.values() if len(v) >= 2]
+    return {"n": len(spread), "median": _pct(spread, 50),
+            "max": max(spread) if spread else None}
 
 
 def over_shortest(runs: Sequence[dict], factor: float = 2.0) -> list[dict]:
@@ -296,14 +355,15 @@ def over_shortest(runs: Sequence[dict], factor: float = 2.0) -> list[dict]:
     strategies (variants are measured against it, not part of it) on their world."""
     paths = world_paths(runs)
     out = []
-    for w, p in paths.items():
+    for (w, sim), p in paths.items():
         own = [v for st, v in p.items() if st in STRATEGIES and v > 0]
         if len(p) < 2 or not own:
             continue
         best = min(own)
         for st, v in p.items():
             if best > 0 and v > factor * best:
-                out.append({"world": w, "strategy": st, "ratio": round(v / best, 2)})
+                out.append({"world": w, "strategy": st, "ratio": round(v / best, 2)}
+                           | ({"sim_seed": sim} if sim else {}))
     return out
 
 
@@ -337,9 +397,12 @@ def analyse(runs: Sequence[dict], strategies: Sequence[str]) -> dict[str, Any]:
             h["ratios_by_style"] = {st: path_ratio(rs, "reliability", "frontier", st)
                                     for st in sorted({r["style"] for r in rs})}
         h["oracle"] = ratios(rs, lambda r: r.get("oracle_m"))["strategies"]
+        if any(sim_seed(r) for r in rs):
+            h["sim_spread"] = {s: sim_spread(rs, s) for s in strategies}
         h["over_2x_shortest"] = over_shortest(rs)
-        h["worst"] = [{k: r.get(k) for k in ("world", "strategy", "outcome", "coverage",
-                                              "path_length_m", "stop_reason", "picture")}
+        h["worst"] = [{k: r.get(k) for k in ("world", "strategy", "sim_seed", "outcome",
+                                              "coverage", "path_length_m", "stop_reason",
+                                              "picture")}
                       for r in worst(rs)]
         out[half] = h
     return out
@@ -369,8 +432,12 @@ def _half_md(name: str, h: dict, link) -> list[str]:
     for key, rr in h["ratios"].items():
         if not rr["n"]:
             continue
-        L.append(f"- path {key}: geometric mean **{_f(rr['geomean'])}** over {rr['n']} "
-                 "world(s) where both finished")
+        pairs = rr.get("pairs", rr["n"])
+        ci = (f" (95 % interval {_f(rr['low'])}–{_f(rr['high'])})"
+              if rr.get("low") is not None else "")
+        L.append(f"- path {key}: geometric mean **{_f(rr['geomean'])}**{ci} over {rr['n']} "
+                 "world(s) where both finished"
+                 + (f", {pairs} run pairs" if pairs != rr["n"] else ""))
         if key == "reliability/frontier":  # by style right below it
             for st, rs in h.get("ratios_by_style", {}).items():
                 L.append(f"  - {st}: {_f(rs['geomean'])} ({rs['n']} worlds)")
@@ -379,10 +446,17 @@ def _half_md(name: str, h: dict, link) -> list[str]:
                  "`topoexplore bench oracle`): " + ", ".join(
                      f"{st} **{_f(o['geomean'], 2)}** ({o['n']})"
                      for st, o in h["oracle"].items()))
+    spread = {st: v for st, v in h.get("sim_spread", {}).items() if v["n"]}
+    if spread:
+        L.append("- path spread between simulator seeds of one world (longest / shortest "
+                 "finished path; median, largest over the worlds): " + ", ".join(
+                     f"{st} {_f(v['median'], 2)}, {_f(v['max'], 2)} ({v['n']})"
+                     for st, v in spread.items()))
     over = h["over_2x_shortest"]
     L.append(f"- runs over 2 x the shortest path of the three strategies on their world: "
              f"{len(over)}"
-             + (": " + ", ".join(f"{o['world']}/{o['strategy']} ({o['ratio']})" for o in over)
+             + (": " + ", ".join(f"{run_label(o)}/{o['strategy']} ({o['ratio']})"
+                                 for o in over)
                 if over else ""))
     L += ["", "Worst runs:", "", "| world | strategy | outcome | coverage | path [m] | why |",
           "|---|---|---|---|---|---|"]
@@ -390,7 +464,7 @@ def _half_md(name: str, h: dict, link) -> list[str]:
         where = link(r)
         pic = f" ([picture]({where}))" if where else ""
         why = (r.get("stop_reason") or "").replace("|", "/")[:160]
-        L.append(f"| {r['world']}{pic} | {r['strategy']} | {r['outcome']} | "
+        L.append(f"| {run_label(r)}{pic} | {r['strategy']} | {r['outcome']} | "
                  f"{_f(r['coverage'])} | {_f(r['path_length_m'], 1)} | {why} |")
     return L + [""]
 
@@ -407,7 +481,9 @@ def summary(doc: dict, link=None) -> str:
           f"{STAGNANT_S:.0f} s), timeout (time limit, still growing). Coverage is against the "
           "free space the robot can reach and see (`sim.world.truth_mappable`). Watchdog: "
           "escalation steps; blockages: learned obstacles (docs/design.md). Path ratios: "
-          "geometric mean over the worlds where both strategies finished. "
+          "geometric mean over the worlds where both strategies finished (runs paired by "
+          "world and simulator seed, a world's seeds averaged first), with a 95 % interval "
+          "over the worlds when there are two or more. "
           "`reliability-paper` is the paper's rule exactly as written (no completion phase: "
           "done when every end node is reliable), the reference for our departures; it is not "
           "held to the targets and not among the worst runs. `reliability-distance` is ours "
@@ -417,7 +493,7 @@ def summary(doc: dict, link=None) -> str:
     for half, h in doc["analysis"].items():
         L += _half_md(names[half], h, link)
     if doc.get("bus"):
-        L += ["### On the bus", ""] + [f"- {b['world']} / {b['strategy']}: {b['note']}"
+        L += ["### On the bus", ""] + [f"- {run_label(b)} / {b['strategy']}: {b['note']}"
                                        for b in doc["bus"]] + [""]
     return "\n".join(L) + "\n"
 
@@ -431,9 +507,9 @@ def merge(docs: Sequence[tuple[Path, dict]]) -> dict:
             r = dict(r)
             if r.get("picture"):
                 r["_picture"] = str((src / r["picture"]).resolve())
-            by[(r["world"], r["strategy"])] = r
+            by[run_key(r)] = r
     runs = sorted(by.values(), key=lambda r: ({"tune": 0, "held": 1, "real": 2}[r["half"]],
-                                              r["world"], r["strategy"]))
+                                              *run_key(r)))
     strategies = [s for s in STRATEGY_NAMES if any(r["strategy"] == s for r in runs)]
     commands: list[str] = []
     for _, d in docs:
@@ -458,12 +534,11 @@ def write_report(doc: dict, md_path: Path, pic_dir: Path, for_docs: bool = False
     import cv2
 
     if for_docs:
-        wanted = {(r["world"], r["strategy"]) for r in worst(doc["runs"], DOC_PICTURES)}
+        wanted = {run_key(r) for r in worst(doc["runs"], DOC_PICTURES)}
     else:
-        wanted = {(w["world"], w["strategy"]) for h in doc["analysis"].values()
-                  for w in h["worst"]}
-    src = {(r["world"], r["strategy"]): r.get("_picture") for r in doc["runs"]}
-    links: dict[tuple[str, str], str] = {}
+        wanted = {run_key(w) for h in doc["analysis"].values() for w in h["worst"]}
+    src = {run_key(r): r.get("_picture") for r in doc["runs"]}
+    links: dict[tuple[str, str, int], str] = {}
     for key in sorted(wanted):
         if not (src.get(key) and Path(src[key]).is_file()):
             continue
@@ -483,7 +558,7 @@ def write_report(doc: dict, md_path: Path, pic_dir: Path, for_docs: bool = False
         links[key] = os.path.relpath(dst, md_path.parent)
     for h in doc["analysis"].values():
         for w in h["worst"]:
-            w["picture"] = links.get((w["world"], w["strategy"]))
+            w["picture"] = links.get(run_key(w))
     md_path.parent.mkdir(parents=True, exist_ok=True)
     md_path.write_text(summary(doc, lambda r: r.get("picture")))
 
@@ -511,6 +586,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="parameter override for every run (repeatable)")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--seeds", default=None, help="only these seeds of the half (comma separated)")
+    ap.add_argument("--sim-seeds", default="0", metavar="0,1,2",
+                    help="run every world and strategy once per simulator seed (sim.seed: the "
+                         "laser's noise), comma separated (default: 0)")
     ap.add_argument("--max-area", type=float, default=None, metavar="M2",
                     help="only worlds of at most this area [m^2]")
     ap.add_argument("--quick", action="store_true",
@@ -541,17 +619,30 @@ def _load_results(dirs: Sequence[Path]) -> list[tuple[Path, dict]]:
     return out
 
 
-def _plan(a: argparse.Namespace) -> tuple[list[tuple[Item, str]], list[str]]:
+Run = tuple[Item, str, int]  # a planned run: world, strategy, simulator seed
+MAX_SIM_SEEDS = 1000
+
+
+def _int_list(text: str, flag: str) -> list[int]:
+    """Comma-separated integers, sorted, without repeats (a one-line error otherwise)."""
+    try:
+        return sorted({int(v) for v in text.split(",") if v.strip()})
+    except ValueError:
+        raise BenchArgError(f"{flag}: integers please (got {text!r})") from None
+
+
+def _plan(a: argparse.Namespace) -> tuple[list[Run], list[str]]:
     strategies = parse_strategies(a.strategies)
     if a.jobs < 1 or a.bus < 0:
         raise BenchArgError("--jobs must be >= 1 and --bus >= 0")
     check_overrides(None, a.set)
+    sims = _int_list(a.sim_seeds, "--sim-seeds")
+    if not sims or sims[0] < 0 or sims[-1] >= MAX_SIM_SEEDS:
+        raise BenchArgError(f"--sim-seeds: seeds 0..{MAX_SIM_SEEDS - 1} please "
+                            f"(got {a.sim_seeds!r})")
     seeds = None
     if a.seeds is not None:
-        try:
-            seeds = sorted({int(v) for v in a.seeds.split(",") if v.strip()})
-        except ValueError:
-            raise BenchArgError(f"--seeds: integers please (got {a.seeds!r})") from None
+        seeds = _int_list(a.seeds, "--seeds")
         bad_seeds = [v for v in seeds if v not in SEEDS]
         if bad_seeds or not seeds:
             raise BenchArgError(f"--seeds: the corpus has seeds {SEEDS[0]}..{SEEDS[-1]} "
@@ -566,10 +657,10 @@ def _plan(a: argparse.Namespace) -> tuple[list[tuple[Item, str]], list[str]]:
             raise BenchArgError(f"--worlds: not in this corpus half: {', '.join(sorted(missing))}")
         items = [i for i in items if i.name in want]
     items.sort(key=lambda i: -i.area)  # the longest first, so no long run starts last
-    return [(i, s) for i in items for s in strategies], strategies
+    return [(i, s, k) for i in items for k in sims for s in strategies], strategies
 
 
-def _execute(plan: list[tuple[Item, str]], a: argparse.Namespace) -> list[dict]:
+def _execute(plan: list[Run], a: argparse.Namespace) -> list[dict]:
     from tqdm import tqdm
 
     pics = a.out / "pics"
@@ -579,22 +670,22 @@ def _execute(plan: list[tuple[Item, str]], a: argparse.Namespace) -> list[dict]:
     bar = tqdm(total=len(plan), unit="run", desc="bench robust", file=sys.stderr,
                dynamic_ncols=True, disable=a.no_progress)
     with ProcessPoolExecutor(min(a.jobs, max(1, len(plan)))) as pool:
-        futs = [pool.submit(run_one, item, st, tuple(a.set), pics) for item, st in plan]
+        futs = [pool.submit(run_one, item, st, tuple(a.set), pics, k) for item, st, k in plan]
         for f in as_completed(futs):
             r = f.result()
             runs.append(r)
             partial.write(json.dumps(r) + "\n")
             partial.flush()
-            bar.set_postfix_str(f"{r['world']}/{r['strategy']}: {r['outcome']} "
+            bar.set_postfix_str(f"{run_label(r)}/{r['strategy']}: {r['outcome']} "
                                 f"{_f(r.get('coverage'))}", refresh=False)
             bar.update(1)
     bar.close()
     partial.close()
-    order = {(i.name, s): k for k, (i, s) in enumerate(plan)}
-    return sorted(runs, key=lambda r: order[(r["world"], r["strategy"])])
+    order = {(i.name, s, k): n for n, (i, s, k) in enumerate(plan)}
+    return sorted(runs, key=lambda r: order[run_key(r)])
 
 
-def _bus_check(plan: list[tuple[Item, str]], runs: list[dict], n: int, out: Path,
+def _bus_check(plan: list[Run], runs: list[dict], n: int, out: Path,
                sets: Sequence[str]) -> list[dict]:
     """n runs of the plan again through `topoexplore run --lockstep` (the real processes on
     the bus), the smallest worlds first: the same outcome, and how far apart the paths are.
@@ -602,13 +693,13 @@ def _bus_check(plan: list[tuple[Item, str]], runs: list[dict], n: int, out: Path
     message for message, so paths agree closely rather than to the bit."""
     from topoexplore.tools.bench.explore import run_one as bus_run
 
-    by = {(r["world"], r["strategy"]): r for r in runs}
-    sample = sorted(plan, key=lambda p: (p[0].area, p[0].name, p[1]))[:n]
+    by = {run_key(r): r for r in runs}
+    sample = sorted(plan, key=lambda p: (p[0].area, p[0].name, p[2], p[1]))[:n]
     notes = []
-    for item, st in sample:
-        rep = bus_run(item.name, item.path, st, 0, out / "bus", time_limit(item.area), 0.0,
+    for item, st, k in sample:
+        rep = bus_run(item.name, item.path, st, k, out / "bus", time_limit(item.area), 0.0,
                       None, tuple(sets))
-        local = by[(item.name, st)]
+        local = by[(item.name, st, k)]
         bus_state = "done" if rep.get("finished") else (
             "timeout" if "max sim time" in str(rep.get("stop_reason")) else "failed")
         bus_outcome = classify({"state": bus_state, "coverage": rep.get("coverage"),
@@ -616,7 +707,7 @@ def _bus_check(plan: list[tuple[Item, str]], runs: list[dict], n: int, out: Path
         pb, pl = rep.get("path_length_m"), local.get("path_length_m")
         diff = (abs(pb - pl) / pl) if pb is not None and pl else None
         same = bus_outcome == local["outcome"]
-        notes.append({"world": item.name, "strategy": st, "same_outcome": same,
+        notes.append({"world": item.name, "strategy": st, "sim_seed": k, "same_outcome": same,
                       "bus_outcome": bus_outcome, "bus_path_m": pb, "bus_coverage":
                       rep.get("coverage"), "path_difference": diff,
                       "note": (f"bus {bus_outcome}, {pb} m, coverage {rep.get('coverage')}, "
