@@ -357,3 +357,38 @@ def test_replay_reproduces_the_recorded_outputs(recorded):
     assert re.search(r"FIRST DIVERGENCE at scan \d+, topo message #\d+: .+: recorded",
                      changed.stdout), changed.stdout
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
+
+
+def _old_layout_recording(path: Path, keys: Keys) -> None:
+    """A recording as one made before the ROS-shaped messages (odometry as x, y, theta and a
+    float stamp), with the scans and maps of today."""
+    rec = Recorder(path, keys.prefix, foxglove=False)
+    for seq in range(3):
+        rec.put(keys.topic("odom"), msgspec.msgpack.encode(
+            {"seq": seq, "stamp": 0.2 * seq, "x": 0.1 * seq, "y": 0.0, "theta": 0.0}),
+            1_000 + 3 * seq)
+        rec.put(keys.topic("scan"), m.encode(scan_msg(seq, 0.2 * seq, [1.0] * 5)), 1_001 + 3 * seq)
+        rec.put(keys.topic("map"), m.encode(grid_msg(seq)), 1_002 + 3 * seq)
+    rec.close()
+
+
+def test_an_old_wire_layout_is_named_before_anything_is_played(tmp_path):
+    from topoexplore.tools.record import layout_error, unreadable_channels
+
+    keys = Keys("ns", "r1")
+    path = tmp_path / "old.mcap"
+    _old_layout_recording(path, keys)
+    every = {keys.topic(t) for t in ("odom", "scan", "map")}
+    bad = unreadable_channels(path, every)
+    assert list(bad) == [keys.topic("odom")] and "Odometry" in bad[keys.topic("odom")]
+    assert unreadable_channels(path, every - {keys.topic("odom")}) == {}
+    why = layout_error(path, every, keys.prefix)
+    assert "on odom (first" in why and "\n" not in why
+    assert layout_error(path, every - {keys.topic("odom")}, keys.prefix) is None
+    # play and replay refuse it in one line, exit 2, before they open the bus (no router)
+    for cmd in (["play", str(path)], ["replay", str(path), "--through", "mapper"]):
+        r = subprocess.run([sys.executable, "-m", "topoexplore.tools.cli", *cmd], cwd=REPO,
+                           capture_output=True, text=True, timeout=120)
+        err = r.stderr.strip()
+        assert r.returncode == 2 and len(err.splitlines()) == 1, (cmd, r.stderr)
+        assert "another wire layout" in err and "on odom (first" in err, err

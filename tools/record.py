@@ -272,6 +272,43 @@ def raw_messages(path: str | Path, topics: set[str] | None = None, start_ns: int
             yield ch.topic, msg.data, msg.log_time
 
 
+LAYOUT_PROBE = 5000  # messages read at most to find each channel's first one
+
+
+def unreadable_channels(path: str | Path, keys: set[str]) -> dict[str, str]:
+    """{key: why} of the raw channels among keys whose first message this version cannot
+    decode: a recording made before a wire message changed (the ROS-shaped messages of
+    2026-12-04, say). Its messages would be rejected by every service, one by one, so play
+    and replay say so up front. Reads the first message of each key, within the first
+    LAYOUT_PROBE messages (a key first seen later is not judged)."""
+    out: dict[str, str] = {}
+    seen: set[str] = set()
+    for n, (key, data, _t) in enumerate(raw_messages(path, keys)):
+        if key not in seen:
+            seen.add(key)
+            t = type_for_key(key)
+            if t is not None:
+                try:
+                    m.decode(data, t)
+                except m.MessageError as exc:
+                    out[key] = str(exc)
+        if seen >= keys or n >= LAYOUT_PROBE:
+            break
+    return out
+
+
+def layout_error(path: str | Path, keys: set[str], prefix: str) -> str | None:
+    """The one-line error for :func:`unreadable_channels` (None when every channel reads)."""
+    bad = unreadable_channels(path, keys)
+    if not bad:
+        return None
+    names = sorted(topic_of(k, prefix) or k for k in bad)
+    first = bad[min(bad)].splitlines()[0][:160]
+    return (f"{path}: this version cannot read the messages on {', '.join(names)} (first: "
+            f"{first}); it was recorded with another wire layout: play it with the version "
+            "that recorded it (docs/recording.md, \"Wire layout\")")
+
+
 # --- command line ---------------------------------------------------------------------------
 
 
@@ -360,6 +397,8 @@ def cmd_play(args: argparse.Namespace) -> int:
     chosen = {t for t in raw if topics is None or topic_of(t, prefix) in topics}
     if not chosen:
         return fail(f"none of {', '.join(topics or [])} is in {args.file}")
+    if (why := layout_error(args.file, chosen, prefix)) is not None:
+        return fail(why)
     start_ns = summary["start_ns"] + to_ns(args.start)
     stop = threading.Event()
     restore = stop_on_signals(stop.set)

@@ -45,6 +45,7 @@ from topoexplore.tools.record import (
     MESSAGE_ENCODING,
     RecordError,
     header_of,
+    layout_error,
     raw_messages,
     read_summary,
     topic_of,
@@ -216,6 +217,10 @@ def replay(args: argparse.Namespace) -> int:
     if lacking:
         return fail(f"{args.file} does not hold {', '.join(lacking)} (needed to replay "
                     f"{','.join(through)})")
+    wanted = {t for t, c in summary["channels"].items() if c["encoding"] == MESSAGE_ENCODING
+              and topic_of(t, prefix) in ins + outs}
+    if (why := layout_error(args.file, wanted, prefix)) is not None:
+        return fail(why)
     first = _first_input_seq(args.file, prefix, ins)
     if first:
         print(f"note: the recording starts at {first} (not at seq 0): the replayed services "
