@@ -399,8 +399,10 @@ class ControllerParams(_P):
     stuck_time: Pos = 4.0  # [s] no motion while commanding -> recovery
     recovery_time: Pos = 1.5  # [s]
     recovery_speed: Pos = 0.1  # [m/s] backwards
-    recovery_backup: bool = False  # back up when stuck (blind with a forward laser; off =
-    # only turn in place)
+    recovery_backup: bool = True  # back up when stuck, only into space a scan of the last
+    # recovery_memory s saw free (off = only turn in place)
+    recovery_memory: NonNeg = 10.0  # [s] scans kept for that rear check (0: the current
+    # scan only, which a forward 180 deg laser never sees behind with)
     heading_gain: Pos = 1.5  # [1/s] w = gain * heading error when turning in place
     search_window: Pos = 1.5  # [m] path progress is searched this far ahead of the last
     slow_min_scale: Fraction = 0.25  # speed factor at safety_distance (1 at slow_distance)

@@ -21,10 +21,11 @@ from topoexplore.services.controller.core import (
     path_arclength,
     point_at,
     project_on_path,
-    rear_blocked,
+    seen_free,
 )
 
 P = ControllerParams(start_turn=0.0)  # path following from the first step (look: own test)
+P_BACKUP = ControllerParams(recovery_backup=True, start_turn=0.0)
 STRAIGHT = np.array([[0.0, 0.0], [5.0, 0.0]])
 L_PATH = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0]])
 
@@ -194,10 +195,46 @@ def test_obstacle_scale():
     assert obstacle_scale(P.safety_distance - 0.01, P) == 0.0
 
 
-def test_rear_blocked_needs_returns_behind():
-    assert not rear_blocked(free_scan(), P, R)  # a forward 180 deg laser never sees behind
-    wide = Scan(np.array([0.3, 8.0, 8.0]), math.pi, -math.pi / 2, 0.02, 8.0)  # 0.3 m behind
-    assert rear_blocked(wide, P, R)
+def test_seen_free_follows_each_beam_to_its_return():
+    s = scan_with([(1.0, 0.0)])  # a return 1 m straight ahead, 8 m elsewhere
+    px = np.array([0.5, 0.97, 1.5, 3.0, -1.0, 0.0])
+    py = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 2.0])
+    got = seen_free(px, py, (0.0, 0.0, 0.0), s)
+    # before the return; too near it (margin); behind it; beside it; behind the laser; at 90°
+    assert got.tolist() == [True, False, False, True, False, True]
+    # the same scan taken facing back (theta = pi) sees the point behind, not the one ahead
+    assert seen_free(np.array([-0.5, 0.5]), np.zeros(2), (0.0, 0.0, math.pi), s).tolist() == \
+        [True, False]
+    # REP-117: +Inf is free to range_max, NaN and -Inf are not seen
+    r = np.full(181, np.inf)
+    r[90], r[0] = np.nan, -np.inf
+    odd = Scan(r, -math.pi / 2, math.radians(1.0), 0.02, 8.0)
+    assert seen_free(np.array([2.0, 0.0, 7.9, 9.0]), np.array([0.0, -2.0, 0.5, 0.0]),
+                     (0.0, 0.0, 0.0), odd).tolist() == [False, False, True, False]
+
+
+def test_backing_up_only_into_space_a_recent_scan_saw_free():
+    core = ControllerCore(P_BACKUP)
+    # facing +x, a forward laser: nothing seen behind yet
+    assert not core.rear_clear((0.0, 0.0, 0.0), free_scan())
+    # it had faced back (-x) a moment ago and saw free space there: backing up is allowed
+    step(core, 0.0, (0.0, 0.0, math.pi), STRAIGHT, 1, False, free_scan())
+    assert core.rear_clear((0.0, 0.0, 0.0), free_scan())
+    # ... unless that scan had a return within the corridor the body would sweep
+    core = ControllerCore(P_BACKUP)
+    step(core, 0.0, (0.0, 0.0, math.pi), STRAIGHT, 1, False, scan_with([(0.35, 0.0)]))
+    assert not core.rear_clear((0.0, 0.0, 0.0), free_scan())
+    # ... or it was seen longer ago than recovery_memory
+    core = ControllerCore(P_BACKUP)
+    step(core, 0.0, (0.0, 0.0, math.pi), STRAIGHT, 1, False, free_scan())
+    step(core, P_BACKUP.recovery_memory + 1.0, (0.0, 0.0, 0.0), STRAIGHT, 1, False,
+         free_scan())
+    assert not core.rear_clear((0.0, 0.0, 0.0), free_scan())
+    # a 360° lidar sees behind now: its return 0.3 m behind blocks, its free rear allows
+    wide = Scan(np.array([0.3, 8.0, 8.0]), math.pi, -math.pi / 2, 0.02, 8.0)
+    assert not ControllerCore(P_BACKUP).rear_clear((0.0, 0.0, 0.0), wide)
+    around = Scan(np.full(360, 8.0), -math.pi, math.radians(1.0), 0.02, 8.0)
+    assert ControllerCore(P_BACKUP).rear_clear((0.0, 0.0, 0.0), around)
 
 
 # --- behaviour --------------------------------------------------------------------------------
@@ -373,18 +410,23 @@ def test_progress_never_goes_back():
     assert core.snapshot()["progress"] >= s1
 
 
-P_BACKUP = ControllerParams(recovery_backup=True, start_turn=0.0)
-
-
-def test_default_recovery_only_turns_in_place():
+def test_recovery_never_backs_up_into_space_it_has_not_seen():
     core = ControllerCore(P)
+    assert P.recovery_backup  # the default
     cmds = [step(core, k * 0.2, (0.0, 0.0, 0.0), STRAIGHT, 1, False,
                         scan_with([(0.25, 0.0)])) for k in range(int(P.stuck_time / 0.2) + 8)]
     assert all(v >= 0.0 for v, _, _ in cmds)  # never drives blind backwards
+    assert core.backups_refused == 1 and cmds[-1][2] in ("recovery", "blocked")
+    off = ControllerCore(ControllerParams(recovery_backup=False, start_turn=0.0))
+    step(off, 0.0, (0.0, 0.0, math.pi), STRAIGHT, 1, False, free_scan())  # rear seen free
+    cmds = [step(off, 0.2 + k * 0.2, (0.0, 0.0, 0.0), STRAIGHT, 1, False,
+                 scan_with([(0.25, 0.0)])) for k in range(int(P.stuck_time / 0.2) + 8)]
+    assert all(v >= 0.0 for v, _, _ in cmds) and off.backups_refused == 0  # off: turns only
 
 
 def test_stuck_triggers_recovery_backup_then_turn():
     core = ControllerCore(P_BACKUP)
+    step(core, -1.0, (0.0, 0.0, math.pi), STRAIGHT, 1, False, free_scan())  # saw behind
     pose = (0.0, 0.0, 0.0)
     t, dt = 0.0, 0.2
     mode = ""
@@ -407,6 +449,7 @@ def test_stuck_triggers_recovery_backup_then_turn():
 
 def test_blocked_for_long_triggers_recovery():
     core = ControllerCore(P_BACKUP)
+    step(core, -1.0, (0.0, 0.0, math.pi), STRAIGHT, 1, False, free_scan())  # saw behind
     scan = scan_with([(0.25, 0.0)])
     modes = [step(core, k * 0.2, (0.0, 0.0, 0.0), STRAIGHT, 1, False, scan)[2]
              for k in range(int(P.stuck_time / 0.2) + 2)]

@@ -8,7 +8,7 @@ corridor ahead (|y| <= radius) and the arc the command drives (the disc of the b
 along it, arc_distance); returns within robot.body_margin beside that path only slow the
 robot to slow_min_scale (a door as wide as the body plus twice the margin is passable).
 Additionally: progress along the path is tracked so the lookahead point never goes back, and a
-stuck robot backs up and turns toward the path.
+stuck robot backs up (only into space a recent scan saw free) and turns toward the path.
 
 Modes: "idle" (no path), "done" (exploration over), "arrived" (end of path reached), "rotate"
 (turning in place), "track" (pure pursuit), "slow" (pure pursuit, slowed by an obstacle ahead),
@@ -40,7 +40,7 @@ __all__ = [
     "pure_pursuit",
     "front_distance",
     "arc_distance",
-    "rear_blocked",
+    "seen_free",
     "obstacle_scale",
     "ControllerCore",
 ]
@@ -49,6 +49,7 @@ WARM_MODULES: tuple[str, ...] = ()  # no numba kernels (common.warm)
 MODES = ("idle", "done", "look", "rotate", "track", "slow", "blocked", "recovery", "face",
          "arrived")
 _SAMPLE_STEP = 0.02  # [m] path sampling step of the lookahead search
+REAR_EVERY = 0.5  # [s] one scan kept per this for the rear check (ControllerCore.rear_clear)
 
 
 class ControllerError(ValueError):
@@ -228,16 +229,26 @@ def arc_distance(scan: Scan | None, kappa: float, half_width: float) -> float:
     return best + rho if math.isfinite(best) else math.inf
 
 
-def rear_blocked(scan: Scan | None, params: ControllerParams, half_width: float) -> bool:
-    """True if a return lies behind the robot centre in its swept corridor (|y| <= half_width
-    [m]) within the backing distance (recovery_speed * recovery_time + half_width). A forward-only
-    180 deg laser never sees behind, so the rear then counts as not known to be blocked."""
-    if scan is None:
-        return False
-    _, _, x, y = _scan_xy(scan)
-    reach = half_width + params.recovery_speed * params.recovery_time  # [m]
-    m = (x < -1e-9) & (-x <= reach) & (np.abs(y) <= half_width)
-    return bool(np.any(m))
+def seen_free(px: np.ndarray, py: np.ndarray, pose: Pose, scan: Scan,
+              margin: float = 0.05) -> np.ndarray:
+    """Which points (px, py) [m] (the pose's frame) the scan taken at pose saw free (bool): a
+    beam of the scan points at the point and ran at least ``margin`` [m] past it before its
+    return (no return: to range_max). Points outside the beams' angles, or behind a beam
+    that read nothing usable (NaN, too close), were not seen."""
+    dx, dy = np.asarray(px, float) - pose[0], np.asarray(py, float) - pose[1]
+    d = np.hypot(dx, dy)
+    n, inc = scan.beams, scan.angle_increment
+    k = np.rint(np.mod(np.arctan2(dy, dx) - pose[2] - scan.angle_min, 2 * math.pi) / inc
+                ).astype(np.int64)  # the bearing's beam, counted from angle_min
+    if n * abs(inc) >= 2 * math.pi - 1e-6:  # a full circle: the last gap closes on beam 0
+        k = np.where(k >= n, k - n, k)
+    ok = (k >= 0) & (k < n) & (inc > 0)
+    r = np.asarray(scan.ranges, np.float64)
+    reach = np.where(np.isnan(r) | np.isneginf(r) | (r < scan.range_min), 0.0,
+                     np.minimum(r, scan.range_max))  # REP-117: +Inf, >= range_max: free to max
+    out = np.zeros(d.shape, bool)
+    out[ok] = d[ok] + margin <= reach[k[ok]]
+    return out
 
 
 def obstacle_scale(d_front: float, params: ControllerParams) -> float:
@@ -279,6 +290,8 @@ class ControllerCore:
         self._recovery: str | None = None  # None | "backup" | "turn"
         self._rec_start = 0.0  # [s]
         self.recoveries = 0
+        self.backups_refused = 0  # recoveries that turned only: the rear not seen free
+        self._seen: list[tuple[float, Pose, Scan]] = []  # (t, pose, scan): the rear check's
         self.front = math.inf  # [m] nearest return in the body's path ahead (stops) ...
         self.front_margin = math.inf  # [m] ... within body_margin beside it (slows)
         self.target: tuple[float, float] | None = None
@@ -355,9 +368,45 @@ class ControllerCore:
         self.arrived = True
         return self._out(0.0, 0.0, "arrived", False, t, pose)
 
+    def _remember(self, t: float, pose: Pose, scan: Scan | None) -> None:
+        """Keep a scan every REAR_EVERY s of the last recovery_memory s (the rear check's)."""
+        keep = self.params.recovery_memory
+        self._seen = [e for e in self._seen if 0.0 <= t - e[0] <= keep]
+        if scan is not None and keep > 0.0 and (
+                not self._seen or t - self._seen[-1][0] >= REAR_EVERY):
+            self._seen.append((t, (float(pose[0]), float(pose[1]), float(pose[2])), scan))
+
+    def rear_clear(self, pose: Pose, scan: Scan | None) -> bool:
+        """May the robot back up? Only into space seen free: every sample point of the
+        corridor it would sweep (behind the body, |y| <= half_width, up to the backing
+        distance) lies where the current scan or one of the last recovery_memory s saw free
+        space, and no return of those scans lies in the corridor. A robot with a forward 180°
+        laser sees behind it only what it saw before it turned (or drove in), so it backs out
+        the way it came and never into space it has not seen."""
+        p = self.params
+        hw = self.half_width
+        reach = hw + p.recovery_speed * p.recovery_time  # [m] behind the centre
+        xs = np.array([-(self.radius + 0.02), -0.5 * (self.radius + reach), -reach])
+        ys = np.array([-hw, 0.0, hw])
+        lx, ly = (v.ravel() for v in np.meshgrid(xs, ys))
+        c, s_ = math.cos(pose[2]), math.sin(pose[2])
+        wx, wy = pose[0] + c * lx - s_ * ly, pose[1] + s_ * lx + c * ly
+        seen = np.zeros(lx.shape, bool)
+        here = (float(pose[0]), float(pose[1]), float(pose[2]))
+        for _t, at, sc in self._seen + ([(0.0, here, scan)] if scan is not None else []):
+            seen |= seen_free(wx, wy, at, sc)
+            r, a = sc.returns()
+            hx = at[0] + r * np.cos(a + at[2]) - pose[0]
+            hy = at[1] + r * np.sin(a + at[2]) - pose[1]
+            bx, by = c * hx + s_ * hy, -s_ * hx + c * hy  # in the robot's frame now
+            if np.any((bx < -1e-9) & (-bx <= reach) & (np.abs(by) <= hw)):
+                return False
+        return bool(seen.all())
+
     def _recover(self, t: float, pose: Pose, alpha: float, scan: Scan | None) -> Command | None:
         """Stuck detection (commanded motion, no progress for stuck_time) and the recovery:
-        back up (if enabled and the rear is not known to be blocked), then turn to the path."""
+        back up (if enabled and the rear was seen free: :meth:`rear_clear`), then turn to the
+        path."""
         p = self.params
         x, y, th = pose
         if self._ref is not None and self._recovery is None:
@@ -367,8 +416,9 @@ class ControllerCore:
                 self._ref = (t, x, y, th)
             elif t - t0 >= p.stuck_time:
                 self.recoveries += 1
-                self._recovery = ("backup" if p.recovery_backup
-                                  and not rear_blocked(scan, p, self.half_width) else "turn")
+                back = p.recovery_backup and self.rear_clear(pose, scan)
+                self.backups_refused += p.recovery_backup and not back
+                self._recovery = "backup" if back else "turn"
                 self._rec_start = t
         if self._recovery == "backup":
             if t - self._rec_start < p.recovery_time:
@@ -433,6 +483,7 @@ class ControllerCore:
             self._recovery = None
             self._look_left, self._look_th = self.params.start_turn, None
         self._t_last = t
+        self._remember(t, pose, scan)
         self.front = front_distance(scan, self.params, self.radius)
         self.front_margin = front_distance(scan, self.params, self.half_width)
         self._take_route(route)
@@ -486,4 +537,5 @@ class ControllerCore:
             "front_margin": self.front_margin if math.isfinite(self.front_margin) else None,
             "recovery": self._recovery,
             "recoveries": self.recoveries,
+            "backups_refused": self.backups_refused,
         }
