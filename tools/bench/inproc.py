@@ -180,7 +180,10 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
             "escalations": snap["watchdog"]["counts"],
             "watchdog_approaches": snap["watchdog"]["approaches"],
             "blocked_marks": snap["blocked"]["made"],
-            "blocked_forgotten": snap["blocked"]["forgotten"], **loc.figures()}
+            "blocked_forgotten": snap["blocked"]["forgotten"],
+            "recoveries": c.controller.recoveries,  # the controller's stuck recoveries ...
+            "backups_refused": c.controller.backups_refused,  # ... that only turned
+            **loc.figures()}
 
 
 def _coverages(P: Params, w: World, grid: Any) -> tuple[float, float]:
