@@ -259,3 +259,16 @@ def test_from_results_merges_halves_into_one_doc_with_small_pictures(tmp_path, c
     capsys.readouterr()
     assert rb.main(["--from-results", str(tmp_path / "none")]) == 2
     assert "cannot read" in capsys.readouterr().err
+
+
+def test_real_maps_missing_is_said_not_skipped_silently(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(rb, "shared_maps_dir", lambda: None)
+    out = tmp_path / "out"
+    assert rb.main(["--half", "real", "--out", str(out), "--corpus", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no ../shared/maps" in err and "\n" not in err and not out.exists()
+    a = rb.build_parser().parse_args(["--half", "all", "--seeds", "1", "--max-area", "300",
+                                      "--corpus", str(tmp_path)])
+    plan, _ = rb._plan(a)
+    assert "real maps are left out" in capsys.readouterr().err
+    assert {i.half for i, _s, _k in plan} == {"held"}

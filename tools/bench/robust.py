@@ -649,6 +649,12 @@ def _plan(a: argparse.Namespace) -> tuple[list[Run], list[str]]:
                                 f"(got {a.seeds!r})")
     if a.max_area is not None and not (math.isfinite(a.max_area) and a.max_area > 0):
         raise BenchArgError("--max-area must be a positive number of m^2")
+    if a.half in ("all", "real") and not a.quick and shared_maps_dir() is None:
+        if a.half == "real":
+            raise BenchArgError("--half real: no ../shared/maps beside the current directory "
+                                "or the checkout")
+        print("topoexplore bench robust: note: no ../shared/maps beside the current directory "
+              "or the checkout: the real maps are left out", file=sys.stderr)
     items = build_corpus(a.corpus, a.half, a.quick, seeds, a.max_area)
     if a.worlds:
         want = {w.strip() for w in a.worlds.split(",") if w.strip()}
