@@ -133,6 +133,8 @@ def test_simulator_seeds_pair_runs_per_world_and_seed_and_show_the_spread():
     assert rb.run_label(runs[2]) == "a/sim1" and rb.run_label(runs[0]) == "a"
     one = rb.path_ratio(runs[:2], "reliability", "frontier")  # one world: no interval
     assert one["low"] is None and one["high"] is None and one["pairs"] == 1
+    two = rb.path_ratio(runs[:6], "reliability", "frontier")  # two worlds: none either
+    assert two["n"] == 2 and two["low"] is None
 
 
 def test_a_plan_runs_every_world_and_strategy_once_per_simulator_seed(tmp_path):

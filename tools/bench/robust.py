@@ -308,6 +308,7 @@ def world_paths(runs: Sequence[dict]) -> dict[tuple[str, int], dict[str, float]]
     return out
 
 
+MIN_INTERVAL = 3  # worlds needed for an interval (with two, Student's t makes it ~ x/100..x100)
 T95 = (12.71, 4.30, 3.18, 2.78, 2.57, 2.45, 2.36, 2.31, 2.26, 2.23, 2.20, 2.18, 2.16, 2.14,
        2.13, 2.12, 2.11, 2.10, 2.09, 2.09)  # Student's t, 97.5 % quantile, 1..20 degrees
 
@@ -318,7 +319,7 @@ def path_ratio(runs: Sequence[dict], num: str, den: str, style: str | None = Non
     limits it to one style. Runs pair by world and simulator seed; a world's ratio is the
     geometric mean over its pairs, and ``geomean`` the geometric mean over the worlds, with
     ``low``..``high`` its 95 % interval (Student's t on the worlds' log ratios; None below
-    two worlds). ``n``: worlds, ``pairs``: run pairs."""
+    MIN_INTERVAL worlds). ``n``: worlds, ``pairs``: run pairs."""
     styles = {r["world"]: r["style"] for r in runs}
     logs: dict[str, list[float]] = {}
     for (w, _sim), p in world_paths(runs).items():
@@ -330,7 +331,7 @@ def path_ratio(runs: Sequence[dict], num: str, den: str, style: str | None = Non
                            "pairs": sum(len(v) for v in logs.values()), "low": None,
                            "high": None,
                            "worlds": {w: round(v, 3) for w, v in sorted(per_world.items())}}
-    if len(per_world) >= 2:
+    if len(per_world) >= MIN_INTERVAL:
         x = np.log(np.fromiter(per_world.values(), np.float64))
         half = T95[min(len(x) - 1, len(T95)) - 1] * float(np.std(x, ddof=1)) / math.sqrt(len(x))
         out["low"], out["high"] = (math.exp(float(np.mean(x)) + s * half) for s in (-1.0, 1.0))
@@ -483,7 +484,7 @@ def summary(doc: dict, link=None) -> str:
           "escalation steps; blockages: learned obstacles (docs/design.md). Path ratios: "
           "geometric mean over the worlds where both strategies finished (runs paired by "
           "world and simulator seed, a world's seeds averaged first), with a 95 % interval "
-          "over the worlds when there are two or more. "
+          "over the worlds when there are three or more. "
           "`reliability-paper` is the paper's rule exactly as written (no completion phase: "
           "done when every end node is reliable), the reference for our departures; it is not "
           "held to the targets and not among the worst runs. `reliability-distance` is ours "
