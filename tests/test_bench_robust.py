@@ -118,7 +118,7 @@ def test_simulator_seeds_pair_runs_per_world_and_seed_and_show_the_spread():
     assert rf["geomean"] == pytest.approx((ra * 3.0 * 0.75) ** (1 / 3))
     assert rf["low"] < rf["geomean"] < rf["high"]
     logs = np.log([ra, 3.0, 0.75])  # Student's t with 2 degrees of freedom
-    half = 4.30 * np.std(logs, ddof=1) / np.sqrt(3)
+    half = 4.302653 * np.std(logs, ddof=1) / np.sqrt(3)  # t(0.975, 2)
     assert rf["high"] == pytest.approx(np.exp(np.mean(logs) + half))
     sp = a["sim_spread"]
     assert sp["reliability"] == {"n": 1, "median": 1.5, "max": 1.5}

@@ -243,8 +243,7 @@ def _picture(item: Item, strategy: str, r: dict, track: _Track, pics: Path) -> s
                  Overlays(topo=graph, rel=beliefs, robot_pose=tuple(pose),
                           trail=track.trail or None),
                  Style(crop=True, title=title))
-    sim = int(r.get("sim_seed") or 0)
-    name = f"{item.name}-{strategy}" + (f"-sim{sim}" if sim else "") + ".png"
+    name = f"{item.name}-{strategy}" + (f"-sim{sim_seed(r)}" if sim_seed(r) else "") + ".png"
     write_png(pics / name, img)
     return f"pics/{name}"
 
@@ -309,8 +308,6 @@ def world_paths(runs: Sequence[dict]) -> dict[tuple[str, int], dict[str, float]]
 
 
 MIN_INTERVAL = 3  # worlds needed for an interval (with two, Student's t makes it ~ x/100..x100)
-T95 = (12.71, 4.30, 3.18, 2.78, 2.57, 2.45, 2.36, 2.31, 2.26, 2.23, 2.20, 2.18, 2.16, 2.14,
-       2.13, 2.12, 2.11, 2.10, 2.09, 2.09)  # Student's t, 97.5 % quantile, 1..20 degrees
 
 
 def path_ratio(runs: Sequence[dict], num: str, den: str, style: str | None = None
@@ -333,7 +330,10 @@ def path_ratio(runs: Sequence[dict], num: str, den: str, style: str | None = Non
                            "worlds": {w: round(v, 3) for w, v in sorted(per_world.items())}}
     if len(per_world) >= MIN_INTERVAL:
         x = np.log(np.fromiter(per_world.values(), np.float64))
-        half = T95[min(len(x) - 1, len(T95)) - 1] * float(np.std(x, ddof=1)) / math.sqrt(len(x))
+        from scipy.stats import t as student_t
+
+        half = (float(student_t.ppf(0.975, len(x) - 1)) * float(np.std(x, ddof=1))
+                / math.sqrt(len(x)))
         out["low"], out["high"] = (math.exp(float(np.mean(x)) + s * half) for s in (-1.0, 1.0))
     return out
 
