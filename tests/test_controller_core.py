@@ -15,6 +15,7 @@ from topoexplore.services.controller.core import (
     ControllerCore,
     arc_distance,
     clean_path,
+    clear_heading,
     front_distance,
     lookahead_point,
     obstacle_scale,
@@ -22,6 +23,7 @@ from topoexplore.services.controller.core import (
     point_at,
     project_on_path,
     seen_free,
+    straight_distance,
 )
 
 P = ControllerParams(start_turn=0.0)  # path following from the first step (look: own test)
@@ -184,6 +186,68 @@ def test_turning_into_a_return_beside_the_body_stops():
     assert arc_distance(only([(-0.01, -0.2)]), 2.0, R) == math.inf
     # straight on past a wall 0.21 m to the side: the body clears it (a door's jamb)
     assert arc_distance(only([(0.3, 0.21), (0.6, 0.21)]), 0.0, R) == math.inf
+
+
+def _world_scan(pose, points) -> Scan:
+    """The free scan with returns at world points (x, y) [m] seen from pose."""
+    x, y, th = pose
+    c, s_ = math.cos(th), math.sin(th)
+    return scan_with([(c * (px - x) + s_ * (py - y), -s_ * (px - x) + c * (py - y))
+                      for px, py in points])
+
+
+def test_a_robot_blocked_while_facing_its_path_turns_to_a_clear_heading_and_goes_on():
+    """Held-back cluttered-s1-24x22-n2 (SLAM noise): the stair-step corner of a box 0.19 m
+    to the right of the robot's heading, just ahead of its centre, inside the body's
+    corridor by a centimetre. The path runs straight on, so turning toward the path turned
+    nothing: the robot stood "blocked" for good. Now it turns left until its way straight on
+    is clear, creeps on past the corner and goes back to its path, never touching it."""
+    corner = [(0.12, -0.19), (0.12, -0.25), (0.16, -0.19), (0.2, -0.19)]  # the box's corner
+    core = ControllerCore(P)
+    x, y, th = 0.0, 0.0, 0.0
+    v, w, mode = step(core, 0.0, (x, y, th), STRAIGHT, 1, False, _world_scan((x, y, th), corner))
+    assert mode == "blocked" and v == 0.0 and w > 0.0  # away from the corner, to the left
+    dt, gap = 0.2, math.inf
+    for k in range(1, 60):
+        if abs(w) < 1e-9:
+            x, y = x + v * dt * math.cos(th), y + v * dt * math.sin(th)
+        else:
+            x += v / w * (math.sin(th + w * dt) - math.sin(th))
+            y -= v / w * (math.cos(th + w * dt) - math.cos(th))
+        th += w * dt
+        gap = min(gap, min(math.hypot(px - x, py - y) for px, py in corner))
+        v, w, mode = step(core, k * dt, (x, y, th), STRAIGHT, 1, False,
+                          _world_scan((x, y, th), corner))
+    assert gap > R  # never touched it
+    assert x > 0.5 and abs(y) < 0.1 and v > 0.0 and mode in ("track", "slow")  # past it
+
+
+def test_blocked_only_on_the_commanded_arc_creeps_straight_on():
+    """A return 0.205 m right of the heading, beside the body's front: the arc of a right turn
+    meets it at once, the way straight on does not (the body passes it): creep straight on
+    instead of standing still."""
+    scan = only([(0.05, -0.205)])
+    assert straight_distance(scan, P, R) >= P.safety_distance
+    bend = np.array([[0.0, 0.0], [0.3, -0.05], [0.4, -0.4]])  # the path bends to the right
+    v, w, mode = step(ControllerCore(P), 0.0, (0.0, 0.0, 0.0), bend, 1, False, scan)
+    assert mode == "slow" and w == 0.0 and v == pytest.approx(P.v_max * P.slow_min_scale)
+
+
+def test_clear_heading():
+    free = free_scan()
+    assert clear_heading(free, P, R, R + 0.05, 0.3) == pytest.approx(0.3)  # the path's own
+    post = scan_with([(0.27, 0.1)])  # a post 0.29 m ahead, 0.1 m left of the heading
+    turn = clear_heading(post, P, R, R + 0.05, 0.0)
+    assert turn is not None and -P.rotate_angle <= turn < 0.0  # to the right, away from it
+    assert straight_distance(post, P, R + 0.05, turn) >= P.safety_distance
+    assert straight_distance(post, P, R + 0.05, 0.0) < P.safety_distance
+    # the nearest to the path's heading: every heading between is blocked
+    assert all(straight_distance(post, P, R + 0.05, a) < P.safety_distance
+               for a in np.linspace(turn + 0.05, 0.0, 10))
+    walled = scan_with([(0.25 * math.cos(a), 0.25 * math.sin(a))
+                        for a in np.linspace(-math.pi / 2, math.pi / 2, 181)])
+    assert clear_heading(walled, P, R, R + 0.05, 0.0) is None
+    assert clear_heading(None, P, R, R + 0.05, 0.2) == pytest.approx(0.2)
 
 
 def test_obstacle_scale():
