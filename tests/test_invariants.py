@@ -203,6 +203,23 @@ def test_a_room_behind_a_gap_narrower_than_the_robot_is_not_reachable():
         assert "unreachable" in out.status.reason
 
 
+@pytest.mark.parametrize("door_cells", [6, 8, 10, 12])
+def test_a_room_whose_walls_are_known_is_no_pocket_behind_a_door(door_cells):
+    """A room not yet looked into, its walls all seen from outside (so its unknown is
+    enclosed: a pocket by shape), behind a door of 0.6-1.2 m that the robot fits through.
+    Every strategy goes to the door; none says done. A pocket rule that judged pockets by
+    their share of the map alone, with the look-in test of 1 m of edge where the robot's
+    centre can get, dropped the rooms behind doors up to 1 m wide here (an experiment,
+    docs/benchmarks.md "Pockets judged by their share of the map alone")."""
+    g, geom = two_rooms(door_cells)
+    g[1:-1, 31:79] = -1  # nothing seen beyond the door
+    for strategy in STRATEGIES:
+        _, out = update(strategy, (1.5, 2.0, 0.0), g, geom)
+        assert out.state == "exploring", (strategy, out.status.reason)
+        tx, ty = out.route.waypoints[-1]
+        assert tx > 2.5 and abs(ty - 2.0) < 0.5, (strategy, out.status.reason)
+
+
 def test_wide_ways_are_preferred_to_narrow_ones():
     """With a wide frontier on this side, the narrow door is not taken (narrow passages
     are the fallback, not a shortcut)."""
