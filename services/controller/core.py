@@ -22,6 +22,7 @@ the laser at the robot centre (x forward, y left, counter-clockwise).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -263,18 +264,8 @@ def straight_distance(scan: Scan | None, params: ControllerParams, half_width: f
     kappa 0, as :meth:`ControllerCore._pursue` judges the way ahead."""
     if scan is None:
         return math.inf
-    r, a = scan.returns()
-    if r.size == 0:
-        return math.inf
-    rel = np.arctan2(np.sin(a - turn), np.cos(a - turn))
-    px, py = r * np.cos(rel), r * np.sin(rel)
-    front = (np.abs(rel) <= params.front_half_angle) & (np.abs(py) <= half_width)
-    d = float(np.min(r[front])) if np.any(front) else math.inf
-    m = (px > 0.0) & (np.abs(py) < half_width)
-    if np.any(m):
-        ell = np.maximum(px[m] - np.sqrt(half_width ** 2 - py[m] ** 2), 0.0)
-        d = min(d, float(np.min(ell)) + half_width)
-    return d
+    turned = dataclasses.replace(scan, angle_min=scan.angle_min - turn)  # the robot's frame then
+    return min(front_distance(turned, params, half_width), arc_distance(turned, 0.0, half_width))
 
 
 def clear_heading(scan: Scan | None, params: ControllerParams, radius: float,
