@@ -8,8 +8,9 @@ corridor ahead (|y| <= radius) and the arc the command drives (the disc of the b
 along it, arc_distance); returns within robot.body_margin beside that path only slow the
 robot to slow_min_scale (a door as wide as the body plus twice the margin is passable).
 Blocked, it creeps straight on when only the commanded arc was in the way, else turns on the
-spot to the clear heading nearest its path's (:func:`clear_heading`). Additionally: progress along the path is tracked so the lookahead point never goes back, and a
-stuck robot backs up (only into space a recent scan saw free) and turns toward the path.
+spot to the clear heading nearest its path's (:func:`clear_heading`). Additionally: progress
+along the path is tracked so the lookahead point never goes back, and a stuck robot backs up
+(only into space a recent scan saw free) and turns toward the path.
 
 Modes: "idle" (no path), "done" (exploration over), "arrived" (end of path reached), "rotate"
 (turning in place), "track" (pure pursuit), "slow" (pure pursuit, slowed by an obstacle ahead),
