@@ -56,6 +56,15 @@ def step(core, t, pose, path, plan_id, done, scan, goal_heading=None):
     return core.update(t, Pose(*pose), route, done, scan)
 
 
+def unicycle(x: float, y: float, th: float, v: float, w: float, dt: float
+             ) -> tuple[float, float, float]:
+    """An ideal unicycle driven at (v, w) for dt [s] (exact arc integration)."""
+    if abs(w) < 1e-9:
+        return x + v * dt * math.cos(th), y + v * dt * math.sin(th), th
+    return (x + v / w * (math.sin(th + w * dt) - math.sin(th)),
+            y - v / w * (math.cos(th + w * dt) - math.cos(th)), th + w * dt)
+
+
 def simulate(core: ControllerCore, path, pose, steps: int, dt: float = 0.2, scan=None,
              plan_id: int = 1, t0: float = 0.0):
     """Closed loop with an ideal unicycle (exact arc integration); returns poses, modes."""
@@ -67,12 +76,7 @@ def simulate(core: ControllerCore, path, pose, steps: int, dt: float = 0.2, scan
         assert abs(v) <= P.v_max + 1e-12 and abs(w) <= P.w_max + 1e-12
         assert mode in MODES
         modes.append(mode)
-        if abs(w) < 1e-9:
-            x, y = x + v * dt * math.cos(th), y + v * dt * math.sin(th)
-        else:
-            x += v / w * (math.sin(th + w * dt) - math.sin(th))
-            y -= v / w * (math.cos(th + w * dt) - math.cos(th))
-        th += w * dt
+        x, y, th = unicycle(x, y, th, v, w, dt)
         poses.append((x, y, th))
         if mode == "arrived":
             break
@@ -209,12 +213,7 @@ def test_a_robot_blocked_while_facing_its_path_turns_to_a_clear_heading_and_goes
     assert mode == "blocked" and v == 0.0 and w > 0.0  # away from the corner, to the left
     dt, gap = 0.2, math.inf
     for k in range(1, 60):
-        if abs(w) < 1e-9:
-            x, y = x + v * dt * math.cos(th), y + v * dt * math.sin(th)
-        else:
-            x += v / w * (math.sin(th + w * dt) - math.sin(th))
-            y -= v / w * (math.cos(th + w * dt) - math.cos(th))
-        th += w * dt
+        x, y, th = unicycle(x, y, th, v, w, dt)
         gap = min(gap, min(math.hypot(px - x, py - y) for px, py in corner))
         v, w, mode = step(core, k * dt, (x, y, th), STRAIGHT, 1, False,
                           _world_scan((x, y, th), corner))
