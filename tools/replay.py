@@ -232,6 +232,7 @@ def replay(args: argparse.Namespace) -> int:
     try:
         load_params(params_file, overrides)  # as the services will: a bad --set stops here
     except ParamError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
         return fail(str(exc))
     profile = parse_profile({"name": "replay", "description": "replay", "router":
                              args.connect is None,
