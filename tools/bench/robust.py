@@ -53,6 +53,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.stats import t as student_t
 
 from topoexplore.common.params import STRATEGIES, STRATEGY_NAMES
 from topoexplore.tools.bench.explore import (
@@ -330,8 +331,6 @@ def path_ratio(runs: Sequence[dict], num: str, den: str, style: str | None = Non
                            "worlds": {w: round(v, 3) for w, v in sorted(per_world.items())}}
     if len(per_world) >= MIN_INTERVAL:
         x = np.log(np.fromiter(per_world.values(), np.float64))
-        from scipy.stats import t as student_t
-
         half = (float(student_t.ppf(0.975, len(x) - 1)) * float(np.std(x, ddof=1))
                 / math.sqrt(len(x)))
         out["low"], out["high"] = (math.exp(float(np.mean(x)) + s * half) for s in (-1.0, 1.0))
