@@ -90,6 +90,7 @@ def test_explores_world_to_the_end(world):
     esc = r["planner"]["watchdog_escalations"]
     assert set(esc) == {"blacklist", "nearest_frontier", "stuck"}, r["planner"]
     assert r["planner"]["watchdog_log"] == [] and r["planner"]["blocked_marks"] >= 0
+    assert r["planner"]["blocked_released"] == 0
     assert isinstance(r["planner"]["watchdog_approaches"], int)
     out = Path(r["_out"])
     for name in ("report.json", "final.png", "map.pgm", "map.yaml", "topology.json"):

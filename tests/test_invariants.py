@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import msgspec
@@ -311,6 +312,89 @@ def test_done_is_never_said_on_the_strength_of_learned_blockages(strategy):
         out = core.update(0.4 * k, (1.5, 2.0, 0.0), no_graph(), rel({}), GridMap(g, geom))
     assert out.state == "done" and core.snapshot()["blocked"]["forgotten"] == 1, \
         out.status.reason
+
+
+def walled_in_core(strategy: str, ring: float) -> tuple[PlannerCore, np.ndarray, GridGeometry]:
+    """A 10 x 6 m room, unknown beyond x = 9 m; the robot drove from (1, 3) to (5, 3), and a
+    ring of confirmed blockage marks of radius ring [m] stands round it (twelve discs of
+    0.3 m, overlapping): it cannot get out while it believes them."""
+    from topoexplore.services.planner.blockage import Mark
+
+    g, geom = room(100, 60)
+    g[1:-1, 90:99] = -1
+    core = PlannerCore(params(strategy=strategy))
+    for k in range(9):  # the drive (no graph: every strategy keeps to its first update)
+        core.update(0.2 * k, (1.0 + 0.5 * k, 3.0, 0.0), no_graph(), rel({}), GridMap(g, geom))
+    t = 0.2 * 9
+    bl = core._blockages
+    bl.marks.clear()
+    for k in range(12):
+        a = 2 * math.pi * k / 12
+        m = Mark(5.0 + ring * math.cos(a), 3.0 + ring * math.sin(a), 0.3, t)
+        bl.marks.append(m)
+        bl._dropped.append((m.x, m.y, m.r))  # made again where forgotten: confirmed
+    return core, g, geom
+
+
+@pytest.mark.parametrize("strategy", STRATEGIES)
+@pytest.mark.parametrize("ring", [0.9, 0.6])
+def test_confirmed_blockages_that_wall_the_robot_in_are_dropped(strategy, ring):
+    """Confirmed marks are kept when only a frontier lies behind them, but not when they cut
+    the robot off from where it came from: it drove there, so they are wrong. Whether the
+    ring leaves it a pocket to stand in (ring 0.9: "no candidate", the "done" branch) or not
+    even that (0.6: "cannot get anywhere", the "stuck" branch), every mark is dropped and the
+    unknown part is the target again."""
+    core, g, geom = walled_in_core(strategy, ring)
+    states, reasons = [], []
+    for k in range(10, 16):
+        out = core.update(0.2 * k, (5.0, 3.0, 0.0), no_graph(), rel({}), GridMap(g, geom))
+        states.append(str(out.state))
+        reasons.append(out.status.reason)
+    assert "done" not in states and "failed" not in states, reasons
+    assert any("withheld: 12 learned blockage(s) cut the robot off" in r for r in reasons), \
+        reasons
+    assert out.state == "exploring" and out.route.waypoints[:, 0].max() > 8.0, reasons
+    snap = core.snapshot()["blocked"]
+    assert snap["released"] == 1 and snap["forgotten"] == 12 and not snap["marks"]
+
+
+def test_a_robot_walled_in_again_and_again_is_stuck_never_done():
+    """The marks come back each time they are dropped: after RELEASE_LIMIT releases the
+    robot is stuck (turning to look around), then failed; never done."""
+    from topoexplore.services.planner.blockage import RELEASE_LIMIT
+
+    core, g, geom = walled_in_core("reliability", 0.9)
+    saved = list(core._blockages.marks)
+    states, reasons = [], []
+    for k in range(10, 400):
+        if not core._blockages.marks:  # the controller refuses the same ring again
+            core._blockages.marks.extend(dataclasses.replace(m, t=0.2 * k) for m in saved)
+        out = core.update(0.2 * k, (5.0, 3.0, 0.0), no_graph(), rel({}), GridMap(g, geom))
+        states.append(str(out.state))
+        reasons.append(out.status.reason)
+        if out.status.finished:
+            break
+    assert "done" not in states, reasons
+    assert core.snapshot()["blocked"]["released"] == RELEASE_LIMIT
+    assert "stuck" in states and states[-1] == "failed", reasons[-3:]
+    assert "after dropping every blockage" in reasons[-1], reasons[-1]
+
+
+def test_confirmed_blockages_in_front_of_the_robot_still_end_the_run():
+    """A confirmed mark in the only door, the robot back in its room (its trail behind it
+    reachable): the mark is knowledge, and the run is done."""
+    from topoexplore.services.planner.blockage import Mark
+
+    g, geom = two_rooms(6)
+    core = PlannerCore(params(strategy="frontier"))
+    for k in range(4):
+        core.update(0.2 * k, (0.8 + 0.25 * k, 2.0, 0.0), no_graph(), rel({}), GridMap(g, geom))
+    core._blockages.marks.append(Mark(3.05, 2.0, 0.3, 0.8))
+    core._blockages._dropped.append((3.05, 2.0, 0.3))
+    for k in range(4, 8):
+        out = core.update(0.2 * k, (1.6, 2.0, 0.0), no_graph(), rel({}), GridMap(g, geom))
+    assert out.state == "done", out.status.reason
+    assert core.snapshot()["blocked"]["released"] == 0
 
 
 # --- a map that looks complete, beside an open end node ----------------------------------------

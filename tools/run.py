@@ -387,6 +387,7 @@ def planner_robustness(state: dict) -> dict:
     return {"watchdog_escalations": wd.get("counts", {}), "watchdog_log": wd.get("log", []),
             "watchdog_approaches": wd.get("approaches", 0),
             "blocked_marks": bl.get("made", 0), "blocked_forgotten": bl.get("forgotten", 0),
+            "blocked_released": bl.get("released", 0),
             "replans": core.get("replans", 0)}
 
 

@@ -17,7 +17,10 @@ the same for every strategy:
   max_attempts failures, or when the robot stands at the target for arrival_timeout s and it is
   still unresolved, the target is blacklisted by id and by position (blacklist_radius) and
   reported in ``blacklisted`` and ``reason``;
-- "done" needs done_confirm updates in a row without a candidate;
+- "done" needs done_confirm updates in a row without a candidate, and is withheld while
+  learned blockages (:mod:`.blockage`) could be what leaves nothing reachable: unconfirmed
+  ones are forgotten; confirmed ones that cut the robot off from its own trail are all
+  dropped (at most RELEASE_LIMIT times a run; then the robot is "stuck", never "done");
 - stuck: the robot cannot get to any traversable cell (or the watchdog's last step): the
   state is "stuck" (never "done"), the route asks the controller to turn on the spot to look
   around, and only stuck_timeout s later the state becomes "failed";
@@ -50,7 +53,7 @@ from topoexplore.common.grid import Occupancy
 from topoexplore.common.params import PlannerParams, ReliabilityParams, RobotParams
 from topoexplore.services.planner import graph as gr
 from topoexplore.services.planner import strategies
-from topoexplore.services.planner.blockage import Blockages
+from topoexplore.services.planner.blockage import RELEASE_LIMIT, WAY_BACK, Blockages
 from topoexplore.services.planner.decision import Action, Blacklist, Decision, Target
 from topoexplore.services.planner.examined import Examined
 from topoexplore.services.planner.mapview import MapView
@@ -61,7 +64,11 @@ from topoexplore.services.planner.strategies.base import (
     Update,
     id_list,
 )
-from topoexplore.services.planner.strategies.frontier import nearest_frontier_evaluation
+from topoexplore.services.planner.strategies.frontier import (
+    nearest_frontier_evaluation,
+    robot_reach,
+    robot_search,
+)
 from topoexplore.services.planner.watchdog import Watchdog
 
 # modules whose WARM kernels this core runs (common.warm)
@@ -114,6 +121,8 @@ class PlannerCore:
         self._last: Plan | None = None
         self._updates = 0
         self._view: MapView | None = None  # this update's map view
+        self._u: Update | None = None  # ... and the update the strategy evaluated
+        self._walled: str | None = None  # walled in by marks after RELEASE_LIMIT releases
         self._narrowed_now = False  # ... under which the followed path narrowed (_narrowed)
 
     # --- public ------------------------------------------------------------------------------
@@ -146,6 +155,7 @@ class PlannerCore:
                    None if self._target is None else self._target.cand.detached(),
                    self._blacklist.covers,
                    fresh=self._narrowed_now)
+        self._u = u
         ev = self.strategy.evaluate(u)
         if ev.waiting is not None:
             self._target = None
@@ -363,6 +373,7 @@ class PlannerCore:
         self._stuck_n = 0
         self._fail_since = None
         self._look = None
+        self._walled = None
         c = tg.cand
         head = f"target {c.label}: {tg.why}; path {c.dist:.1f} m; {len(cands)} candidate(s)"
         if self._blacklist:
@@ -503,12 +514,18 @@ class PlannerCore:
         must not end the run); stuck (turning on the spot to look around) when the robot
         cannot get anywhere, failed only after stuck_timeout."""
         p = self.p
+        if ev.failed is None and self._walled is not None:
+            ev = dataclasses.replace(ev, failed=self._walled)
         if ev.failed is not None:
             self._no_cand = 0
             self._stuck_n += 1
             if self._stuck_n < p.done_confirm and self._fail_since is None:
                 return self._emit(ExploreState.EXPLORING, "; ".join(notes + [
                     f"confirming ({self._stuck_n}/{p.done_confirm}): {ev.failed}"]), ev, 0)
+            if self._fail_since is None and self._walled is None:
+                out = self._release(t, x, y, th, ev, notes, "stuck")
+                if out is not None:
+                    return out
             if self._fail_since is None:
                 self._fail_since = t
                 self._look = (x, y, th + math.pi)  # recovery: look the other way
@@ -532,10 +549,56 @@ class PlannerCore:
                 return self._emit(ExploreState.EXPLORING, "; ".join(notes + [
                     f"done withheld: {n} learned blockage(s) forgotten, searching again "
                     f"({ev.done})"]), ev, 0)
+            out = self._release(t, x, y, th, ev, notes, "done")
+            if out is not None:
+                return out
             return self._emit(ExploreState.DONE, "; ".join(notes + [ev.done]), ev, 0)
         return self._emit(ExploreState.EXPLORING, "; ".join(notes + [
             f"no candidate left, confirming ({self._no_cand}/{p.done_confirm}): {ev.done}"]),
             ev, 0)
+
+    def _release(self, t: float, x: float, y: float, th: float, ev: Evaluation,
+                 notes: list[str], what: str) -> Plan | None:
+        """Before saying `what` ("done", "stuck"): when the learned blockages wall the robot
+        in (:meth:`_walled_in`), drop them all and search again; after RELEASE_LIMIT times,
+        the robot is stuck. None: they do not wall it in."""
+        walled = self._walled_in(t, x, y)
+        if walled is None:
+            return None
+        self._no_cand = self._stuck_n = 0
+        if self._blockages.released >= RELEASE_LIMIT:
+            self._walled = f"{walled}, after dropping every blockage {RELEASE_LIMIT} times"
+            return self._no_target(t, x, y, th, ev, notes)
+        n = self._blockages.release(t)
+        return self._emit(ExploreState.EXPLORING, "; ".join(notes + [
+            f"{what} withheld: {walled}; all {n} dropped "
+            f"({self._blockages.released}/{RELEASE_LIMIT}), searching again"]), ev, 0)
+
+    def _walled_in(self, t: float, x: float, y: float) -> str | None:
+        """Why the learned blockages remembered at t [s] wall the robot at (x, y) [m] in:
+        a point of its trail WAY_BACK away that it cannot reach with them and can without
+        (the map alone does not cut it off). None: they do not (or no marks, no trail)."""
+        u, bl = self._u, self._blockages
+        if u is None or u.view is None or not u.view.blocked:
+            return None
+        back = bl.way_back(t, x, y, WAY_BACK, self._cfg.need)
+        if back is None:
+            return None
+        row, col = u.view.geom.world_to_cell(*back)
+        h, w = u.view.geom.height, u.view.geom.width
+        if not (0 <= row < h and 0 <= col < w):
+            return None
+
+        def reached(search) -> bool:
+            return bool(np.isfinite(search.dist[row, col]))
+
+        if reached(robot_reach(self._cfg, u)):
+            return None
+        if not reached(robot_search(self._cfg, dataclasses.replace(
+                u, view=u.view.without_blocked()), True, True)):
+            return None
+        return (f"{len(u.view.blocked)} learned blockage(s) cut the robot off from where it "
+                f"came from ({back[0]:.1f}, {back[1]:.1f})")
 
     def _emit(self, state: ExploreState, reason: str, ev: Evaluation, ncand: int) -> Plan:
         """The plan of this update: the path to the target, or a stop (a new plan id)."""

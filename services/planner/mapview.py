@@ -68,6 +68,10 @@ class MapView:
         self._passable: dict[float, np.ndarray] = {}
         self._memo: dict[Any, Any] = {}
 
+    def without_blocked(self) -> MapView:
+        """The same map without the learned blockages (a new view: nothing shared)."""
+        return MapView(self._grid, self.occ, (), self._examined, self._looked)
+
     def memo(self, key: Any, make: Callable[[], Any]) -> Any:
         """make() once per view and key: what several rules of one update share."""
         if key not in self._memo:

@@ -181,6 +181,7 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
             "watchdog_approaches": snap["watchdog"]["approaches"],
             "blocked_marks": snap["blocked"]["made"],
             "blocked_forgotten": snap["blocked"]["forgotten"],
+            "blocked_released": snap["blocked"]["released"],
             "recoveries": c.controller.recoveries,  # the controller's stuck recoveries ...
             "backups_refused": c.controller.backups_refused,  # ... that only turned
             **loc.figures()}
