@@ -531,6 +531,45 @@ def test_a_target_unreachable_for_good_is_given_up():
     assert out.route.target_id == 2, out.status.reason
 
 
+class Scripted:
+    """A strategy driven by a script (no map needed): each update's candidates from
+    cands(k), k counting the updates."""
+
+    def __init__(self, cands):
+        self.cands, self.k = cands, 0
+
+    def evaluate(self, u):
+        from topoexplore.services.planner.strategies.base import Evaluation
+        self.k += 1
+        return Evaluation(cands=self.cands(self.k), end_nodes=1, done="nothing left")
+
+
+def test_a_passage_flickering_narrow_and_wide_does_not_hold_off_the_effort_rule():
+    """The only target's path is cut at a narrow passage on every other update (partial),
+    and the robot does not move: each flip makes a new path, but no progress, so after
+    max_attempts x progress_timeout the target is given up (it was kept for ever)."""
+    from topoexplore.services.planner.strategies.base import Candidate
+
+    xs = np.linspace(0.0, 4.0, 41)
+    line = np.stack([xs, np.zeros_like(xs)], axis=1)
+
+    def cands(k):
+        return [Candidate(1, 4.0, 0.0, 4.0, 4.0, 1.0, 0.5, lambda: line, label="end node 1",
+                          partial=k % 2 == 0)]
+
+    core = PlannerCore(params(progress_timeout=4.0, max_attempts=2))
+    core.strategy = Scripted(cands)
+    reasons = []
+    for k in range(60):
+        out = core.update(0.4 * k, (0.0, 0.0, 0.0), no_graph(), rel({1: 0.5}), None)
+        reasons.append(out.status.reason)
+        if out.route.target_id != 1:
+            break
+    assert any("way is wide now" in r for r in reasons), reasons[:3]
+    assert out.route.target_id != 1 and core._blacklist.ids() == (1,), reasons[-2:]
+    assert 0.4 * k <= 2 * 4.0 + 2.0, k
+
+
 # --- the global progress watchdog -------------------------------------------------------------
 
 

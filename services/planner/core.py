@@ -440,10 +440,6 @@ class PlannerCore:
                      cands: list[Candidate], ev: Evaluation) -> Decision:
         """Progress, arrival, failure and re-plan checks for the current target c."""
         p = self.p
-        if c.partial != tg.partial:
-            return Decision.repath(t, f"{c.label}: " + (
-                "a passage on the way became narrow: new path" if c.partial
-                else "the way is wide now: new path"))
         moved = tg.moved() >= p.target_move
         rem = tg.remaining(x, y)
         if moved:
@@ -459,6 +455,11 @@ class PlannerCore:
         failed = self._effort(t, tg, c)
         if failed is not None:
             return failed
+        if c.partial != tg.partial:  # a new path is no progress: a passage whose width
+            #   flickers about the limit must not hold off the effort rule
+            return Decision.repath(tg.progress_t, f"{c.label}: " + (
+                "a passage on the way became narrow: new path" if c.partial
+                else "the way is wide now: new path"))
         if moved:
             return Decision.repath(t, f"target moved {tg.moved():.2f} m: new path")
         if not ev.path_ok(tg.wps[tg.idx + 1:]):
