@@ -13,6 +13,7 @@ import hashlib
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 from concurrent.futures import Future
@@ -23,6 +24,7 @@ import pytest
 
 from tests.conftest import REPO, free_port, needs, started_ahead
 
+KEEP = "TOPOEXPLORE_TEST_OUT" in os.environ  # set: the runs' outputs stay there
 OUT = Path(os.environ.get("TOPOEXPLORE_TEST_OUT", f"/tmp/topoexplore-e2e-{os.getpid()}"))
 DETERMINISTIC = ["finished", "stop_reason", "sim_time_s", "path_length_m", "coverage",
                  "map_accuracy", "collisions", "end_nodes_seen", "end_nodes_visited",
@@ -76,6 +78,9 @@ def _two_at_a_time(request):
         _started.update(started)
         yield
         _started.clear()
+    _explore.cache_clear()
+    if not KEEP:  # the outputs of this module's runs go with it (TOPOEXPLORE_TEST_OUT keeps them)
+        shutil.rmtree(OUT, ignore_errors=True)
 
 
 @pytest.mark.parametrize("world", ["paper-room", "dead-end", "junction", "office"])
