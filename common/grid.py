@@ -340,6 +340,25 @@ def _reachable_border(labels: np.ndarray, reach: np.ndarray, n: int) -> np.ndarr
     return np.bincount(nb[first], minlength=n + 1)[:n]
 
 
+def nearest_occupied(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, limit: float,
+                     p_occ: float = 0.65) -> float:
+    """Distance [m] from (nx, ny) [m] to the nearest occupied cell centre (value >= p_occ *
+    100), at most limit [m] (also without one within it). grid: int8 occupancy."""
+    if limit <= 0.0:
+        return 0.0
+    r, c = geom.world_to_cell(nx, ny)
+    k = int(math.ceil(limit / geom.resolution)) + 1
+    r0, r1 = max(0, int(r) - k), min(geom.height, int(r) + k + 1)
+    c0, c1 = max(0, int(c) - k), min(geom.width, int(c) + k + 1)
+    if r0 >= r1 or c0 >= c1:
+        return float(limit)
+    rr, cc = np.nonzero(grid[r0:r1, c0:c1] >= p_occ * 100.0)
+    if len(rr) == 0:
+        return float(limit)
+    x, y = geom.cell_to_world(rr + r0, cc + c0)
+    return float(min(limit, np.hypot(x - nx, y - ny).min()))
+
+
 def near_frontier(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, radius: float,
                   p_free: float = 0.35, unknown: np.ndarray | None = None,
                   min_cells: int = 1) -> bool:

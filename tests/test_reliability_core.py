@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from topoexplore.common.domain import Belief, Graph, GridMap, Node, Pose
-from topoexplore.common.grid import GridGeometry, open_unknown
+from topoexplore.common.grid import GridGeometry, nearest_occupied, open_unknown
 from topoexplore.common.messages import Reliability, decode, encode, header
 from topoexplore.common.params import LaserParams, ReliabilityParams
 from topoexplore.services.reliability.core import (
@@ -612,3 +612,43 @@ def test_examined_stays_with_the_node_until_it_moves():
     assert not n.visible and n.d == 1.0
     n = upd(core, [(1, 5.0, 0.0)], [], (0.0, 0.0, math.pi), free_grid(), GEOM)[0]
     assert n.d == 0.0 and n.p == P.p_init  # moved beyond move_tolerance: a new history
+
+
+def aisle_grid(open_end: bool) -> np.ndarray:
+    """An aisle 2.5 m wide along x (shelves at y = +-1.3 m), its far end at x = 5.25 m open
+    to unknown space (open_end) or closed by a wall."""
+    g = free_grid()
+    for y in (-1.3, 1.3):
+        row, _ = GEOM.world_to_cell(0.0, y)
+        g[int(row), :] = 100
+    _, col = GEOM.world_to_cell(5.25, 0.0)
+    g[:, int(col):] = -1 if open_end else 100
+    return g
+
+
+@pytest.mark.parametrize("examined", [0.0, 1.0])
+def test_a_node_at_the_end_of_a_wide_aisle_into_unknown_space_is_not_reliable(examined):
+    """The skeleton of an aisle 2.5 m wide that runs into unknown space ends about half its
+    width short of the unknown: 1.25 m, beyond frontier_radius (0.5 m) and examined_radius
+    (1 m). Driving past its mouth, the robot saw the node from many bearings, and it was
+    accepted (a warehouse: the band behind four aisles left for the end of the run). The
+    frontier test's radius grows by the node's distance to the nearest occupied cell, so it
+    holds; a closed aisle's node is still accepted from afar."""
+    prm = msgspec.structs.replace(P, examined_radius=examined)
+    poses = [(0.0, 0.8 - 0.4 * k, 0.3 * (k - 2)) for k in range(5)]
+    for open_end, rule, held in [(True, True, True), (True, False, False),
+                                 (False, True, False)]:
+        core = ReliabilityCore(msgspec.structs.replace(prm, frontier_clearance=rule))
+        for pose in poses:
+            n = upd(core, [(1, 4.0, 0.0)], [], pose, aisle_grid(open_end), GEOM)[0]
+        assert n.visible and n.n_obs == len(poses)
+        assert (n.p == P.p_init) is held, (open_end, rule, n.p)
+        assert (n.p >= P.p_reliable) is not held or examined == 0.0, (open_end, rule, n.p)
+
+
+def test_nearest_occupied_is_capped():
+    g = aisle_grid(False)
+    assert nearest_occupied(4.0, 0.0, g, GEOM, 4.5) == pytest.approx(1.25, abs=0.06)
+    assert nearest_occupied(4.0, 0.0, g, GEOM, 0.8) == 0.8
+    assert nearest_occupied(0.0, 0.0, free_grid(), GEOM, 2.0) == 2.0
+    assert nearest_occupied(0.0, 0.0, g, GEOM, 0.0) == 0.0

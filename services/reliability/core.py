@@ -36,6 +36,7 @@ from topoexplore.common.grid import (
     Occupancy,
     cells_for,
     near_frontier,
+    nearest_occupied,
     open_unknown,
 )
 from topoexplore.common.params import LaserParams, ReliabilityParams
@@ -516,7 +517,8 @@ class ReliabilityCore:
         bearing = math.atan2(ny - ry, nx - rx)
         cells = max(1, cells_for(pr.min_frontier, geom.resolution))
         if not new_viewpoint(tr.view, rx, ry, bearing, pr) or owned or near_frontier(
-                nx, ny, grid, geom, pr.frontier_radius, self.occ.p_free, unknown, cells):
+                nx, ny, grid, geom, self._frontier_radius(nx, ny, grid, geom),
+                self.occ.p_free, unknown, cells):
             tr.d = 1.0 if tr.examined else distance_index(tr.r_min, pr)
             return
         if pr.examined_radius > 0.0 and not tr.examined:
@@ -526,6 +528,17 @@ class ReliabilityCore:
         tr.view = (rx, ry, bearing)
         tr.p = min(bayes_update(tr.p, reliability_index(tr.d, tr.a)), pr.p_max)
         self._remember(tr)
+
+    def _frontier_radius(self, nx: float, ny: float, grid: np.ndarray, geom: GridGeometry
+                         ) -> float:
+        """[m] how close to the node at (nx, ny) [m] a frontier keeps its observations from
+        counting (rule 2): frontier_radius, plus with frontier_clearance the node's distance
+        to the nearest occupied cell (at most r_far; none when frontier_radius is 0)."""
+        pr = self.params
+        if pr.frontier_radius <= 0.0 or not pr.frontier_clearance:
+            return pr.frontier_radius
+        return pr.frontier_radius + nearest_occupied(nx, ny, grid, geom, pr.r_far,
+                                                     self.occ.p_occ)
 
     # -- public --
 
