@@ -281,9 +281,9 @@ class ReliabilityParams(_P):
     view_angle: NonNeg = math.radians(5.0)  # [rad] ... or change of bearing to the node
     frontier_radius: NonNeg = 0.5  # [m] observations of a node this close to a frontier
     # don't count (docs/design.md, "Reliability")
-    frontier_clearance: bool = True  # ... this close plus the node's distance to the nearest
-    # occupied cell (at most r_far): a skeleton end lies that far from the boundary that ends
-    # it, so an aisle 2.5 m wide that runs into unknown space ends 1.25 m short of it
+    frontier_clearance: bool = False  # ... this close plus the node's distance to the
+    # nearest occupied cell (at most r_far): a skeleton end lies that far from the boundary
+    # that ends it; off: worse on the tuning half (docs/design.md, "Reliability", rule 2)
     examined_radius: NonNeg = 1.0  # [m] a node seen with no frontier this close has its
     # surroundings examined: the observation counts as from close by (D = 1), whatever the
     # distance (docs/design.md, "Reliability"); 0 disables

@@ -631,9 +631,10 @@ def test_a_node_at_the_end_of_a_wide_aisle_into_unknown_space_is_not_reliable(ex
     """The skeleton of an aisle 2.5 m wide that runs into unknown space ends about half its
     width short of the unknown: 1.25 m, beyond frontier_radius (0.5 m) and examined_radius
     (1 m). Driving past its mouth, the robot saw the node from many bearings, and it was
-    accepted (a warehouse: the band behind four aisles left for the end of the run). The
-    frontier test's radius grows by the node's distance to the nearest occupied cell, so it
-    holds; a closed aisle's node is still accepted from afar."""
+    accepted (a warehouse: the band behind four aisles left for the end of the run). With
+    frontier_clearance (off by default: it lost on the tuning half) the frontier test's
+    radius grows by the node's distance to the nearest occupied cell, so it holds; a closed
+    aisle's node is still accepted from afar."""
     prm = msgspec.structs.replace(P, examined_radius=examined)
     poses = [(0.0, 0.8 - 0.4 * k, 0.3 * (k - 2)) for k in range(5)]
     for open_end, rule, held in [(True, True, True), (True, False, False),
