@@ -380,6 +380,18 @@ def test_a_robot_walled_in_again_and_again_is_stuck_never_done():
     assert "after dropping every blockage" in reasons[-1], reasons[-1]
 
 
+def test_blockage_counts_round_trip_and_an_older_checkpoint_without_releases_restores():
+    from topoexplore.services.planner.blockage import Blockages
+
+    a = Blockages(8.0, 0.25, 0.5, 300.0, made=5, forgotten=3, released=2)
+    b = Blockages(8.0, 0.25, 0.5, 300.0)
+    b.restore(a.checkpoint())
+    assert (b.made, b.forgotten, b.released) == (5, 3, 2)
+    old = {**a.checkpoint(), "blocked_counts": np.array([5, 3], np.int64)}
+    b.restore(old)
+    assert (b.made, b.forgotten, b.released) == (5, 3, 0)
+
+
 def test_confirmed_blockages_in_front_of_the_robot_still_end_the_run():
     """A confirmed mark in the only door, the robot back in its room (its trail behind it
     reachable): the mark is knowledge, and the run is done."""
