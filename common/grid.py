@@ -340,18 +340,27 @@ def _reachable_border(labels: np.ndarray, reach: np.ndarray, n: int) -> np.ndarr
     return np.bincount(nb[first], minlength=n + 1)[:n]
 
 
+def _window(x: float, y: float, geom: GridGeometry, radius: float
+            ) -> tuple[int, int, int, int] | None:
+    """(r0, r1, c0, c1): the grid's cells within radius [m] (plus one) of (x, y) [m], clipped
+    to the grid; None when that square lies outside it."""
+    r, c = geom.world_to_cell(x, y)
+    k = int(math.ceil(radius / geom.resolution)) + 1
+    r0, r1 = max(0, int(r) - k), min(geom.height, int(r) + k + 1)
+    c0, c1 = max(0, int(c) - k), min(geom.width, int(c) + k + 1)
+    return None if r0 >= r1 or c0 >= c1 else (r0, r1, c0, c1)
+
+
 def nearest_occupied(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, limit: float,
                      p_occ: float = 0.65) -> float:
     """Distance [m] from (nx, ny) [m] to the nearest occupied cell centre (value >= p_occ *
     100), at most limit [m] (also without one within it). grid: int8 occupancy."""
     if limit <= 0.0:
         return 0.0
-    r, c = geom.world_to_cell(nx, ny)
-    k = int(math.ceil(limit / geom.resolution)) + 1
-    r0, r1 = max(0, int(r) - k), min(geom.height, int(r) + k + 1)
-    c0, c1 = max(0, int(c) - k), min(geom.width, int(c) + k + 1)
-    if r0 >= r1 or c0 >= c1:
+    win = _window(nx, ny, geom, limit)
+    if win is None:
         return float(limit)
+    r0, r1, c0, c1 = win
     rr, cc = np.nonzero(grid[r0:r1, c0:c1] >= p_occ * 100.0)
     if len(rr) == 0:
         return float(limit)
@@ -373,12 +382,10 @@ def near_frontier(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, ra
     """
     if radius <= 0.0:
         return False
-    r, c = geom.world_to_cell(nx, ny)
-    k = int(math.ceil(radius / geom.resolution)) + 1
-    r0, r1 = max(0, int(r) - k), min(geom.height, int(r) + k + 1)
-    c0, c1 = max(0, int(c) - k), min(geom.width, int(c) + k + 1)
-    if r0 >= r1 or c0 >= c1:
+    win = _window(nx, ny, geom, radius)
+    if win is None:
         return True  # node outside the map: nothing is known around it
+    r0, r1, c0, c1 = win
     win = grid[r0:r1, c0:c1]
     free = (win >= 0) & (win < p_free * 100.0)
     unk = win < 0 if unknown is None else unknown[r0:r1, c0:c1]

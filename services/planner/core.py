@@ -586,8 +586,7 @@ class PlannerCore:
         if back is None:
             return None
         row, col = u.view.geom.world_to_cell(*back)
-        h, w = u.view.geom.height, u.view.geom.width
-        if not (0 <= row < h and 0 <= col < w):
+        if not u.view.geom.inside(row, col):
             return None
 
         def reached(search) -> bool:
