@@ -352,16 +352,21 @@ def _window(x: float, y: float, geom: GridGeometry, radius: float
 
 
 def nearest_occupied(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, limit: float,
-                     p_occ: float = 0.65) -> float:
+                     p_occ: float = 0.65, unknown: np.ndarray | None = None) -> float:
     """Distance [m] from (nx, ny) [m] to the nearest occupied cell centre (value >= p_occ *
-    100), at most limit [m] (also without one within it). grid: int8 occupancy."""
+    100), or with unknown (a mask of the grid's shape, :func:`open_unknown`) the nearest
+    occupied or unknown one: the radius of the known free disc around the point. At most
+    limit [m] (also without one within it). grid: int8 occupancy."""
     if limit <= 0.0:
         return 0.0
     win = _window(nx, ny, geom, limit)
     if win is None:
         return float(limit)
     r0, r1, c0, c1 = win
-    rr, cc = np.nonzero(grid[r0:r1, c0:c1] >= p_occ * 100.0)
+    blocked = grid[r0:r1, c0:c1] >= p_occ * 100.0
+    if unknown is not None:
+        blocked |= unknown[r0:r1, c0:c1]
+    rr, cc = np.nonzero(blocked)
     if len(rr) == 0:
         return float(limit)
     x, y = geom.cell_to_world(rr + r0, cc + c0)
@@ -370,9 +375,11 @@ def nearest_occupied(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry,
 
 def near_frontier(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, radius: float,
                   p_free: float = 0.35, unknown: np.ndarray | None = None,
-                  min_cells: int = 1) -> bool:
+                  min_cells: int = 1, heading: float | None = None,
+                  half_angle: float = math.pi) -> bool:
     """Is there a frontier cell (known free, 4-adjacent to unknown) within radius [m] of (nx, ny)
-    (at least min_cells of them)?
+    (at least min_cells of them)? With heading [rad], only cells whose bearing from (nx, ny)
+    lies within half_angle [rad] of it count (a cone ahead).
 
     A place next to a frontier is where the map simply stops; a wall hides the unknown behind
     it (occupied cells are never frontier). grid: int8 occupancy (-1 unknown, 0..100);
@@ -396,4 +403,8 @@ def near_frontier(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, ra
         return False
     rr, cc = np.nonzero(front)
     x, y = geom.cell_to_world(rr + r0, cc + c0)
-    return int(np.count_nonzero(np.hypot(x - nx, y - ny) <= radius)) >= max(1, min_cells)
+    near = np.hypot(x - nx, y - ny) <= radius
+    if heading is not None and half_angle < math.pi:
+        off = np.arctan2(y - ny, x - nx) - heading
+        near &= np.abs(np.arctan2(np.sin(off), np.cos(off))) <= half_angle
+    return int(np.count_nonzero(near)) >= max(1, min_cells)

@@ -284,6 +284,10 @@ class ReliabilityParams(_P):
     frontier_clearance: bool = False  # ... this close plus the node's distance to the
     # nearest occupied cell (at most r_far): a skeleton end lies that far from the boundary
     # that ends it; off: worse on the tuning half (docs/design.md, "Reliability", rule 2)
+    frontier_ahead: Annotated[float, Meta(ge=0.0, le=math.pi)] = 0.0  # [rad] ... and frontier
+    # cells within the node's free disc plus frontier_radius, this close in bearing to the
+    # heading its leaf edge ends in (an aisle that ends in unknown space half its width
+    # beyond the node); 0 disables (docs/design.md, "Reliability", rule 2)
     examined_radius: NonNeg = 1.0  # [m] a node seen with no frontier this close has its
     # surroundings examined: the observation counts as from close by (D = 1), whatever the
     # distance (docs/design.md, "Reliability"); 0 disables

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from topoexplore.common.domain import Belief, Graph, GridMap, Node, Pose
-from topoexplore.common.grid import GridGeometry, nearest_occupied, open_unknown
+from topoexplore.common.grid import GridGeometry, near_frontier, nearest_occupied, open_unknown
 from topoexplore.common.messages import Reliability, decode, encode, header
 from topoexplore.common.params import LaserParams, ReliabilityParams
 from topoexplore.services.reliability.core import (
@@ -24,6 +24,7 @@ from topoexplore.services.reliability.core import (
     frontier_owned,
     is_observed,
     leaf_chains,
+    leaf_headings,
     line_cells,
     line_of_sight,
     new_viewpoint,
@@ -653,3 +654,55 @@ def test_nearest_occupied_is_capped():
     assert nearest_occupied(4.0, 0.0, g, GEOM, 0.8) == 0.8
     assert nearest_occupied(0.0, 0.0, free_grid(), GEOM, 2.0) == 2.0
     assert nearest_occupied(0.0, 0.0, g, GEOM, 0.0) == 0.0
+
+
+AISLE_EDGE = (7, 1, np.array([[0.0, 0.0], [2.0, 0.0], [4.0, 0.0]]))  # branch 7 -> end node 1
+
+
+def test_leaf_headings_point_where_the_skeleton_ran_out():
+    g = graph([(1, 4.0, 0.0), (2, 0.0, -3.0)], edges=[
+        AISLE_EDGE, (2, 7, np.array([[0.0, -3.0], [0.0, -1.0], [0.0, 0.0]]))])
+    h = leaf_headings(g)
+    assert h[1] == pytest.approx(0.0) and h[2] == pytest.approx(-math.pi / 2)
+    assert leaf_headings(graph([(1, 4.0, 0.0)])) == {}  # no edge: no heading
+    short = graph([(1, 0.1, 0.0)], edges=[(7, 1, np.array([[0.0, 0.0], [0.1, 0.0]]))])
+    assert leaf_headings(short)[1] == pytest.approx(0.0)  # shorter than back: the far end
+
+
+def test_near_frontier_in_a_cone_and_the_free_disc():
+    g = aisle_grid(True)
+    unk = g < 0
+    assert not near_frontier(4.0, 0.0, g, GEOM, 0.5, unknown=unk, min_cells=5)
+    assert near_frontier(4.0, 0.0, g, GEOM, 1.75, unknown=unk, min_cells=5, heading=0.0,
+                         half_angle=math.pi / 4)
+    assert not near_frontier(4.0, 0.0, g, GEOM, 1.75, unknown=unk, min_cells=5,
+                             heading=math.pi, half_angle=math.pi / 4)  # behind the node
+    # the free disc: up to the nearest occupied or unknown cell
+    assert nearest_occupied(4.6, 0.0, g, GEOM, 4.5) == pytest.approx(1.3, abs=0.06)
+    assert nearest_occupied(4.6, 0.0, g, GEOM, 4.5, unknown=unk) == pytest.approx(0.7, abs=0.06)
+
+
+@pytest.mark.parametrize("examined", [0.0, 1.0])
+def test_frontier_ahead_holds_an_aisle_into_unknown_space_open(examined):
+    """frontier_ahead (off by default until measured): the node at the end of an aisle 2.5 m
+    wide whose skeleton ran out where the unknown begins (1.25 m beyond) is a frontier, its
+    observations from the aisle's mouth do not count; a closed aisle's node is accepted, and
+    so is a node whose unknown lies beside it, outside the cone (a ragged wall)."""
+    prm = msgspec.structs.replace(P, examined_radius=examined)
+    poses = [(0.0, 0.8 - 0.4 * k, 0.3 * (k - 2)) for k in range(5)]
+
+    def final(grid, rule, heading_edge=AISLE_EDGE):
+        core = ReliabilityCore(msgspec.structs.replace(
+            prm, frontier_ahead=math.pi / 4 if rule else 0.0))
+        for pose in poses:
+            n = upd(core, [(1, 4.0, 0.0)], [], pose, grid, GEOM, edges=[heading_edge])[0]
+        assert n.visible and n.n_obs == len(poses)
+        return n.p
+
+    assert final(aisle_grid(True), True) == P.p_init
+    assert final(aisle_grid(True), False) > P.p_init
+    closed = final(aisle_grid(False), True)
+    assert closed > P.p_init and (closed >= P.p_reliable or examined == 0.0)
+    # the same aisle, its skeleton running across it (heading +y): the unknown is beside it
+    across = (7, 1, np.array([[4.0, -1.0], [4.0, -0.5], [4.0, 0.0]]))
+    assert final(aisle_grid(True), True, across) > P.p_init

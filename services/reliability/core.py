@@ -51,6 +51,7 @@ __all__ = [
     "line_cells",
     "line_of_sight",
     "is_observed",
+    "leaf_headings",
     "ReliabilityCore",
 ]
 
@@ -346,6 +347,29 @@ def frontier_owned(end_ids, graph: Graph, grid: np.ndarray, geom: GridGeometry, 
     return {ids[j]: int(counts[j]) for j in np.flatnonzero(counts)}
 
 
+def leaf_headings(graph: Graph, back: float = 0.5) -> dict[int, float]:
+    """{end node id: heading [rad] of its leaf edge where it ends at the node}: from the
+    polyline point about back [m] before the node (the edge's other end on a shorter edge) to
+    the node, the direction in which its skeleton ran out of free space. End nodes without an
+    edge, or whose edge has no length, have none."""
+    ends = {n.id for n in graph.end_nodes()}
+    out: dict[int, float] = {}
+    for e in graph.edges:
+        pts = e.points
+        if len(pts) < 2:
+            continue
+        for nid, line in ((e.a, pts[::-1]), (e.b, pts)):
+            if nid not in ends or nid in out:
+                continue
+            tip = line[-1]
+            d = np.hypot(*(line - tip).T)
+            far = np.flatnonzero(d >= back)
+            src = line[far[-1]] if len(far) else line[0]
+            if np.hypot(*(tip - src)) > 1e-9:
+                out[nid] = math.atan2(float(tip[1] - src[1]), float(tip[0] - src[0]))
+    return out
+
+
 def is_observed(node_xy, pose: Pose, grid: GridMap, laser: LaserParams,
                 p_occ: float = 0.65) -> bool:
     """Whether an end node counts as observed at this pose (paper §3.2, after eqs. 2 and 3).
@@ -496,7 +520,8 @@ class ReliabilityCore:
         return tr
 
     def _observe(self, tr: _Track, pose: Pose, grid: np.ndarray, geom: GridGeometry,
-                 unknown: np.ndarray | None, owned: bool) -> None:
+                 unknown: np.ndarray | None, owned: bool, heading: float | None = None
+                 ) -> None:
         """One observation test and, when it counts, the Bayes update (eqs. 1-10)."""
         pr = self.params
         rx, ry, th = pose
@@ -518,7 +543,8 @@ class ReliabilityCore:
         cells = max(1, cells_for(pr.min_frontier, geom.resolution))
         if not new_viewpoint(tr.view, rx, ry, bearing, pr) or owned or near_frontier(
                 nx, ny, grid, geom, self._frontier_radius(nx, ny, grid, geom),
-                self.occ.p_free, unknown, cells):
+                self.occ.p_free, unknown, cells) or self._frontier_ahead(
+                nx, ny, heading, grid, geom, unknown, cells):
             tr.d = 1.0 if tr.examined else distance_index(tr.r_min, pr)
             return
         if pr.examined_radius > 0.0 and not tr.examined:
@@ -540,6 +566,22 @@ class ReliabilityCore:
         return pr.frontier_radius + nearest_occupied(nx, ny, grid, geom, pr.r_far,
                                                      self.occ.p_occ)
 
+    def _frontier_ahead(self, nx: float, ny: float, heading: float | None, grid: np.ndarray,
+                        geom: GridGeometry, unknown: np.ndarray | None, cells: int) -> bool:
+        """Rule 2 ahead of the node (frontier_ahead > 0): the node at (nx, ny) [m] ends a
+        skeleton that ran out of free space in direction heading [rad]. Is the boundary that
+        ended it unexplored? Frontier cells within the node's free disc (radius: the distance
+        to the nearest occupied or unknown cell, at most r_far) plus frontier_radius, and within
+        frontier_ahead [rad] of the heading: an aisle or a corridor that ends in unknown space
+        half its width beyond the node is a frontier, not a dead end; a ragged wall beside the
+        node is outside the cone."""
+        pr = self.params
+        if pr.frontier_ahead <= 0.0 or heading is None or pr.frontier_radius <= 0.0:
+            return False
+        free = nearest_occupied(nx, ny, grid, geom, pr.r_far, self.occ.p_occ, unknown)
+        return near_frontier(nx, ny, grid, geom, free + pr.frontier_radius, self.occ.p_free,
+                             unknown, cells, heading, pr.frontier_ahead)
+
     # -- public --
 
     def update(self, graph: Graph, pose: Pose, grid: GridMap) -> list[Belief]:
@@ -558,11 +600,12 @@ class ReliabilityCore:
             min_cells = max(1, cells_for(pr.frontier_group, geom.resolution))
             owned = frontier_owned(list(nodes), graph, g, geom, self.occ.p_free, min_cells,
                                    self.laser.range_max, unknown)
+        heads = leaf_headings(graph) if pr.frontier_ahead > 0.0 else {}
         self._forget(graph.gone, nodes)
         out: list[Belief] = []
         for nid in sorted(nodes):
             tr = self._track(nid, *nodes[nid])
-            self._observe(tr, pose, g, geom, unknown, nid in owned)
+            self._observe(tr, pose, g, geom, unknown, nid in owned, heads.get(nid))
             out.append(Belief(id=nid, x=tr.x, y=tr.y, p=tr.p, d=tr.d, a=tr.a, r_min=tr.r_min,
                               alpha_max=tr.alpha_max, visible=tr.visible, n_obs=tr.n_obs,
                               visited=tr.visited, frontier=owned.get(nid, 0)))
