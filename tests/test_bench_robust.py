@@ -274,3 +274,45 @@ def test_real_maps_missing_is_said_not_skipped_silently(tmp_path, capsys, monkey
     plan, _ = rb._plan(a)
     assert "real maps are left out" in capsys.readouterr().err
     assert {i.half for i, _s, _k in plan} == {"held"}
+
+
+def test_compare_pairs_worlds_and_says_how_sure_it_is(tmp_path, capsys):
+    """--compare: per world the geometric mean path of each side's finished runs (its
+    simulator seeds), new / base over the worlds with an interval and a sign test; a run
+    that stops finishing is listed, not averaged in; runs.jsonl stands in for a missing
+    results.json (a run cut short)."""
+    from topoexplore.tools.bench import compare as cp
+
+    base = [run(f"w{k}", "reliability", path=100.0) for k in range(6)]
+    base += [run("w0", "frontier", path=50.0), run("w5", "reliability", path=400.0)]
+    base[-1]["sim_seed"] = 1  # w5: two seeds, 100 and 400 m -> 200 m
+    new = [run(f"w{k}", "reliability", path=80.0) for k in range(5)]
+    new.append(run("w5", "reliability", "timeout", path=50.0))
+    c = cp.compare(base, new, "reliability")
+    assert c["n"] == 5 and c["shorter"] == 5 and c["longer"] == 0
+    assert c["geomean"] == pytest.approx(0.8) and c["low"] == pytest.approx(0.8)
+    assert c["p"] == pytest.approx(0.0625)
+    assert c["total"] == pytest.approx((500.0, 400.0))
+    assert c["outcome_changes"] == [{"world": "w5", "base": "2/2 finished",
+                                     "new": "0/1 finished"}]
+    w5 = next(r for r in c["worlds"] if r["world"] == "w5")
+    assert w5["base"] == pytest.approx(200.0) and w5["new"] is None and w5["ratio"] is None
+    # a change that does nothing on average: an interval across 1, an even split
+    noop = [run(f"w{k}", "reliability", path=100.0 * (1.3 if k % 2 else 1 / 1.3))
+            for k in range(6)]
+    c = cp.compare(base[:6], noop, "reliability")
+    assert c["low"] < 1.0 < c["high"] and c["shorter"] == c["longer"] == 3 and c["p"] == 1.0
+    # the CLI: one report per strategy on both sides
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    (tmp_path / "a" / "results.json").write_text(json.dumps({"runs": base}))
+    (tmp_path / "b" / "runs.jsonl").write_text("".join(json.dumps(r) + "\n" for r in new))
+    assert rb.main(["--compare", str(tmp_path / "a"), str(tmp_path / "b")]) == 0
+    out = capsys.readouterr().out
+    assert "### reliability:" in out and "**0.800**" in out and "outcome changed on w5" in out
+    assert "### frontier" not in out  # no frontier runs on the new side
+    assert rb.main(["--compare", str(tmp_path / "a"), str(tmp_path / "nope")]) == 2
+    assert rb.main(["--compare", str(tmp_path / "a"), str(tmp_path / "b"),
+                    "--strategies", "frontier"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(e.startswith("topoexplore bench robust: --compare") for e in err)

@@ -5,6 +5,7 @@
                              [--out DIR] [--set k=v ...] [--quick] [--bus N] [--no-progress]
                              [--doc docs/robustness.md]
     topoexplore bench robust --from-results DIR [DIR ...] [--out DIR] [--doc FILE.md]
+    topoexplore bench robust --compare BASE NEW [--strategies ...]
 
 The corpus is generated (``sim/generate.py``, deterministic) into ``--corpus``: the four styles
 (office, house, warehouse, cluttered) x seeds 0..7, each as a clean world and as a SLAM-like map
@@ -37,6 +38,9 @@ their pictures), ``runs.jsonl`` (each run as it ends) and ``pics/<world>-<strate
 final map, graph and trail of every run; ``-sim<N>`` before ``.png`` for simulator seed N > 0). ``--doc`` writes the same report where the docs keep
 it, with the ten worst runs' pictures scaled down beside it; ``--from-results`` merges the
 results of several invocations (one per half, say) into one report without running anything.
+``--compare`` runs nothing either: it pairs the worlds of two outputs (the same corpus before
+and after a change) and says whether the change made the paths shorter beyond chance
+(:mod:`.compare`).
 """
 
 from __future__ import annotations
@@ -599,6 +603,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--from-results", nargs="+", type=Path, default=None, metavar="DIR",
                     help="run nothing: one report from these results (e.g. one per half)")
+    ap.add_argument("--compare", nargs=2, type=Path, default=None, metavar=("BASE", "NEW"),
+                    help="run nothing: per world and strategy, the path of NEW's runs against "
+                         "BASE's (two --out directories), with a 95 %% interval and a sign test")
     ap.add_argument("--doc", type=Path, default=None, metavar="FILE.md",
                     help="also write the report here, the worst runs' pictures in img/robust/ "
                          "beside it (e.g. docs/robustness.md)")
@@ -736,6 +743,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         a = build_parser().parse_args(argv)
         if a.from_results:
             return _report_only(a)
+        if a.compare:
+            from topoexplore.tools.bench.compare import main_compare
+
+            named = (None if a.strategies == ",".join(DEFAULT_STRATEGIES)
+                     else parse_strategies(a.strategies))
+            return main_compare(a.compare, named)
         plan, strategies = _plan(a)
     except BenchArgError as exc:
         print(f"topoexplore bench robust: {exc}", file=sys.stderr)
