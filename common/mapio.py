@@ -244,13 +244,41 @@ def pixels_to_occupancy(img: np.ndarray, negate: bool, occupied_thresh: float,
     return np.ascontiguousarray(out[::-1])
 
 
+def unrotate(grid: np.ndarray, resolution: float, x: float, y: float, yaw: float
+             ) -> tuple[np.ndarray, GridGeometry]:
+    """A grid whose lower-left corner lies at (x, y) [m] with its rows turned by yaw [rad]
+    (counter-clockwise, map_server's origin) -> the same map on an axis-aligned grid of the
+    same resolution [m] that holds it whole: each cell takes the value of the source cell its
+    centre falls in (nearest, so a turn by a multiple of 90 deg is exact), -1 (unknown)
+    outside the source. A grid has no rotation of its own (:class:`GridGeometry`), and ROS
+    tools that ignore the yaw would misplace the map by it."""
+    h, w = grid.shape
+    c, s = math.cos(yaw), math.sin(yaw)
+    cu = np.array([0.0, w, 0.0, w]) * resolution  # the corners in the map's own frame [m]
+    cv = np.array([0.0, 0.0, h, h]) * resolution
+    wx, wy = x + c * cu - s * cv, y + s * cu + c * cv  # ... in the world
+    eps = 1e-6 * resolution  # a corner on a cell boundary stays on it
+    ox = math.floor((wx.min() + eps) / resolution) * resolution
+    oy = math.floor((wy.min() + eps) / resolution) * resolution
+    W = max(1, math.ceil((wx.max() - eps - ox) / resolution))
+    H = max(1, math.ceil((wy.max() - eps - oy) / resolution))
+    X = ox + (np.arange(W) + 0.5) * resolution - x
+    Y = oy + (np.arange(H) + 0.5) * resolution - y
+    X, Y = np.meshgrid(X, Y)
+    col = np.floor((c * X + s * Y) / resolution).astype(np.int64)
+    row = np.floor((-s * X + c * Y) / resolution).astype(np.int64)
+    ok = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    out = np.full((H, W), -1, np.int8)
+    out[ok] = grid[row[ok], col[ok]]
+    return out, GridGeometry(resolution, ox, oy, W, H)
+
+
 def read_map_server(yaml_path: str | os.PathLike) -> tuple[np.ndarray, GridGeometry]:
     """Read a map_server map -> (int8 grid, row 0 = min y: 0 free, 100 occupied, -1 unknown,
-    1..99 in scale mode; GridGeometry). A non-zero origin yaw is refused (not representable)."""
+    1..99 in scale mode; GridGeometry). A map with a non-zero origin yaw is turned onto an
+    axis-aligned grid (:func:`unrotate`)."""
     meta = read_map_yaml(yaml_path)
     x, y, yaw = meta["origin"]
-    if abs(yaw) > 1e-9:
-        raise MapIOError(f"{yaml_path}: rotated maps (origin yaw={yaw}) are not supported")
     img_path = meta["image"]
     if not img_path.is_file():
         raise MapIOError(f"{yaml_path}: image file not found: {img_path}")
@@ -259,6 +287,8 @@ def read_map_server(yaml_path: str | os.PathLike) -> tuple[np.ndarray, GridGeome
         raise MapIOError(f"{yaml_path}: cannot decode image {img_path}")
     grid = pixels_to_occupancy(img, meta["negate"], meta["occupied_thresh"],
                                meta["free_thresh"], meta["mode"])
+    if abs(yaw) > 1e-9:
+        return unrotate(grid, meta["resolution"], x, y, yaw)
     h, w = grid.shape
     return grid, GridGeometry(meta["resolution"], x, y, w, h)
 
