@@ -244,6 +244,9 @@ def pixels_to_occupancy(img: np.ndarray, negate: bool, occupied_thresh: float,
     return np.ascontiguousarray(out[::-1])
 
 
+UNROTATE_ROWS = 256  # output rows resampled at once by :func:`unrotate`
+
+
 def unrotate(grid: np.ndarray, resolution: float, x: float, y: float, yaw: float
              ) -> tuple[np.ndarray, GridGeometry]:
     """A grid whose lower-left corner lies at (x, y) [m] with its rows turned by yaw [rad]
@@ -262,14 +265,15 @@ def unrotate(grid: np.ndarray, resolution: float, x: float, y: float, yaw: float
     oy = math.floor((wy.min() + eps) / resolution) * resolution
     W = max(1, math.ceil((wx.max() - eps - ox) / resolution))
     H = max(1, math.ceil((wy.max() - eps - oy) / resolution))
-    X = ox + (np.arange(W) + 0.5) * resolution - x
-    Y = oy + (np.arange(H) + 0.5) * resolution - y
-    X, Y = np.meshgrid(X, Y)
-    col = np.floor((c * X + s * Y) / resolution).astype(np.int64)
-    row = np.floor((-s * X + c * Y) / resolution).astype(np.int64)
-    ok = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    X = ox + (np.arange(W) + 0.5) * resolution - x  # output cell centres from the origin
     out = np.full((H, W), -1, np.int8)
-    out[ok] = grid[row[ok], col[ok]]
+    for r0 in range(0, H, UNROTATE_ROWS):  # a block of rows at a time: bounded memory
+        Y = (oy + (np.arange(r0, min(H, r0 + UNROTATE_ROWS)) + 0.5) * resolution - y)[:, None]
+        col = np.floor((c * X + s * Y) / resolution).astype(np.int64)
+        row = np.floor((-s * X + c * Y) / resolution).astype(np.int64)
+        ok = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        block = out[r0:r0 + len(Y)]
+        block[ok] = grid[row[ok], col[ok]]
     return out, GridGeometry(resolution, ox, oy, W, H)
 
 

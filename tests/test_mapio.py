@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
+from topoexplore.common import mapio
 from topoexplore.common.grid import FREE, OCCUPIED, UNKNOWN, GridGeometry, classify
 from topoexplore.common.mapio import (
     PIX_FREE,
@@ -290,7 +291,7 @@ def test_a_quarter_turn_is_exact(tmp_path):
 
 
 @pytest.mark.parametrize("yaw", [0.3, -1.0, 2.5])
-def test_a_turned_map_keeps_every_place_where_it_was(yaw):
+def test_a_turned_map_keeps_every_place_where_it_was(yaw, monkeypatch):
     """Any yaw, a map of rooms and walls (blocks of 5 x 5 cells): the centre of every cell
     at least a cell away from a block edge, turned into the world, falls in an output cell
     with its value (nearest sampling moves an edge by up to a cell, nothing more), and the
@@ -300,6 +301,9 @@ def test_a_turned_map_keeps_every_place_where_it_was(yaw):
     src = np.kron(blocks, np.ones((5, 5), np.int8))
     res, x, y = 0.1, 3.0, -4.0
     out, geom = unrotate(src, res, x, y, yaw)
+    monkeypatch.setattr(mapio, "UNROTATE_ROWS", 7)  # in blocks of rows: the same grid
+    again, geom2 = unrotate(src, res, x, y, yaw)
+    assert geom2 == geom and np.array_equal(again, out)
     r, c = np.mgrid[0:40, 0:60]
     inner = (r % 5 >= 1) & (r % 5 <= 3) & (c % 5 >= 1) & (c % 5 <= 3)
     u, v = (c[inner] + 0.5) * res, (r[inner] + 0.5) * res

@@ -29,11 +29,8 @@ from typing import Any
 
 import numpy as np
 from scipy.stats import binomtest
-from scipy.stats import t as student_t
 
-from topoexplore.tools.bench.explore import BenchArgError
-
-MIN_INTERVAL = 3  # worlds needed for an interval
+from topoexplore.tools.bench.explore import BenchArgError, geometric_interval
 
 
 def load_runs(d: Path) -> list[dict]:
@@ -104,11 +101,9 @@ def compare(base: Sequence[dict], new: Sequence[dict], strategy: str) -> dict[st
                   sum(r["new"] for r in rows if r["ratio"] is not None))}
     if shorter + longer:
         out["p"] = float(binomtest(shorter, shorter + longer, 0.5).pvalue)
-    if len(logs) >= MIN_INTERVAL:
-        x = np.asarray(logs)
-        half = float(student_t.ppf(0.975, len(x) - 1)) * float(np.std(x, ddof=1)) / math.sqrt(
-            len(x))
-        out["low"], out["high"] = (math.exp(float(np.mean(x)) + s * half) for s in (-1.0, 1.0))
+    ci = geometric_interval(math.exp(v) for v in logs)
+    if ci is not None:
+        out["low"], out["high"] = ci
     return out
 
 

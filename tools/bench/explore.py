@@ -167,6 +167,24 @@ def geometric_mean(values: Iterable[float]) -> float | None:
     return float(np.exp(np.mean(np.log(v))))
 
 
+MIN_INTERVAL = 3  # values needed for an interval (with two, Student's t makes it ~ x/100..x100)
+
+
+def geometric_interval(values: Iterable[float], level: float = 0.95
+                       ) -> tuple[float, float] | None:
+    """The level interval of the geometric mean of positive values (ratios): Student's t on
+    their logs; None below MIN_INTERVAL values."""
+    from scipy.stats import t as student_t
+
+    x = np.log(np.asarray(list(values), dtype=np.float64))
+    if x.size < MIN_INTERVAL:
+        return None
+    half = (float(student_t.ppf(0.5 + level / 2.0, x.size - 1)) * float(np.std(x, ddof=1))
+            / math.sqrt(x.size))
+    m = float(np.mean(x))
+    return math.exp(m - half), math.exp(m + half)
+
+
 def _num(v: Any) -> float | None:
     if isinstance(v, bool) or v is None:
         return None

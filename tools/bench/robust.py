@@ -57,12 +57,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.stats import t as student_t
 
 from topoexplore.common.params import STRATEGIES, STRATEGY_NAMES
 from topoexplore.tools.bench.explore import (
     BenchArgError,
     check_overrides,
+    geometric_interval,
     geometric_mean,
     parse_strategies,
 )
@@ -312,9 +312,6 @@ def world_paths(runs: Sequence[dict]) -> dict[tuple[str, int], dict[str, float]]
     return out
 
 
-MIN_INTERVAL = 3  # worlds needed for an interval (with two, Student's t makes it ~ x/100..x100)
-
-
 def path_ratio(runs: Sequence[dict], num: str, den: str, style: str | None = None
                ) -> dict[str, Any]:
     """path(num) / path(den) over the worlds where both finished (with a positive path); style
@@ -333,11 +330,9 @@ def path_ratio(runs: Sequence[dict], num: str, den: str, style: str | None = Non
                            "pairs": sum(len(v) for v in logs.values()), "low": None,
                            "high": None,
                            "worlds": {w: round(v, 3) for w, v in sorted(per_world.items())}}
-    if len(per_world) >= MIN_INTERVAL:
-        x = np.log(np.fromiter(per_world.values(), np.float64))
-        half = (float(student_t.ppf(0.975, len(x) - 1)) * float(np.std(x, ddof=1))
-                / math.sqrt(len(x)))
-        out["low"], out["high"] = (math.exp(float(np.mean(x)) + s * half) for s in (-1.0, 1.0))
+    ci = geometric_interval(per_world.values())
+    if ci is not None:
+        out["low"], out["high"] = ci
     return out
 
 
