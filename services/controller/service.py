@@ -13,7 +13,7 @@ import threading
 
 from topoexplore.common import convert
 from topoexplore.common import messages as m
-from topoexplore.common.domain import Command
+from topoexplore.common.domain import Command, Route
 from topoexplore.common.node import Node, OdomBuffer, run_service
 from topoexplore.common.params import ControllerParams, Params
 from topoexplore.services.controller.core import WARM_MODULES, ControllerCore
@@ -41,6 +41,8 @@ class ControllerService:
         node.subscribe("scan", queue=True)
         self.last_cmd = Command(0.0, 0.0, "idle")
         self.last_src = -1  # src_seq of the last scan answered
+        self._route: tuple[m.Path | None, Route | None] = (None, None)  # plan message, as
+        self._done: tuple[m.ExploreStatus | None, bool] = (None, False)  # converted once
         node.add_state(self.state)
         node.add_live(LIVE, self.apply_params)
 
@@ -64,10 +66,8 @@ class ControllerService:
         if pose is None:
             cmd = Command(0.0, 0.0, "no-pose")
         else:
-            done = status is not None and convert.status_from_msg(status).finished
-            cmd = self.core.update(scan.header.time, pose,
-                                   convert.route_from_msg(plan) if plan is not None else None,
-                                   done, convert.scan_from_msg(scan),
+            cmd = self.core.update(scan.header.time, pose, self.route(plan),
+                                   self.finished(status), convert.scan_from_msg(scan),
                                    self.plan_age(scan.header.time), self.plan_limit())
         v, w, mode = cmd
         if mode != self.last_cmd.mode and mode == "stale-plan":
@@ -86,6 +86,20 @@ class ControllerService:
             self.pub.put(convert.command_to_msg(cmd, self.node.header(
                 "cmd_vel", scan.header.time, scan.header.src_seq)))
         self.node.processed += 1
+
+    def route(self, plan: m.Path | None) -> Route | None:
+        """The plan message as a Route, converted once per message (a plan stays the
+        newest for several scans; the core compares routes by value)."""
+        if plan is not self._route[0]:
+            self._route = (plan, convert.route_from_msg(plan) if plan is not None else None)
+        return self._route[1]
+
+    def finished(self, status: m.ExploreStatus | None) -> bool:
+        """Has the planner said the exploration is over? (once per status message)"""
+        if status is not self._done[0]:
+            self._done = (status, status is not None and convert.status_from_msg(
+                status).finished)
+        return self._done[1]
 
     def on_plan(self, plan: m.Path) -> None:
         """Receive thread: the robot time (newest odometry) a new plan message came."""
