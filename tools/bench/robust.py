@@ -731,19 +731,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         from topoexplore.tools.extras import ExtraMissing, require
 
-        try:
-            require("pymunk", "tqdm", what="topoexplore bench robust")
-        except ExtraMissing as exc:
-            raise BenchArgError(str(exc)) from None
         a = build_parser().parse_args(argv)
-        if a.from_results:
-            return _report_only(a)
-        if a.compare:
+        if a.compare:  # reads two outputs: needs neither the simulator nor a progress bar
             from topoexplore.tools.bench.compare import main_compare
 
             named = (None if a.strategies == ",".join(DEFAULT_STRATEGIES)
                      else parse_strategies(a.strategies))
             return main_compare(a.compare, named)
+        try:
+            require("pymunk", "tqdm", what="topoexplore bench robust")
+        except ExtraMissing as exc:
+            raise BenchArgError(str(exc)) from None
+        if a.from_results:
+            return _report_only(a)
         plan, strategies = _plan(a)
     except BenchArgError as exc:
         print(f"topoexplore bench robust: {exc}", file=sys.stderr)
