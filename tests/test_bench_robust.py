@@ -316,3 +316,31 @@ def test_compare_pairs_worlds_and_says_how_sure_it_is(tmp_path, capsys):
                     "--strategies", "frontier"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and all(e.startswith("topoexplore bench robust: --compare") for e in err)
+
+
+def test_the_path_driven_toward_completion_targets_is_counted_and_reported():
+    """A run's completion_m: the path between updates whose plan (as of the earlier update)
+    followed a completion-phase target; the report gives its share per strategy."""
+    from types import SimpleNamespace as NS
+
+    from topoexplore.services.planner.strategies.completion import COMPLETION_NOTE
+
+    track = rb._Track()
+    grid = NS(data=np.zeros((2, 2), np.int8))
+    route = NS(target_id=-1, target_xy=(0.0, 0.0), waypoints=np.zeros((2, 2)))
+    for x, reason in ((0.0, "target end node 3"), (1.0, f"target frontier{COMPLETION_NOTE}"),
+                      (3.0, f"target frontier{COMPLETION_NOTE}"), (6.0, "target end node 4"),
+                      (10.0, "done")):
+        plan = NS(route=route, status=NS(reason=reason))
+        track(0.0, NS(x=x, y=0.0), None, None, plan, grid)
+    assert track.completion_m == pytest.approx(5.0)  # 1 -> 3 -> 6 m
+    runs = [run("w1", "reliability", path=20.0), run("w2", "reliability", path=10.0),
+            run("w3", "reliability", "timeout", path=10.0), run("w4", "frontier", path=9.0)]
+    runs[0]["completion_m"], runs[1]["completion_m"], runs[2]["completion_m"] = 5.0, 4.0, 9.0
+    share = rb.completion_share(runs, "reliability")
+    assert share == {"n": 2, "median": pytest.approx(0.325), "max": pytest.approx(0.4)}
+    assert rb.completion_share(runs, "frontier")["n"] == 0  # made before the count
+    doc = {"command": "x", "created": "now", "wall_s": 1.0, "jobs": 1, "runs": runs,
+           "analysis": rb.analyse(runs, ["reliability", "frontier"])}
+    assert "completion phase" in rb.summary(doc) and "reliability 0.33, 0.40 (2)" in \
+        rb.summary(doc)

@@ -184,7 +184,8 @@ def run_one(item: Item, strategy: str, sets: Sequence[str], pics: Path | None,
              half=item.half, strategy=strategy, sim_seed=int(sim_seed),
              area_m2=round(item.area, 1),
              limit_s=time_limit(item.area), wall_s=round(time.monotonic() - t0, 1),
-             targets=track.targets, stagnant_s=track.stagnant_s())
+             targets=track.targets, stagnant_s=track.stagnant_s(),
+             completion_m=round(track.completion_m, 2))
     r["outcome"] = classify(r)
     r["oracle_m"] = tour_length(item.path)
     if pics is not None and track.last is not None:
@@ -193,17 +194,27 @@ def run_one(item: Item, strategy: str, sets: Sequence[str], pics: Path | None,
 
 
 class _Track:
-    """What the benchmark follows during a run: targets chosen, map growth, the trail and the
-    last state (for the picture)."""
+    """What the benchmark follows during a run: targets chosen, map growth, the trail, the
+    path driven toward completion-phase targets and the last state (for the picture)."""
 
     def __init__(self) -> None:
+        from topoexplore.services.planner.strategies.completion import COMPLETION_NOTE
+
+        self._note = COMPLETION_NOTE  # in a completion-phase target's status reason
         self.targets = 0
         self._plan_target: tuple[int, float, float] | None = None
         self.known: list[tuple[float, int]] = []  # (t [s], known cells)
         self.trail: list[tuple[float, float, int]] = []
         self.last: tuple | None = None
+        self.completion_m = 0.0  # [m] driven while the target was a completion-phase one
+        self._completing = False  # ... as the previous update's plan said
+        self._at: tuple[float, float] | None = None  # [m] the previous update's pose
 
     def __call__(self, t, pose, graph, beliefs, plan, grid) -> None:
+        if self._at is not None and self._completing:
+            self.completion_m += math.hypot(pose.x - self._at[0], pose.y - self._at[1])
+        self._at = (pose.x, pose.y)
+        self._completing = self._note in plan.status.reason
         r = plan.route
         cur = (r.target_id, round(r.target_xy[0], 1), round(r.target_xy[1], 1))
         if len(r.waypoints) and cur != self._plan_target:
@@ -370,6 +381,16 @@ _SEVERITY = {"error": 0, "failed": 1, "early-done": 2, "livelock": 3, "timeout":
              "finished": 5}
 
 
+def completion_share(runs: Sequence[dict], strategy: str) -> dict[str, Any]:
+    """The share of a finished run's path driven toward completion-phase targets (frontier
+    groups once no end node is left to visit; docs/design.md), over one strategy's finished
+    runs that carry it (``completion_m``, since 2026-12-05): median and largest, ``n`` runs."""
+    v = [r["completion_m"] / r["path_length_m"] for r in runs
+         if r["strategy"] == strategy and r["outcome"] == "finished"
+         and r.get("completion_m") is not None and (r.get("path_length_m") or 0.0) > 0.0]
+    return {"n": len(v), "median": _pct(v, 50), "max": max(v) if v else None}
+
+
 def worst(runs: Sequence[dict], n: int = 10) -> list[dict]:
     """The n worst runs: by outcome, then coverage (the paper's rule, a reference that stops
     without a completion phase, is left out)."""
@@ -398,6 +419,7 @@ def analyse(runs: Sequence[dict], strategies: Sequence[str]) -> dict[str, Any]:
         h["oracle"] = ratios(rs, lambda r: r.get("oracle_m"))["strategies"]
         if any(sim_seed(r) for r in rs):
             h["sim_spread"] = {s: sim_spread(rs, s) for s in strategies}
+        h["completion_share"] = {s: completion_share(rs, s) for s in strategies}
         h["over_2x_shortest"] = over_shortest(rs)
         h["worst"] = [{k: r.get(k) for k in ("world", "strategy", "sim_seed", "outcome",
                                               "coverage", "path_length_m", "stop_reason",
@@ -451,6 +473,12 @@ def _half_md(name: str, h: dict, link) -> list[str]:
                  "finished path; median, largest over the worlds): " + ", ".join(
                      f"{st} {_f(v['median'], 2)}, {_f(v['max'], 2)} ({v['n']})"
                      for st, v in spread.items()))
+    share = {st: v for st, v in h.get("completion_share", {}).items() if v["n"] and v["max"]}
+    if share:
+        L.append("- share of the path driven in the completion phase (frontier groups after "
+                 "the end nodes; median, largest over the finished runs): " + ", ".join(
+                     f"{st} {_f(v['median'], 2)}, {_f(v['max'], 2)} ({v['n']})"
+                     for st, v in share.items()))
     over = h["over_2x_shortest"]
     L.append(f"- runs over 2 x the shortest path of the three strategies on their world: "
              f"{len(over)}"
