@@ -437,6 +437,12 @@ def _f(v: Any, dec: int = 3) -> str:
     return "–" if v is None else (f"{v:.{dec}f}" if isinstance(v, float) else str(v))
 
 
+def _median_max(per: dict[str, dict]) -> str:
+    """"strategy median, largest (n)" for each strategy of {strategy: {median, max, n}}."""
+    return ", ".join(f"{st} {_f(v['median'], 2)}, {_f(v['max'], 2)} ({v['n']})"
+                     for st, v in per.items())
+
+
 def _half_md(name: str, h: dict, link) -> list[str]:
     L = [f"### {name}", "", "| strategy | runs | finished | early done | failed | livelock | "
          "timeout | collisions | watchdog | blockages | coverage min | p5 | median |",
@@ -470,15 +476,12 @@ def _half_md(name: str, h: dict, link) -> list[str]:
     spread = {st: v for st, v in h.get("sim_spread", {}).items() if v["n"]}
     if spread:
         L.append("- path spread between simulator seeds of one world (longest / shortest "
-                 "finished path; median, largest over the worlds): " + ", ".join(
-                     f"{st} {_f(v['median'], 2)}, {_f(v['max'], 2)} ({v['n']})"
-                     for st, v in spread.items()))
+                 "finished path; median, largest over the worlds): " + _median_max(spread))
     share = {st: v for st, v in h.get("completion_share", {}).items() if v["n"] and v["max"]}
     if share:
         L.append("- share of the path driven in the completion phase (frontier groups after "
-                 "the end nodes; median, largest over the finished runs): " + ", ".join(
-                     f"{st} {_f(v['median'], 2)}, {_f(v['max'], 2)} ({v['n']})"
-                     for st, v in share.items()))
+                 "the end nodes; median, largest over the finished runs): "
+                 + _median_max(share))
     over = h["over_2x_shortest"]
     L.append(f"- runs over 2 x the shortest path of the three strategies on their world: "
              f"{len(over)}"
