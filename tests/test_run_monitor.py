@@ -7,7 +7,8 @@ import numpy as np
 
 from topoexplore.common import convert
 from topoexplore.common import messages as m
-from topoexplore.common.domain import Route
+from topoexplore.common.domain import GridMap, Route
+from topoexplore.common.grid import GridGeometry
 from topoexplore.tools.run import Monitor
 
 
@@ -31,3 +32,36 @@ def test_targets_after_the_end_are_not_counted():
     mon.on_status(status(3, "exploring"))
     assert mon.targets == [4, 7]
     assert mon.plan.target_id == 7 and mon.status.state == "done"
+
+
+def sim_status(src: int) -> m.SimStatus:
+    return m.SimStatus(header=m.header(src, 0.2 * src, "sim/status", src), world="w",
+                       mode="lockstep", sim_time=0.2 * src, steps=src, collisions=0,
+                       path_length=0.1 * src, real_time_factor=1.0)
+
+
+def grid(src: int) -> m.OccupancyGrid:
+    g = GridMap(np.zeros((4, 4), np.int8), GridGeometry(0.1, 0.0, 0.0, 4, 4))
+    return convert.grid_to_msg(g, m.header(src, 0.2 * src, "map", src))
+
+
+def test_the_report_waits_for_the_sim_status_and_map_of_the_ending_scan():
+    """They come from other processes than the planner's status: read while still on their
+    way, the report took the scan before the one that ended the run."""
+    import threading
+
+    mon = Monitor()
+    mon.on_sim(sim_status(203))
+    mon.on_map(grid(203))
+    mon.on_status(status(204, "done"))
+    assert not mon.settle(204, timeout=0.05)
+    late = [threading.Timer(0.2, mon.on_sim, args=(sim_status(204),)),
+            threading.Timer(0.3, mon.on_map, args=(grid(204),))]
+    for t in late:
+        t.start()
+    try:
+        assert mon.settle(204, timeout=5.0)
+    finally:
+        for t in late:
+            t.join()
+    assert mon.sim_by_seq[204].sim_time == 0.2 * 204 and mon.grid.header.src_seq == 204

@@ -51,6 +51,9 @@ from topoexplore.common.params import (
 from topoexplore.tools.extras import ExtraMissing, require
 from topoexplore.tools.launch.supervisor import free_port, port_open
 
+# [s] how long the report waits for the sim status and map of the scan that ended a run
+END_WAIT = 2.0
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--world", default=None,
@@ -134,6 +137,21 @@ class Monitor:
             if len(self.sim_by_seq) > 200:
                 for k in sorted(self.sim_by_seq)[:-100]:
                     del self.sim_by_seq[k]
+
+    def settle(self, seq: int, timeout: float) -> bool:
+        """Wait up to ``timeout`` [s] until the sim status and the map of scan ``seq`` (the
+        one whose status ended the run) are here. They come from other processes than that
+        status, so they may still be on their way when it has been read. False if they never
+        came (the report then describes the latest ones)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            with self.lock:
+                grid_seq = self.grid.header.src_seq if self.grid is not None else -1
+                if seq in self.sim_by_seq and grid_seq >= seq:
+                    return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.01)
 
     def on_estimate(self) -> None:
         """Odometry or a correction came: score the truth stamps the estimate now covers."""
@@ -835,6 +853,8 @@ class StackRun:
         """The final sim status (of the very scan that ended a finished run: deterministic in
         lockstep), the restarts and the services' bad-message counts."""
         out, mon = self.outcome, self.mon
+        if out.finished and mon.end_seq is not None:
+            mon.settle(mon.end_seq, END_WAIT)
         with mon.lock:
             st = mon.status
             out.sim = mon.sim
