@@ -578,6 +578,46 @@ def test_approaches_a_node_behind_a_narrow_passage_once():
     assert np.hypot(*(out.route.waypoints[-1] - (5.5, 0.5))) < 0.35
 
 
+def test_a_narrow_stretch_of_the_skeleton_in_an_open_room_is_driven_around():
+    """The skeleton is one line through a room: where it passes a table leg it is narrow, but
+    the room is wide. With grid_paths the grid search (the body and clearance the controller
+    drives with) decides: the node is a whole candidate on the way around the leg (a large
+    office: a room's node stayed "up to a narrow passage", was given up, and the room behind
+    it never seen). A door narrower than the body stays narrow."""
+    geom = GridGeometry(0.1, -1.0, -1.0, 60, 50)
+    g = np.full((50, 60), 100, dtype=np.int8)
+    g[10:40, 10:50] = 0  # free: x in [0, 4), y in [0, 3)
+    g[26, 30] = 100  # a table leg at x in [2.0, 2.1], y in [1.6, 1.7]
+    g[20:30, 50:60] = -1  # a door out of the room at x = 4 m, unexplored beyond
+    tp = topo([node(1, "end", 0.5, 1.5), node(2, "end", 3.5, 1.5)],
+              [edge(1, 2, [(0.5, 1.5), (3.5, 1.5)], clearance=0.1)])
+    beliefs = rel({1: 0.95, 2: 0.5})
+    p = params(grid_paths=True)
+    out = PlannerCore(p).update(0.0, (0.6, 1.5, 0.0), tp, beliefs, grid(g, geom))
+    assert out.state == "exploring" and out.route.target_id == 2, out.status.reason
+    assert "around a narrow stretch" in out.status.reason
+    w = out.route.waypoints
+    clear = gr.grid_clearance(gs.clearance_map(g > 65, geom.resolution), geom)(w)
+    assert np.all(clear >= RADIUS + p.clearance_margin - 1e-9)
+    assert np.hypot(*(w[-1] - (3.5, 1.5))) <= p.tip_length + 0.1
+    # without grid_paths (the skeleton path alone) only up to the leg
+    out = PlannerCore(params()).update(0.0, (0.6, 1.5, 0.0), tp, beliefs, grid(g, geom))
+    assert "up to a narrow passage" in out.status.reason, out.status.reason
+    assert out.route.waypoints[-1][0] < 2.0
+    # which nodes are targets does not change: with everything around it mapped, a node
+    # behind a narrow stretch is still not one (approach_radius: nothing to look at)
+    closed = np.where(g < 0, 100, g).astype(np.int8)
+    out = PlannerCore(p).update(0.0, (0.6, 1.5, 0.0), tp, beliefs, grid(closed, geom))
+    assert out.state == "done" and "(ids 2)" in out.status.reason, out.status.reason
+    # a wall across the room with a 0.3 m door: the grid search does not get through either
+    g[10:40, 30] = 100
+    g[24:27, 30] = 0  # the door: y in [1.4, 1.7]
+    p = params(grid_paths=True, approach_radius=0.0)  # approached whatever lies beyond
+    out = PlannerCore(p).update(0.0, (0.6, 1.5, 0.0), tp, beliefs, grid(g, geom))
+    assert "around" not in out.status.reason
+    assert out.state == "exploring" and "narrow passage" in out.status.reason
+
+
 def test_build_index_splits_an_edge_at_its_narrow_stretch():
     """A long edge narrow only in its middle keeps its wide ends traversable up to "cut"
     nodes (negative ids); only the middle is narrow."""

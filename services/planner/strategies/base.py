@@ -67,6 +67,8 @@ class Candidate:
     narrow: bool = False  # the path goes through a narrow passage (the frontier fallback)
     opening: bool = False  # a frontier group that counts only as an opening not yet looked
     #   into (completion_openings)
+    around: bool = False  # an end node whose skeleton path is narrow somewhere, reached on
+    #   the grid search's path around that stretch (its path is the grid path already)
 
     def detached(self) -> Candidate:
         """This candidate without its lazy path: what an :class:`Update` carries as the target

@@ -63,6 +63,13 @@ class Scene:
     dist: dict[int, float] = field(default_factory=dict)
     pred: dict[int, tuple[int, int, bool]] = field(default_factory=dict)
     wide: tuple | None = None  # the search through narrow edges too, made when first needed
+    made: list = field(default_factory=list)  # the grid search from the robot, once made
+
+    def grid(self, cfg: Config) -> gs.GridSearch:
+        """The grid search from the robot (:func:`robot_search`), made when first needed."""
+        if not self.made:
+            self.made.append(robot_search(cfg, self.u))
+        return self.made[0]
 
     def prob(self, i: int) -> float:
         return self.pmap.get(i, P_UNSEEN)
@@ -240,15 +247,13 @@ class Topological:
         """grid_paths: the way to each end node on the grid, as a frontier strategy's, where
         the grid search reaches the skeleton path's last point; the skeleton path elsewhere.
         The search runs only when a path is made."""
-        view, cfg, made = s.u.view, self.cfg, []
+        view, cfg = s.u.view, self.cfg
 
         def search() -> gs.GridSearch:
-            if not made:
-                made.append(robot_search(cfg, s.u))
-            return made[0]
+            return s.grid(cfg)
 
         for c in ev.cands:
-            if not c.partial:
+            if not c.partial and not c.around:
                 c.path = _grid_or(c.path, search, view.geom)
         on_skeleton, fits = ev.path_ok, path_fits(view, view.clearance, cfg.radius)
         ev.path_ok = lambda wps: on_skeleton(wps) or fits(wps)
@@ -289,6 +294,9 @@ class Topological:
         r = self.cfg.params.approach_radius
         if r > 0 and not self.beside_unknown(s.u, nx, ny, r):
             return None  # its surroundings are mapped: nothing to look at through the gap
+        around = self._around(s, i, nx, ny, full)
+        if around is not None:
+            return around
         reach = float(gr.polyline_lengths(pts)[-1])
         px, py = float(pts[-1, 0]), float(pts[-1, 1])
         u = s.u
@@ -302,6 +310,31 @@ class Topological:
         return Candidate(i, nx, ny, dist[i], to_entry + reach, 1.0, self.target_p(i, s),
                          lambda: pts, label=f"{self.label(i, s)} up to a narrow passage",
                          partial=True)
+
+    def _around(self, s: Scene, i: int, nx: float, ny: float, full: np.ndarray
+                ) -> Candidate | None:
+        """Open end node i that would be approached up to the narrow stretch of its skeleton
+        path ``full``, as a whole candidate instead when the grid search (the body and clearance the controller drives with:
+        :func:`robot_search`) gets to where that path ends, its narrow tip trimmed as for any
+        end node: the skeleton is one line through a room, and a narrow stretch of it (between
+        table legs) is not a narrow way. The path is the grid search's; its length the cost.
+        None without grid_paths, or when the search does not get there."""
+        view = s.u.view
+        if not self.cfg.params.grid_paths or view is None:
+            return None
+        tip = gr.trim_narrow_tip(full, s.clearance_at, self.cfg.need,
+                                 self.cfg.params.tip_length)[-1]
+        r, c = (int(v) for v in view.geom.world_to_cell(float(tip[0]), float(tip[1])))
+        sr = s.grid(self.cfg)
+        if sr.start is None or not view.geom.inside(r, c) or not math.isfinite(sr.dist[r, c]):
+            return None
+        pts = sr.path_to(r, c)
+        if len(pts) < 2:
+            return None
+        d = float(gr.polyline_lengths(pts)[-1])
+        return Candidate(i, nx, ny, d, d, 1.0, self.target_p(i, s), lambda: pts,
+                         label=f"{self.label(i, s)} (around a narrow stretch of its edge)",
+                         around=True)
 
     def beside_unknown(self, u: Update, x: float, y: float, radius: float) -> bool:
         """Is there at least min_frontier_size of frontier (in cells, however fragmented)
