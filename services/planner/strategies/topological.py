@@ -294,7 +294,7 @@ class Topological:
         r = self.cfg.params.approach_radius
         if r > 0 and not self.beside_unknown(s.u, nx, ny, r):
             return None  # its surroundings are mapped: nothing to look at through the gap
-        around = self._around(s, i, nx, ny, full)
+        around = self._around(s, i, nx, ny, full, dist[i])
         if around is not None:
             return around
         reach = float(gr.polyline_lengths(pts)[-1])
@@ -311,28 +311,31 @@ class Topological:
                          lambda: pts, label=f"{self.label(i, s)} up to a narrow passage",
                          partial=True)
 
-    def _around(self, s: Scene, i: int, nx: float, ny: float, full: np.ndarray
-                ) -> Candidate | None:
+    def _around(self, s: Scene, i: int, nx: float, ny: float, full: np.ndarray,
+                cost: float) -> Candidate | None:
         """Open end node i that would be approached up to the narrow stretch of its skeleton
-        path ``full``, as a whole candidate instead when the grid search (the body and clearance the controller drives with:
-        :func:`robot_search`) gets to where that path ends, its narrow tip trimmed as for any
-        end node: the skeleton is one line through a room, and a narrow stretch of it (between
-        table legs) is not a narrow way. The path is the grid search's; its length the cost.
-        None without grid_paths, or when the search does not get there."""
-        view = s.u.view
-        if not self.cfg.params.grid_paths or view is None:
+        path ``full`` (``cost`` [m] long), as a whole candidate instead when the grid search
+        (the body and clearance the controller drives with: :func:`robot_search`) gets to
+        where that path ends, its narrow tip trimmed as for any end node: the skeleton is one
+        line through a room, and a narrow stretch of it (between table legs) is not a narrow
+        way. Its path is the grid search's, made only when it is followed. None without
+        grid_paths, or when the search does not get there (judged on a reach-only search, once
+        per update: a cheap flood of the same cells)."""
+        u, cfg = s.u, self.cfg
+        if not cfg.params.grid_paths or u.view is None:
             return None
-        tip = gr.trim_narrow_tip(full, s.clearance_at, self.cfg.need,
-                                 self.cfg.params.tip_length)[-1]
-        r, c = (int(v) for v in view.geom.world_to_cell(float(tip[0]), float(tip[1])))
-        sr = s.grid(self.cfg)
-        if sr.start is None or not view.geom.inside(r, c) or not math.isfinite(sr.dist[r, c]):
+        geom = u.view.geom
+        tip = gr.trim_narrow_tip(full, s.clearance_at, cfg.need, cfg.params.tip_length)[-1]
+        r, c = (int(v) for v in geom.world_to_cell(float(tip[0]), float(tip[1])))
+        reach = u.view.memo(("reach-wide", u.x, u.y), lambda: robot_search(cfg, u, False, True))
+        if reach.start is None or not geom.inside(r, c) or not math.isfinite(reach.dist[r, c]):
             return None
-        pts = sr.path_to(r, c)
-        if len(pts) < 2:
-            return None
-        d = float(gr.polyline_lengths(pts)[-1])
-        return Candidate(i, nx, ny, d, d, 1.0, self.target_p(i, s), lambda: pts,
+
+        def path() -> np.ndarray:
+            g = s.grid(cfg).path_to(r, c)
+            return g if len(g) else full
+
+        return Candidate(i, nx, ny, cost, cost, 1.0, self.target_p(i, s), path,
                          label=f"{self.label(i, s)} (around a narrow stretch of its edge)",
                          around=True)
 
