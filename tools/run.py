@@ -853,8 +853,9 @@ class StackRun:
         """The final sim status (of the very scan that ended a finished run: deterministic in
         lockstep), the restarts and the services' bad-message counts."""
         out, mon = self.outcome, self.mon
-        if out.finished and mon.end_seq is not None:
-            mon.settle(mon.end_seq, END_WAIT)
+        if out.finished and mon.end_seq is not None and self.args.lockstep:
+            mon.settle(mon.end_seq, END_WAIT)  # (in real time the sim reports at status_hz,
+            #   not on every scan: the latest status is the report's)
         with mon.lock:
             st = mon.status
             out.sim = mon.sim
