@@ -14,7 +14,6 @@ from topoexplore.common.grid import (
     crop_known,
     distance_transform,
     known_window,
-    near_frontier,
     open_unknown,
     ray_cells,
     reframe,
@@ -75,26 +74,6 @@ def test_unknown_mask_and_open_unknown_match_their_definition_on_the_whole_grid(
         assert np.array_equal(unknown_mask(g), ref_unknown(g))
         for pocket in (0, 3, 20):
             assert np.array_equal(open_unknown(g, pocket), ref_open(g, pocket))
-
-
-def test_near_frontier_with_every_unknown_cell_bounds_it_with_the_open_ones():
-    """open_unknown is a subset of unknown_mask, so fewer frontier cells: the planner asks the
-    cheap mask first and the open one (a search of the whole map) only when that says yes."""
-    rng = np.random.default_rng(7)
-    yes = 0
-    for g in random_grids(300):
-        h, w = g.shape
-        geom = GridGeometry(0.1, 0.0, 0.0, w, h)
-        every, opened = unknown_mask(g), open_unknown(g, 20)
-        assert not np.any(opened & ~every)
-        for _ in range(3):
-            x, y = rng.uniform(0, w * 0.1), rng.uniform(0, h * 0.1)
-            for n in (1, 3):
-                a = near_frontier(x, y, g, geom, 0.6, 0.35, every, n)
-                b = near_frontier(x, y, g, geom, 0.6, 0.35, opened, n)
-                assert a or not b
-                yes += b
-    assert yes > 0
 
 
 def test_a_pocket_is_kept_where_the_robot_can_reach_enough_of_its_border():

@@ -347,12 +347,10 @@ class Topological:
         p, v = self.cfg.params, u.view
         if v is None:
             return True
-        n = cells_for(p.min_frontier_size, v.geom.resolution)
-        if not near_frontier(x, y, v.data, v.geom, radius, v.occ.p_free, v.unknown, n):
-            return False  # not even beside every unexplored cell (a superset of the open
-            #   ones): the open ones, whose pockets need a search of the whole map, not asked
+        res = v.geom.resolution
         return near_frontier(x, y, v.data, v.geom, radius, v.occ.p_free,
-                             open_unknown(self.cfg, u, p.completion_pocket_area), n)
+                             open_unknown(self.cfg, u, p.completion_pocket_area),
+                             min_cells=cells_for(p.min_frontier_size, res))
 
     def _has_looked(self, px: float, py: float) -> bool:
         r2 = self.cfg.params.blacklist_radius ** 2
