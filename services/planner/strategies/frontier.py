@@ -204,10 +204,10 @@ def open_unknown(cfg: Config, u: Update, pocket_area: float) -> np.ndarray:
                                cells_for(p.completion_min_size, res), p.completion_pocket_share)
 
 
-def robot_reach(cfg: Config, u: Update) -> gs.GridSearch:
-    """Where the robot can get at all (narrow passages too, no path costs), once per map
-    view and robot position."""
-    return u.view.memo(("reach", u.x, u.y), lambda: robot_search(cfg, u, True, True))
+def robot_reach(cfg: Config, u: Update, narrow: bool = True) -> gs.GridSearch:
+    """Where the robot can get at all (narrow passages too, or with narrow False only where
+    :func:`robot_search` paths go; no path costs), once per map view and robot position."""
+    return u.view.memo(("reach", narrow, u.x, u.y), lambda: robot_search(cfg, u, narrow, True))
 
 
 def robot_search(cfg: Config, u: Update, narrow: bool = False, reach_only: bool = False

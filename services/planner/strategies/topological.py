@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -40,6 +41,7 @@ from topoexplore.services.planner.strategies.frontier import (
     NARROW_PENALTY,
     open_unknown,
     path_fits,
+    robot_reach,
     robot_search,
 )
 
@@ -63,13 +65,13 @@ class Scene:
     dist: dict[int, float] = field(default_factory=dict)
     pred: dict[int, tuple[int, int, bool]] = field(default_factory=dict)
     wide: tuple | None = None  # the search through narrow edges too, made when first needed
-    made: list = field(default_factory=list)  # the grid search from the robot, once made
+    search: gs.GridSearch | None = None  # the grid search from the robot, once made
 
     def grid(self, cfg: Config) -> gs.GridSearch:
         """The grid search from the robot (:func:`robot_search`), made when first needed."""
-        if not self.made:
-            self.made.append(robot_search(cfg, self.u))
-        return self.made[0]
+        if self.search is None:
+            self.search = robot_search(cfg, self.u)
+        return self.search
 
     def prob(self, i: int) -> float:
         return self.pmap.get(i, P_UNSEEN)
@@ -248,10 +250,7 @@ class Topological:
         the grid search reaches the skeleton path's last point; the skeleton path elsewhere.
         The search runs only when a path is made."""
         view, cfg = s.u.view, self.cfg
-
-        def search() -> gs.GridSearch:
-            return s.grid(cfg)
-
+        search = partial(s.grid, cfg)
         for c in ev.cands:
             if not c.partial and not c.around:
                 c.path = _grid_or(c.path, search, view.geom)
@@ -325,17 +324,13 @@ class Topological:
         if not cfg.params.grid_paths or u.view is None:
             return None
         geom = u.view.geom
-        tip = gr.trim_narrow_tip(full, s.clearance_at, cfg.need, cfg.params.tip_length)[-1]
-        r, c = (int(v) for v in geom.world_to_cell(float(tip[0]), float(tip[1])))
-        reach = u.view.memo(("reach-wide", u.x, u.y), lambda: robot_search(cfg, u, False, True))
+        trimmed = gr.trim_narrow_tip(full, s.clearance_at, cfg.need, cfg.params.tip_length)
+        r, c = (int(v) for v in geom.world_to_cell(*(float(v) for v in trimmed[-1])))
+        reach = robot_reach(cfg, u, narrow=False)
         if reach.start is None or not geom.inside(r, c) or not math.isfinite(reach.dist[r, c]):
             return None
-
-        def path() -> np.ndarray:
-            g = s.grid(cfg).path_to(r, c)
-            return g if len(g) else full
-
-        return Candidate(i, nx, ny, cost, cost, 1.0, self.target_p(i, s), path,
+        return Candidate(i, nx, ny, cost, cost, 1.0, self.target_p(i, s),
+                         _grid_or(lambda: trimmed, partial(s.grid, cfg), geom),
                          label=f"{self.label(i, s)} (around a narrow stretch of its edge)",
                          around=True)
 
