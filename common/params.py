@@ -389,6 +389,9 @@ class PlannerParams(_P):
     examine_angle: Annotated[float, Meta(gt=0.0, lt=math.pi / 2)] = math.pi / 4  # [rad] ...
     # the line of sight this close to the direction of an unknown neighbour ...
     examine_views: PosInt = 3  # ... on this many updates
+    surface_views: NonNegInt = 3  # a cell the map showed occupied on this many updates is a
+    # surface: no frontier cell when free later (a wall face cleared by grazing beams; see
+    # services/planner/examined.py, docs/design.md "Surfaces"); 0: off
 
 
 class ControllerParams(_P):

@@ -369,8 +369,9 @@ def test_restarted_topology_reliability_planner_keep_ids_beliefs_and_memory(upda
         core.restore(_through_disk(a[b.index(core)].checkpoint(), tmp_path, name))
     assert b[1].snapshot() == a[1].snapshot() and b[1].snapshot()["end_nodes"] > 0
     assert a[2].snapshot()["looked_into"] > 0
-    for part in ("blacklist", "failures", "blocked", "examined", "looked_into", "plan_id",
-                 "replans"):
+    assert a[2].snapshot()["surfaces"] > 0
+    for part in ("blacklist", "failures", "blocked", "examined", "looked_into", "surfaces",
+                 "plan_id", "replans"):
         assert b[2].snapshot()[part] == a[2].snapshot()[part], part
     for part in ("counts", "approaches", "log"):
         assert b[2].snapshot()["watchdog"][part] == a[2].snapshot()["watchdog"][part], part

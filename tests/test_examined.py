@@ -10,7 +10,7 @@ import pytest
 
 from topoexplore.common.domain import GridMap
 from topoexplore.common.grid import FREE, OCCUPIED, UNKNOWN, GridGeometry, Occupancy
-from topoexplore.services.planner.examined import Examined
+from topoexplore.services.planner.examined import Examined, Surfaces
 from topoexplore.services.planner.mapview import MapView
 
 RES = 0.1  # [m]
@@ -134,3 +134,87 @@ def test_near_frontier_groups_join_the_end_nodes_with_their_own_path_checks():
     on_node = _joined(ev, near, on_frontier=False)
     assert [c.id for c in on_node.cands] == [3, -1] and on_node.path_ok is topo_ok
     assert _joined(ev, near, on_frontier=True).path_ok is frontier_ok
+
+
+# --- surfaces: cells the map showed occupied, no frontier when cleared later ----------------
+
+
+def wall_whole(origin=(0.0, 0.0)) -> tuple[np.ndarray, GridGeometry]:
+    """wall_room's map before the grazing beams: the face row all occupied."""
+    cls, geom = wall_room(origin)
+    cls[10] = OCCUPIED
+    return cls, geom
+
+
+def test_a_face_cell_shown_occupied_on_three_updates_is_a_surface_when_cleared_later():
+    whole, geom = wall_whole()
+    cleared, _ = wall_room()
+    s = Surfaces(3)
+    s.observe(whole, geom)
+    s.observe(whole, geom)
+    m = s.mask(geom)
+    assert m is not None and not m.any()  # two views: not yet
+    s.observe(whole, geom)
+    s.observe(cleared, geom)  # the grazing beams cleared two face cells: still surfaces
+    m = s.mask(geom)
+    assert m[10, 20] and m[10, 21] and m.sum() == 80
+    assert s.snapshot() == {"surfaces": 80}
+    grid = GridMap(np.where(cleared == FREE, 0, np.where(cleared == OCCUPIED, 100, -1))
+                   .astype(np.int8), geom)
+    view = MapView(grid, Occupancy(), (), s.mask)  # a view of the observed part
+    face = view.geom.world_to_cell(np.array([2.05, 2.15]), np.array([1.05, 1.05]))
+    assert not view.frontier_free[face].any() and view.free[face].all()
+
+
+def test_a_door_never_hit_stays_a_frontier():
+    """A door in the wall (cols 20-27) that no beam ever ended in: no surface."""
+    cls, geom = wall_whole()
+    cls[10, 20:28] = FREE
+    s = Surfaces(1)
+    for _ in range(5):
+        s.observe(cls, geom)
+    grid = GridMap(np.where(cls == FREE, 0, np.where(cls == OCCUPIED, 100, -1))
+                   .astype(np.int8), geom)
+    view = MapView(grid, Occupancy(), (), s.mask)
+    door = view.geom.world_to_cell(np.arange(20, 28) * RES + 0.05, np.full(8, 1.05))
+    assert view.frontier_free[door].all()
+
+
+def test_surfaces_keep_their_place_when_the_map_grows_and_moves():
+    cls, geom = wall_whole()
+    s = Surfaces(1)
+    s.observe(cls, geom)
+    grown = GridGeometry(RES, -1.0, -0.5, 100, 90)  # 10 more columns left, 5 rows below
+    big = np.full((90, 100), FREE, dtype=np.int8)
+    big[5:85, 10:90] = cls
+    big[40, 95] = OCCUPIED  # a new hit beyond the old map: the memory grows
+    s.observe(big, grown)
+    m = s.mask(grown)
+    assert m[15, 10:90].all() and m[40, 95] and m.sum() == 81
+    small = GridGeometry(RES, 1.0, 0.5, 20, 20)  # a window inside: cols 10-29 rows 5-24
+    assert s.mask(small)[5].all() and s.mask(small).sum() == 20
+
+
+def test_surfaces_checkpoint_round_trip_and_bad_arrays():
+    from topoexplore.common.checkpoint import CheckpointError
+
+    cls, geom = wall_whole((-3.0, 2.0))
+    s = Surfaces(2)
+    s.observe(cls, geom)
+    arrays = s.checkpoint()
+    again = Surfaces(2)
+    again.restore(arrays)
+    assert again.mask(geom).sum() == 0
+    again.observe(cls, geom)
+    assert again.mask(geom).sum() == 80
+    with pytest.raises(CheckpointError):
+        again.restore({**arrays, "surfaces_count": np.full((2, 2), -1, np.int64)})
+    with pytest.raises(CheckpointError):
+        again.restore({**arrays, "surfaces_origin": np.zeros(3, np.int64)})
+
+
+def test_surfaces_off():
+    cls, geom = wall_whole()
+    s = Surfaces(0)
+    s.observe(cls, geom)
+    assert not s.enabled and s.mask(geom) is None

@@ -441,6 +441,41 @@ def test_frontier_start_cell_unknown_and_done_when_no_frontier():
     assert out.state == "exploring" and "waiting for map" in out.status.reason
 
 
+@pytest.mark.parametrize("strategy", ["frontier", "reliability"])
+def test_a_wall_face_cleared_by_grazing_beams_is_no_frontier(strategy):
+    """A room mapped whole, then 1.5 m of its right wall cleared (grazing beams from afar, the
+    wall's inside never seen): with the surface memory (on by default) the robot that saw the
+    wall occupied on surface_views updates is done; without it the cleared face is a
+    frontier to drive to."""
+    geom = GridGeometry(0.1, 0.0, 0.0, 60, 60)
+    whole = np.zeros((60, 60), dtype=np.int8)
+    whole[0, :] = whole[-1, :] = whole[:, 0] = whole[:, -1] = 100
+    cleared = whole.copy()
+    cleared[20:35, -1] = 0
+    pose = (1.05, 3.05, 0.0)
+    loop = topo([node(0, "branch", 1, 3), node(1, "branch", 4, 3)],  # no end node: the
+                [edge(0, 1, [(1, 3), (4, 3)]), edge(0, 1, [(1, 3), (2.5, 4), (4, 3)])])
+    #   reliability strategy goes on with its completion rules
+
+    def update(core, t, g):
+        return core.update(t, pose, loop, rel({}), grid(g, geom))
+
+    kw = {"strategy": strategy, "stop_when_mapped": True}
+    for views, state in ((PlannerParams().surface_views, "done"), (0, "exploring")):
+        assert views > 0 or state == "exploring"
+        core = PlannerCore(params(surface_views=views, **kw))
+        for t in range(max(views, 1)):
+            update(core, 0.4 * t, whole)
+        out = update(core, 2.0, cleared)
+        assert out.state == state, out.status.reason
+        if state == "exploring":
+            assert out.route.target_xy[0] > 5.5  # to the cleared face
+    core = PlannerCore(params(surface_views=3, **kw))  # seen occupied twice: not yet a surface
+    for t in range(2):
+        update(core, 0.4 * t, whole)
+    assert update(core, 2.0, cleared).state == "exploring"
+
+
 def test_frontier_drops_small_groups_and_blacklists_a_stuck_goal():
     g, geom = half_known_room()
     g[1:59, 29] = 100  # wall the right side off ...

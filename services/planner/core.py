@@ -49,13 +49,13 @@ from topoexplore.common.domain import (
     Route,
     Status,
 )
-from topoexplore.common.grid import Occupancy
+from topoexplore.common.grid import GridGeometry, Occupancy
 from topoexplore.common.params import PlannerParams, ReliabilityParams, RobotParams
 from topoexplore.services.planner import graph as gr
 from topoexplore.services.planner import strategies
 from topoexplore.services.planner.blockage import RELEASE_LIMIT, WAY_BACK, Blockages
 from topoexplore.services.planner.decision import Action, Blacklist, Decision, Target
-from topoexplore.services.planner.examined import Examined
+from topoexplore.services.planner.examined import Examined, Surfaces
 from topoexplore.services.planner.mapview import MapView
 from topoexplore.services.planner.strategies.base import (
     Candidate,
@@ -115,6 +115,7 @@ class PlannerCore:
         self._looked = Examined(params.completion_openings, params.examine_bearing,
                                 params.examine_angle, 1, name="looked")  # frontier cells
         #   looked into squarely from close: no opening for the completion rules
+        self._surfaces = Surfaces(params.surface_views)
         self._last_t: float | None = None
         self._last_eval_t = -math.inf
         self._had_path = False
@@ -143,9 +144,10 @@ class PlannerCore:
         self._blockages.observe(t, x, y, th, tg is not None and tg.arrived_t is None)
         self._view = None if grid is None else MapView(grid, self.occ,
                                                         self._blockages.active(t),
-                                                        self._examined.mask,
+                                                        self._closed,
                                                         self._looked.mask)
         if self._view is not None:
+            self._surfaces.observe(self._view.classes, self._view.geom)
             self._examined.observe(x, y, th, self._view.classes, self._view.geom)
             self._looked.observe(x, y, th, self._view.classes, self._view.geom)
         rem = None if tg is None else tg.remaining(x, y)  # [m] the robot located on its
@@ -218,6 +220,7 @@ class PlannerCore:
         from the next update."""
         return {**self._blacklist.checkpoint(), **self._blockages.checkpoint(),
                 **self._examined.checkpoint(), **self._looked.checkpoint(),
+                **self._surfaces.checkpoint(),
                 **self._watchdog.checkpoint(),
                 "planner_counts": np.array([self._plan_id, self._replans, self._updates],
                                            np.int64)}
@@ -231,6 +234,7 @@ class PlannerCore:
         self._blockages.restore(arrays)
         self._examined.restore(arrays)
         self._looked.restore(arrays)
+        self._surfaces.restore(arrays)
         self._watchdog.restore(arrays)
         self._plan_id, self._replans, self._updates = (int(v) for v in counts)
 
@@ -260,6 +264,7 @@ class PlannerCore:
             "blocked": self._blockages.snapshot(),
             "examined": self._examined.snapshot(),
             "looked_into": self._looked.snapshot()["examined"],
+            **self._surfaces.snapshot(),
             "candidates": st.candidates if st else 0,
             "end_nodes": st.end_nodes if st else 0,
             "reliable": st.reliable if st else 0,
@@ -326,6 +331,12 @@ class PlannerCore:
                               else self._target.chosen_t, why, c.partial,
                               planned_clearance=self._clearance(wps))
         self._plan_id += 1
+
+    def _closed(self, geom: GridGeometry) -> np.ndarray | None:
+        """The cells of geom that are no frontier cells whatever their neighbours: examined
+        (:class:`.examined.Examined`) or surfaces (:class:`.examined.Surfaces`); None: none."""
+        a, b = self._examined.mask(geom), self._surfaces.mask(geom)
+        return b if a is None else a if b is None else a | b
 
     def _clearance(self, wps: np.ndarray) -> np.ndarray | None:
         """Clearance [m] of the waypoints on this update's map (None: no map)."""
