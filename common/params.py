@@ -302,6 +302,8 @@ class ReliabilityParams(_P):
     pocket_area: NonNeg = 0.5  # [m^2] enclosed unknown pockets smaller than this are no
     # frontier; 0 disables
     bearing_bin: Pos = math.radians(0.5)  # [rad] bearings stored one per bin (eq. 3)
+    surface_views: NonNegInt = 0  # the frontier tests skip cells the map showed occupied on
+    # this many updates (planner.surface_views for the index; common/surfaces.py); 0: off
 
     def __post_init__(self) -> None:
         _need(self.r_near < self.r_far, "need r_near < r_far")

@@ -10,7 +10,8 @@ import pytest
 
 from topoexplore.common.domain import GridMap
 from topoexplore.common.grid import FREE, OCCUPIED, UNKNOWN, GridGeometry, Occupancy
-from topoexplore.services.planner.examined import Examined, Surfaces
+from topoexplore.common.surfaces import Surfaces
+from topoexplore.services.planner.examined import Examined
 from topoexplore.services.planner.mapview import MapView
 
 RES = 0.1  # [m]

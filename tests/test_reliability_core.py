@@ -586,6 +586,31 @@ def test_unknown_behind_a_wall_does_not_hold_a_node_open():
     assert n.d == 1.0 and n.p >= P.p_reliable
 
 
+@pytest.mark.parametrize("views", [0, 3])
+def test_a_wall_face_cleared_by_grazing_beams_holds_a_node_open_only_without_surfaces(views):
+    """The wall 0.3 m beyond the node, seen occupied on three updates, then 0.8 m of its face
+    cleared (grazing beams; its inside never seen): with the surface memory the cleared cells
+    are no frontier and the next observation counts; without it they are a frontier within
+    frontier_radius and it does not."""
+    whole = unknown_beyond(4.4)
+    _, col = GEOM.world_to_cell(4.3, 0.0)  # the face cells' centres 0.35 m from the node
+    row, _ = GEOM.world_to_cell(0.0, 0.0)
+    whole[:, int(col)] = 100
+    cleared = whole.copy()
+    cleared[int(row) - 4:int(row) + 4, int(col)] = 0
+    core = ReliabilityCore(msgspec.structs.replace(P, surface_views=views))
+    for k in range(3):
+        n = upd(core, [(1, 4.0, 0.0)], [], (0.0, 0.6 * (k - 1), 0.0), whole, GEOM)[0]
+    before = n.p
+    n = upd(core, [(1, 4.0, 0.0)], [], (0.0, -1.5, 0.3), cleared, GEOM)[0]
+    assert n.visible and before > P.p_init
+    assert (n.p > before) is (views > 0), (before, n.p)
+    arrays = core.checkpoint()
+    again = ReliabilityCore(msgspec.structs.replace(P, surface_views=views))
+    again.restore(arrays)
+    assert again.snapshot()["nodes"] == core.snapshot()["nodes"]
+
+
 @pytest.mark.parametrize("gap_cells,examined", [(2, True), (4, True), (8, False)])
 def test_a_few_cells_of_frontier_are_speckle_a_door_is_a_frontier(gap_cells, examined):
     """A wall 0.5 m beyond the node with a gap in it: a gap of fewer than min_frontier (0.5 m,

@@ -51,11 +51,12 @@ from topoexplore.common.domain import (
 )
 from topoexplore.common.grid import GridGeometry, Occupancy
 from topoexplore.common.params import PlannerParams, ReliabilityParams, RobotParams
+from topoexplore.common.surfaces import Surfaces
 from topoexplore.services.planner import graph as gr
 from topoexplore.services.planner import strategies
 from topoexplore.services.planner.blockage import RELEASE_LIMIT, WAY_BACK, Blockages
 from topoexplore.services.planner.decision import Action, Blacklist, Decision, Target
-from topoexplore.services.planner.examined import Examined, Surfaces
+from topoexplore.services.planner.examined import Examined
 from topoexplore.services.planner.mapview import MapView
 from topoexplore.services.planner.strategies.base import (
     Candidate,
@@ -334,7 +335,7 @@ class PlannerCore:
 
     def _closed(self, geom: GridGeometry) -> np.ndarray | None:
         """The cells of geom that are no frontier cells whatever their neighbours: examined
-        (:class:`.examined.Examined`) or surfaces (:class:`.examined.Surfaces`); None: none."""
+        (:class:`.examined.Examined`) or surfaces (:class:`common.surfaces.Surfaces`); None: none."""
         a, b = self._examined.mask(geom), self._surfaces.mask(geom)
         return b if a is None else a if b is None else a | b
 

@@ -35,11 +35,13 @@ from topoexplore.common.grid import (
     GridGeometry,
     Occupancy,
     cells_for,
+    classify,
     near_frontier,
     nearest_occupied,
     open_unknown,
 )
 from topoexplore.common.params import LaserParams, ReliabilityParams
+from topoexplore.common.surfaces import Surfaces
 
 __all__ = [
     "ReliabilityError",
@@ -449,6 +451,7 @@ class ReliabilityCore:
         self._updates = 0
         self._resets = 0
         self._dropped = 0
+        self._surfaces = Surfaces(params.surface_views)  # no frontier cells (surface_views)
 
     # -- internals --
 
@@ -497,6 +500,23 @@ class ReliabilityCore:
         return open_unknown(grid, int(pr.pocket_area / geom.resolution ** 2), self.occ.p_free,
                             self.occ.p_occ)
 
+    def _front(self, g: np.ndarray, geom: GridGeometry) -> np.ndarray:
+        """The grid the frontier tests read: g with the surface cells it shows free marked
+        occupied (common/surfaces.py: a wall face that grazing beams cleared is no frontier);
+        g itself when the rule is off or there are none."""
+        if not self._surfaces.enabled:
+            return g
+        self._surfaces.observe(classify(g, self.occ.p_free, self.occ.p_occ), geom)
+        surf = self._surfaces.mask(geom)
+        if surf is None:
+            return g
+        surf &= (g >= 0) & (g < self.occ.p_free * 100.0)
+        if not surf.any():
+            return g
+        front = g.copy()
+        front[surf] = 100
+        return front
+
     def _forget(self, gone, current: dict[int, tuple[float, float]]) -> None:
         """Drop the histories of vanished nodes (listed in gone, or no longer in the graph)."""
         for gid in gone:
@@ -520,9 +540,10 @@ class ReliabilityCore:
         return tr
 
     def _observe(self, tr: _Track, pose: Pose, grid: np.ndarray, geom: GridGeometry,
-                 unknown: np.ndarray | None, owned: bool, heading: float | None = None
-                 ) -> None:
-        """One observation test and, when it counts, the Bayes update (eqs. 1-10)."""
+                 unknown: np.ndarray | None, owned: bool, heading: float | None = None,
+                 front: np.ndarray | None = None) -> None:
+        """One observation test and, when it counts, the Bayes update (eqs. 1-10); grid serves
+        the line of sight, front (default grid) the frontier tests."""
         pr = self.params
         rx, ry, th = pose
         nx, ny = tr.x, tr.y
@@ -539,6 +560,7 @@ class ReliabilityCore:
         if dist > 1e-9:
             self._add_bearing(tr, math.atan2(ny - ry, nx - rx))
         tr.a = angle_index(tr.alpha_max, pr)
+        grid = grid if front is None else front  # from here on: the frontier tests
         bearing = math.atan2(ny - ry, nx - rx)
         cells = max(1, cells_for(pr.min_frontier, geom.resolution))
         if not new_viewpoint(tr.view, rx, ry, bearing, pr) or owned or near_frontier(
@@ -595,17 +617,18 @@ class ReliabilityCore:
         g, geom = grid.data, grid.geom
         nodes = {n.id: (n.x, n.y) for n in graph.end_nodes()}
         unknown = self._unknown(g, geom)
+        front = self._front(g, geom)
         owned: dict[int, int] = {}
         if graph.edges and pr.frontier_group > 0:
             min_cells = max(1, cells_for(pr.frontier_group, geom.resolution))
-            owned = frontier_owned(list(nodes), graph, g, geom, self.occ.p_free, min_cells,
+            owned = frontier_owned(list(nodes), graph, front, geom, self.occ.p_free, min_cells,
                                    self.laser.range_max, unknown)
         heads = leaf_headings(graph) if pr.frontier_ahead > 0.0 else {}
         self._forget(graph.gone, nodes)
         out: list[Belief] = []
         for nid in sorted(nodes):
             tr = self._track(nid, *nodes[nid])
-            self._observe(tr, pose, g, geom, unknown, nid in owned, heads.get(nid))
+            self._observe(tr, pose, g, geom, unknown, nid in owned, heads.get(nid), front)
             out.append(Belief(id=nid, x=tr.x, y=tr.y, p=tr.p, d=tr.d, a=tr.a, r_min=tr.r_min,
                               alpha_max=tr.alpha_max, visible=tr.visible, n_obs=tr.n_obs,
                               visited=tr.visited, frontier=owned.get(nid, 0)))
@@ -639,6 +662,7 @@ class ReliabilityCore:
             "views": views,  # robot x, y, bearing last counted; inf: none
             "places": np.array(self._places, np.float64).reshape(len(self._places), 3),
             "counters": np.array([self._updates, self._resets, self._dropped], np.int64),
+            **self._surfaces.checkpoint(),
         }
 
     def restore(self, arrays: dict[str, np.ndarray]) -> None:
@@ -672,6 +696,7 @@ class ReliabilityCore:
                 setattr(tr, a, bool(v))
             tr.view = tuple(float(v) for v in views[k]) if np.isfinite(views[k]).all() else None
             tracks[int(ids[k])] = tr
+        self._surfaces.restore(arrays)  # may refuse: before anything is replaced
         self._tracks = tracks
         self._places = [tuple(float(v) for v in row) for row in places]
         self._updates, self._resets, self._dropped = (int(v) for v in counters)
