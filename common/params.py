@@ -92,7 +92,8 @@ VARIANTS: dict[str, tuple[str, tuple[str, ...]]] = {
         "reliability.view_distance=0", "reliability.frontier_radius=0",
         "reliability.frontier_group=0", "reliability.examined_radius=0",
         "reliability.recall_radius=0", "planner.frontier_completion=false",
-        "planner.stop_when_mapped=false", "planner.grid_paths=false")),
+        "planner.stop_when_mapped=false", "planner.grid_paths=false",
+        "planner.surface_views=0", "reliability.surface_views=0")),
 }
 STRATEGY_NAMES: tuple[str, ...] = STRATEGIES + tuple(VARIANTS)  # what --strategy accepts
 

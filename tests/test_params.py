@@ -128,6 +128,7 @@ def test_strategy_variants_are_strategies_with_parameters():
     assert (r.view_distance, r.frontier_radius, r.frontier_group, r.examined_radius,
             r.recall_radius) == (0.0, 0.0, 0.0, 0.0, 0.0)
     assert not p.planner.frontier_completion and not p.planner.stop_when_mapped
+    assert p.planner.surface_views == r.surface_views == 0  # the paper's map, as it is
     # the user's own overrides come after, and win
     p = load_params(None, [*strategy_overrides("reliability-paper"),
                            "reliability.view_distance=0.1"])
