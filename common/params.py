@@ -394,7 +394,7 @@ class PlannerParams(_P):
     examine_views: PosInt = 3  # ... on this many updates
     surface_views: NonNegInt = 3  # a cell the map showed occupied on this many updates is a
     # surface: no frontier cell when free later (a wall face cleared by grazing beams; see
-    # services/planner/examined.py, docs/design.md "Surfaces"); 0: off
+    # common/surfaces.py, docs/design.md "Surfaces"); 0: off
 
 
 class ControllerParams(_P):

@@ -48,21 +48,21 @@ class Surfaces:
         x, y = geom.cell_to_world(np.array([0]), np.array([0]))
         return (int(np.floor(y[0] / geom.resolution)), int(np.floor(x[0] / geom.resolution)))
 
-    def _window(self, geom: GridGeometry, grow: bool) -> tuple[slice, slice] | None:
-        """The slices of the memory that geom covers (grown to cover it with grow; None
-        without, when geom reaches outside it)."""
+    def _window(self, geom: GridGeometry) -> tuple[slice, slice] | None:
+        """The slices of the memory that geom covers, grown to cover it; None when that would
+        pass MAX_SURFACE_CELLS (the cells beyond are then not remembered: the rule is off
+        there, the service goes on)."""
         r0, c0 = self._offset(geom)
         h, w = geom.height, geom.width
         mh, mw = self._count.shape
-        lo_r, lo_c = min(r0, self._row0) if mh else r0, min(c0, self._col0) if mw else c0
-        hi_r = max(r0 + h, self._row0 + mh) if mh else r0 + h
-        hi_c = max(c0 + w, self._col0 + mw) if mw else c0 + w
-        if (lo_r, lo_c, hi_r, hi_c) != (self._row0, self._col0, self._row0 + mh,
-                                         self._col0 + mw):
-            if not grow:
-                return None
+        if mh == 0:
+            lo_r, lo_c, hi_r, hi_c = r0, c0, r0 + h, c0 + w
+        else:
+            lo_r, lo_c = min(r0, self._row0), min(c0, self._col0)
+            hi_r, hi_c = max(r0 + h, self._row0 + mh), max(c0 + w, self._col0 + mw)
+        if (lo_r, lo_c, hi_r - lo_r, hi_c - lo_c) != (self._row0, self._col0, mh, mw):
             if (hi_r - lo_r) * (hi_c - lo_c) > MAX_SURFACE_CELLS:
-                raise ValueError("planner: the surface memory would exceed its bound")
+                return None
             big = np.zeros((hi_r - lo_r, hi_c - lo_c), dtype=np.uint8)
             big[self._row0 - lo_r:self._row0 - lo_r + mh,
                 self._col0 - lo_c:self._col0 - lo_c + mw] = self._count
@@ -77,8 +77,10 @@ class Surfaces:
         occ = classes == OCCUPIED
         if not occ.any():
             return
-        rows, cols = self._window(geom, True)
-        view = self._count[rows, cols]
+        win = self._window(geom)
+        if win is None:
+            return
+        view = self._count[win]
         view[occ & (view < self.views)] += 1
 
     def mask(self, geom: GridGeometry) -> np.ndarray | None:
@@ -106,7 +108,7 @@ class Surfaces:
         if (count.size > MAX_SURFACE_CELLS or np.abs(origin).max() > 2 ** 40
                 or (count.shape[0] == 0) != (count.shape[1] == 0)
                 or (count.size and (count.min() < 0 or count.max() > 255))):
-            raise CheckpointError("planner checkpoint: surface memory out of range")
+            raise CheckpointError("checkpoint: surface memory out of range")
         self._count = count.astype(np.uint8)
         self._row0, self._col0 = int(origin[0]), int(origin[1])
 

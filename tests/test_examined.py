@@ -219,3 +219,17 @@ def test_surfaces_off():
     s = Surfaces(0)
     s.observe(cls, geom)
     assert not s.enabled and s.mask(geom) is None
+
+
+def test_the_surface_memory_stops_growing_at_its_bound(monkeypatch):
+    """A map beyond MAX_SURFACE_CELLS (a pose far off): its cells are not remembered, and the
+    service goes on with what it had."""
+    import topoexplore.common.surfaces as surfaces
+
+    cls, geom = wall_whole()
+    s = Surfaces(1)
+    s.observe(cls, geom)
+    monkeypatch.setattr(surfaces, "MAX_SURFACE_CELLS", 100 * 100)
+    far = GridGeometry(RES, 50.0, 50.0, 80, 80)  # the union would be 580 x 580 cells
+    s.observe(cls, far)
+    assert s.mask(far).sum() == 0 and s.mask(geom).sum() == 80

@@ -335,7 +335,8 @@ class PlannerCore:
 
     def _closed(self, geom: GridGeometry) -> np.ndarray | None:
         """The cells of geom that are no frontier cells whatever their neighbours: examined
-        (:class:`.examined.Examined`) or surfaces (:class:`common.surfaces.Surfaces`); None: none."""
+        (:class:`.examined.Examined`) or surfaces (:class:`common.surfaces.Surfaces`); None:
+        none."""
         a, b = self._examined.mask(geom), self._surfaces.mask(geom)
         return b if a is None else a if b is None else a | b
 

@@ -7,13 +7,14 @@ lies inside a cell (a wall 0.15 m thick on a 0.1 m grid, a shelf's side, a ragge
 beams that graze the face mark that cell free, beams that meet the face end in that very cell,
 and no beam ever reaches the cell behind it: the pair "free cell, unknown neighbour" never
 resolves, however long the robot looks. A frontier search that counts such a pair chases a
-row of them along every wall. Those cells flip: the robot passing close marks them occupied,
-grazing beams from afar clear them again. :class:`common.surfaces.Surfaces` remembers them (docs/design.md
-"Surfaces"); :class:`Examined`, off by default (``planner.examine_range`` 0), judges the ones
-that never flip (docs/design.md "Experimental, off by default" says what was measured).
+row of them along every wall. Those cells flip: the robot passing close marks them
+occupied, grazing beams from afar clear them again. :class:`common.surfaces.Surfaces`
+remembers them (docs/design.md "Surfaces"); :class:`Examined`, off by default
+(``planner.examine_range`` 0), judges the ones that never flip (docs/design.md
+"Experimental, off by default" says what was measured).
 
-The examined rule: a frontier cell counts as examined once the robot has looked at it squarely from
-close by ``views`` times, and examined cells are no frontier:
+The examined rule: a frontier cell counts as examined once the robot has looked at it
+squarely from close by ``views`` times, and examined cells are no frontier:
 
 - close: the cell centre is within ``reach`` [m] of the robot (at 1 deg between beams, beams
   pass at most 3.5 cm apart at 2 m, so beams cross every cell of 0.1 m there);
