@@ -65,3 +65,25 @@ def test_the_report_waits_for_the_sim_status_and_map_of_the_ending_scan():
         for t in late:
             t.join()
     assert mon.sim_by_seq[204].sim_time == 0.2 * 204 and mon.grid.header.src_seq == 204
+
+
+def test_a_later_scans_map_that_came_before_the_ending_status_is_not_the_reports():
+    """The map of the next map scan can overtake the planner's status that ended the run
+    (other processes, other hops): same seed, coverage 0.9978 and 0.9979 on the bus. The
+    report takes the ending scan's map."""
+    mon = Monitor()
+    for k in (200, 202, 204):
+        mon.on_map(grid(k))
+    mon.on_map(grid(206))  # the next one, before the status of 204 came
+    mon.on_status(status(204, "done"))
+    assert mon.settle(204, timeout=0.05) is False  # (no sim status of 204 here)
+    mon.on_sim(sim_status(204))
+    assert mon.settle(204, timeout=0.05)  # its own map came, and its sim status
+    with mon.lock:
+        assert mon.ending_grid(204).header.src_seq == 204
+        assert mon.ending_grid(205).header.src_seq == 204  # not a map scan: the one before
+        assert mon.ending_grid(100).header.src_seq == 206  # none kept: the latest
+    fresh = Monitor()
+    for k in range(0, 40, 2):
+        fresh.on_map(grid(k))
+    assert sorted(fresh.grid_by_seq) == [32, 34, 36, 38]  # GRIDS_KEPT, the latest

@@ -53,6 +53,7 @@ from topoexplore.tools.launch.supervisor import free_port, port_open
 
 # [s] how long the report waits for the sim status and map of the scan that ended a run
 END_WAIT = 2.0
+GRIDS_KEPT = 4  # maps the monitor keeps by scan (ending_grid)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -92,6 +93,9 @@ class Monitor:
     sim: m.SimStatus | None = None
     sim_by_seq: dict[int, m.SimStatus] = field(default_factory=dict)
     grid: m.OccupancyGrid | None = None
+    # the last few maps by the scan they describe: a map of a later scan can arrive before the
+    # status that ended the run, and the report must describe exactly the ending scan's map
+    grid_by_seq: dict[int, m.OccupancyGrid] = field(default_factory=dict)
     topo: m.TopoGraph | None = None
     rel: m.Reliability | None = None
     plan: m.Path | None = None
@@ -138,6 +142,12 @@ class Monitor:
                 for k in sorted(self.sim_by_seq)[:-100]:
                     del self.sim_by_seq[k]
 
+    def ending_grid(self, seq: int) -> m.OccupancyGrid | None:
+        """The map of scan ``seq``, else the latest of an earlier scan, else the latest (call
+        with the lock held)."""
+        done = [k for k in self.grid_by_seq if k <= seq]
+        return self.grid_by_seq[max(done)] if done else self.grid
+
     def settle(self, seq: int, timeout: float) -> bool:
         """Wait up to ``timeout`` [s] until the sim status and the map of scan ``seq`` (the
         one whose status ended the run) are here. They come from other processes than that
@@ -146,8 +156,7 @@ class Monitor:
         deadline = time.monotonic() + timeout
         while True:
             with self.lock:
-                grid_seq = self.grid.header.src_seq if self.grid is not None else -1
-                if seq in self.sim_by_seq and grid_seq >= seq:
+                if seq in self.sim_by_seq and seq in self.grid_by_seq:
                     return True
             if time.monotonic() >= deadline:
                 return False
@@ -220,6 +229,9 @@ class Monitor:
             if self._late(msg):
                 return
             self.grid = msg
+            self.grid_by_seq[msg.header.src_seq] = msg
+            for k in sorted(self.grid_by_seq)[:-GRIDS_KEPT]:
+                del self.grid_by_seq[k]
             sim = self.sim
             last = self.timeline[-1] if self.timeline else None
         if self.coverage_fn is None or sim is None:
@@ -861,6 +873,8 @@ class StackRun:
             out.sim = mon.sim
             if out.finished and st is not None and st.header.src_seq in mon.sim_by_seq:
                 out.sim = mon.sim_by_seq[st.header.src_seq]
+            if out.finished and mon.end_seq is not None:
+                mon.grid = mon.ending_grid(mon.end_seq)
         out.restarts = self.sup.restarts
         out.warmup = self.sup.warm_s
         out.memory = self.sup.memory() or None
