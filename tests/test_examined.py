@@ -233,3 +233,21 @@ def test_the_surface_memory_stops_growing_at_its_bound(monkeypatch):
     far = GridGeometry(RES, 50.0, 50.0, 80, 80)  # the union would be 580 x 580 cells
     s.observe(cls, far)
     assert s.mask(far).sum() == 0 and s.mask(geom).sum() == 80
+
+
+def test_learned_blockages_are_not_surfaces():
+    """The planner counts the map's own classes: a blockage disc it learned (a belief it may
+    drop) is occupied for its paths, never a surface."""
+    from topoexplore.common.params import PlannerParams
+    from topoexplore.services.planner.core import PlannerCore
+
+    cls, geom = wall_whole()
+    data = np.where(cls == FREE, 0, np.where(cls == OCCUPIED, 100, -1)).astype(np.int8)
+    view = MapView(GridMap(data, geom), Occupancy(), [(4.0, 5.0, 0.3)])
+    at = view.geom.world_to_cell(np.array([4.0]), np.array([5.0]))
+    assert view.classes[at] == OCCUPIED and view.map_classes[at] == FREE
+    core = PlannerCore(PlannerParams(strategy="frontier", surface_views=1))
+    core._blockages.active = lambda t: [(4.0, 5.0, 0.3)]  # a blockage held on every update
+    core.update(0.0, (2.05, 2.05, 0.0), None, None, GridMap(data, geom))
+    mask = core._surfaces.mask(geom)
+    assert mask[10].all() and mask.sum() == 80  # the wall, not the disc

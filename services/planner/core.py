@@ -148,7 +148,7 @@ class PlannerCore:
                                                         self._closed,
                                                         self._looked.mask)
         if self._view is not None:
-            self._surfaces.observe(self._view.classes, self._view.geom)
+            self._surfaces.observe(self._view.map_classes, self._view.geom)
             self._examined.observe(x, y, th, self._view.classes, self._view.geom)
             self._looked.observe(x, y, th, self._view.classes, self._view.geom)
         rem = None if tg is None else tg.remaining(x, y)  # [m] the robot located on its

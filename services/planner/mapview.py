@@ -92,10 +92,19 @@ class MapView:
         return self._crop[1]
 
     @_once
+    def map_classes(self) -> np.ndarray:
+        """UNKNOWN / FREE / OCCUPIED per cell of the map alone (:func:`common.grid.classify`):
+        what the surface memory counts (a learned blockage is a belief that can be dropped,
+        not something the beams hit)."""
+        return classify(self.data, self.occ.p_free, self.occ.p_occ)
+
+    @_once
     def classes(self) -> np.ndarray:
-        """UNKNOWN / FREE / OCCUPIED per cell (:func:`common.grid.classify`); the learned
-        obstacles (``blocked`` discs, :mod:`.blockage`) are OCCUPIED."""
-        cls = classify(self.data, self.occ.p_free, self.occ.p_occ)
+        """:attr:`map_classes` with the learned obstacles (``blocked`` discs,
+        :mod:`.blockage`) OCCUPIED."""
+        if not self.blocked:
+            return self.map_classes
+        cls = self.map_classes.copy()
         geom = self.geom
         for bx, by, br in self.blocked:  # each disc on its own bounding box of cells
             (r0, r1), (c0, c1) = (geom.world_to_cell(np.array([bx - br, bx + br]),
