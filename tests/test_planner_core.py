@@ -906,6 +906,33 @@ def test_an_opening_widens_behind_a_channel_does_not(flanks, door):
     assert (opening_mouth(view, fit, gap_group(view, 28, 35)[1]) is not None) == door
 
 
+@pytest.mark.parametrize("strategy", ["reliability", "all-end-nodes"])
+def test_a_frontier_group_near_the_robot_is_picked_up_before_a_farther_end_node(strategy):
+    """pickup_radius: while end nodes are left, a frontier group the completion rules count
+    within that path length of the robot is a candidate beside them (cost: path length), so
+    the robot does not leave it for a trip back at the end; farther, or with the rule off,
+    the end node is the target."""
+    g, geom = half_known_room()  # the frontier: column 29, x = 2.95 m
+    open_1 = {1: 0.5, 2: 0.95}  # end node 1 at (0.6, 3.05) open, 1.9 m from the robot
+
+    def first(pickup: float, x: float = 2.5):
+        core = PlannerCore(params(strategy=strategy, pickup_radius=pickup))
+        if strategy == "all-end-nodes":  # node 2 visited (the robot stands on it)
+            core.update(0.0, (2.5, 3.05, 0.0), known_left_half_topo(), rel(open_1),
+                        grid(g, geom))
+        return core.update(0.2, (x, 3.05, 0.0), known_left_half_topo(), rel(open_1),
+                           grid(g, geom))
+
+    out = first(3.0)
+    assert out.state == "exploring" and out.route.target_id == -1, out.status.reason
+    assert "near the robot" in out.status.reason
+    assert out.route.target_xy[0] == pytest.approx(2.95)
+    out = first(0.0)
+    assert out.route.target_id == 1, out.status.reason
+    out = first(0.3)  # the group is 0.45 m away by path: beyond this radius
+    assert out.route.target_id == 1, out.status.reason
+
+
 def test_stop_when_mapped_ends_with_open_end_nodes_once_no_frontier_is_left():
     g, geom = corridor_grid()  # all known: no frontier anywhere
     tp = topo([node(1, "end", 0.5, 0.5), node(2, "end", 5.5, 0.5)],
