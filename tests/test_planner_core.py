@@ -58,12 +58,15 @@ def grid(g, geom):
 
 
 def params(**kw):
-    """Planner params; done is reported at once (done_confirm=1) and the reliability strategy
+    """Planner params of the reliability strategy unless a test says otherwise (these tests
+    are mostly about the topological strategies; the default is frontier); done is reported
+    at once (done_confirm=1) and the reliability strategy
     does not stop on a complete map (stop_when_mapped: the hand-made grids here are complete
     maps) unless a test says otherwise; paths run along the skeleton (grid_paths off: these
     tests are about the topological path itself, which grid_paths keeps where the grid
     search does not reach, and which the paper's variant drives)."""
-    return msgspec.structs.replace(PlannerParams(), **{"done_confirm": 1,
+    return msgspec.structs.replace(PlannerParams(), **{"strategy": "reliability",
+                                                       "done_confirm": 1,
                                                        "stop_when_mapped": False,
                                                        "grid_paths": False, **kw})
 
@@ -1096,5 +1099,6 @@ def test_the_planner_keeps_no_chain_of_old_map_views():
         if len(updates) % 5 == 0:
             alive.append(sum(isinstance(o, MapView) for o in gc.get_objects()))
 
+    gc.collect()  # earlier tests' garbage cycles (cores, their closures) are not this run's
     inproc.run("office", strategy="reliability", max_sim_time=120.0, on_update=count)
     assert len(updates) > 200 and max(alive[20:]) <= 5, max(alive)
