@@ -312,7 +312,8 @@ class ReliabilityParams(_P):
 
 
 class PlannerParams(_P):
-    strategy: Strategy = "reliability"
+    strategy: Strategy = "frontier"  # the shorter on the held-back half of the generated
+    # corpus (issue 15's rule, docs/design.md "Planner"); "reliability" is the paper's method
     clearance_margin: NonNeg = 0.1  # [m] edges need clearance >= robot.radius + margin
     visit_radius: Pos = 0.5  # [m] all-end-nodes: visited when this close
     goal_tolerance: Pos = 0.3  # [m]

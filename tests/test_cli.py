@@ -152,9 +152,9 @@ def test_run_takes_a_strategy_variant_and_the_user_overrides_win():
     assert params.reliability.examined_radius == 0.0 and params.reliability.view_distance == 0.1
 
 
-def test_run_takes_world_seed_and_speed_from_the_params_file(tmp_path):
-    """[sim] world/seed/speed of --params count unless the command line names them (they
-    used to be overridden silently by the command line's defaults)."""
+def test_run_takes_world_seed_speed_and_strategy_from_the_params_file(tmp_path):
+    """[sim] world/seed/speed and [planner] strategy of --params count unless the command
+    line names them (they used to be overridden silently by the command line's defaults)."""
     import argparse
 
     from topoexplore.tools import run as runner
@@ -162,17 +162,23 @@ def test_run_takes_world_seed_and_speed_from_the_params_file(tmp_path):
     ap = argparse.ArgumentParser()
     runner.add_arguments(ap)
     f = tmp_path / "p.toml"
-    f.write_text('[sim]\nworld = "junction"\nseed = 3\nspeed = 2.0\n')
+    f.write_text('[sim]\nworld = "junction"\nseed = 3\nspeed = 2.0\n'
+                 '[planner]\nstrategy = "all-end-nodes"\n')
     args = ap.parse_args(["--params", str(f)])
     runner._fill_from_params(args)
     assert (args.world, args.seed, args.speed) == ("junction", 3, 2.0)
+    assert args.strategy == "all-end-nodes"
     assert 'sim.world="junction"' in runner.run_overrides(args)
-    args = ap.parse_args(["--params", str(f), "--world", "maze", "--seed", "1"])
+    assert 'planner.strategy="all-end-nodes"' in runner.run_overrides(args)
+    args = ap.parse_args(["--params", str(f), "--world", "maze", "--seed", "1",
+                          "--strategy", "reliability-paper"])
     runner._fill_from_params(args)
     assert (args.world, args.seed, args.speed) == ("maze", 1, 2.0)
+    assert args.strategy == "reliability-paper"
     args = ap.parse_args([])
     runner._fill_from_params(args)
     assert (args.world, args.seed, args.speed) == ("paper-room", 0, 1.0)
+    assert args.strategy == "frontier"  # the default (docs/robustness.md)
 
 
 def test_bench_codec_prints_every_message():

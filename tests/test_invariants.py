@@ -45,7 +45,10 @@ ROBOT = RobotParams()
 
 
 def params(**kw) -> PlannerParams:
-    return msgspec.structs.replace(PlannerParams(), **{"done_confirm": 1, **kw})
+    """Planner params, the reliability strategy unless a test says otherwise; done is
+    reported at once (done_confirm=1)."""
+    return msgspec.structs.replace(PlannerParams(), **{"strategy": "reliability",
+                                                       "done_confirm": 1, **kw})
 
 
 def rel(pmap):

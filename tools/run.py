@@ -60,7 +60,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--world", default=None,
                    help="built-in world name or world file (default: [sim] world of --params, "
                    "else paper-room)")
-    p.add_argument("--strategy", default="reliability", choices=STRATEGY_NAMES)
+    p.add_argument("--strategy", default=None, choices=STRATEGY_NAMES,
+                   help="default: [planner] strategy of --params, else frontier (the shorter "
+                   "on buildings never tuned on: docs/robustness.md); reliability is the "
+                   "paper's method")
     p.add_argument("--lockstep", action="store_true",
                    help="deterministic lockstep simulation (faster than real time)")
     p.add_argument("--speed", type=float, default=None,
@@ -595,9 +598,10 @@ def check_input(args: argparse.Namespace) -> Setup:
 
 
 def _fill_from_params(args: argparse.Namespace) -> None:
-    """--world, --seed and --speed not given: the --params file's [sim] values (they used to
-    be overridden by the command line's defaults without a word), else the defaults."""
-    if None not in (args.world, args.seed, args.speed):
+    """--world, --seed, --speed and --strategy not given: the --params file's [sim] and
+    [planner] values (they used to be overridden by the command line's defaults without a
+    word), else the defaults."""
+    if None not in (args.world, args.seed, args.speed, args.strategy):
         return
     try:
         base = load_params(getattr(args, "params", None), [])
@@ -609,6 +613,8 @@ def _fill_from_params(args: argparse.Namespace) -> None:
         args.seed = base.sim.seed
     if args.speed is None:
         args.speed = base.sim.speed
+    if args.strategy is None:
+        args.strategy = base.planner.strategy
 
 
 def run_overrides(args: argparse.Namespace) -> list[str]:
