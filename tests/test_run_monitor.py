@@ -87,3 +87,39 @@ def test_a_later_scans_map_that_came_before_the_ending_status_is_not_the_reports
     for k in range(0, 40, 2):
         fresh.on_map(grid(k))
     assert sorted(fresh.grid_by_seq) == [32, 34, 36, 38]  # GRIDS_KEPT, the latest
+
+
+def topo_msg(src: int) -> m.TopoGraph:
+    return m.TopoGraph(header=m.header(src, 0.2 * src, "map", src), nodes=[], edges=[])
+
+
+def rel_msg(src: int, ids: list[int], visited: list[int]) -> m.Reliability:
+    nodes = [m.NodeReliability(id=i, x=0.0, y=0.0, p=0.5, d=0.5, a=0.0, r_min=1.0,
+                               alpha_max=0.0, visible=False, visited=i in visited)
+             for i in ids]
+    return m.Reliability(header=m.header(src, 0.2 * src, "map", src), nodes=nodes)
+
+
+def test_a_later_scans_topology_and_reliability_are_not_the_reports():
+    """As the map: the topology and reliability messages of the next scan can overtake the
+    status that ended the run; the report (topology.json, the picture, end nodes seen and
+    visited) takes the ending scan's, and forgets the ids only the later one added."""
+    mon = Monitor()
+    for k in (200, 202, 204):
+        mon.on_map(grid(k))
+        mon.on_topo(topo_msg(k))
+        mon.on_rel(rel_msg(k, [1, 2], [1]))
+    mon.on_topo(topo_msg(206))  # the next scan's, before the status of 204 came
+    mon.on_rel(rel_msg(206, [1, 2, 7], [1, 2]))
+    mon.on_status(status(204, "done"))
+    assert mon.seen_end_ids == {1, 2, 7} and mon.visited_ids == {1, 2}
+    with mon.lock:
+        mon.use_ending(204)
+    assert mon.topo.header.src_seq == mon.rel.header.src_seq == mon.grid.header.src_seq == 204
+    assert mon.seen_end_ids == {1, 2} and mon.visited_ids == {1}
+    fresh = Monitor()
+    for k in range(0, 40, 2):
+        fresh.on_topo(topo_msg(k))
+        fresh.on_rel(rel_msg(k, [k], []))
+    assert sorted(fresh.topo_by_seq) == sorted(fresh.rel_by_seq) == [32, 34, 36, 38]
+    assert fresh.seen_end_ids == set(range(0, 40, 2))  # pruning the record keeps the ids

@@ -53,7 +53,7 @@ from topoexplore.tools.launch.supervisor import free_port, port_open
 
 # [s] how long the report waits for the sim status and map of the scan that ended a run
 END_WAIT = 2.0
-GRIDS_KEPT = 4  # maps the monitor keeps by scan (ending_grid)
+GRIDS_KEPT = 4  # maps, topologies and reliability messages the monitor keeps by scan
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -101,6 +101,11 @@ class Monitor:
     grid_by_seq: dict[int, m.OccupancyGrid] = field(default_factory=dict)
     topo: m.TopoGraph | None = None
     rel: m.Reliability | None = None
+    # the same for the topology and reliability messages, and the end node ids each
+    # reliability message added to seen_end_ids / visited_ids
+    topo_by_seq: dict[int, m.TopoGraph] = field(default_factory=dict)
+    rel_by_seq: dict[int, m.Reliability] = field(default_factory=dict)
+    ids_by_seq: dict[int, tuple[set[int], set[int]]] = field(default_factory=dict)
     plan: m.Path | None = None
     trail: list[tuple[float, float, int]] = field(default_factory=list)
     pose: tuple[float, float, float] | None = None
@@ -148,8 +153,19 @@ class Monitor:
     def ending_grid(self, seq: int) -> m.OccupancyGrid | None:
         """The map of scan ``seq``, else the latest of an earlier scan, else the latest (call
         with the lock held)."""
-        done = [k for k in self.grid_by_seq if k <= seq]
-        return self.grid_by_seq[max(done)] if done else self.grid
+        return _at_scan(self.grid_by_seq, seq, self.grid)
+
+    def use_ending(self, seq: int) -> None:
+        """Map, topology and reliability of scan ``seq`` (the one that ended the run) for the
+        report, and the end node ids seen or visited only in later scans' messages forgotten
+        (call with the lock held)."""
+        self.grid = self.ending_grid(seq)
+        self.topo = _at_scan(self.topo_by_seq, seq, self.topo)
+        self.rel = _at_scan(self.rel_by_seq, seq, self.rel)
+        for k, (seen, visited) in self.ids_by_seq.items():
+            if k > seq:
+                self.seen_end_ids -= seen
+                self.visited_ids -= visited
 
     def settle(self, seq: int, timeout: float) -> bool:
         """Wait up to ``timeout`` [s] until the sim status and the map of scan ``seq`` (the
@@ -216,25 +232,27 @@ class Monitor:
             if self._late(msg):
                 return
             self.rel = msg
-            for n in msg.nodes:
-                self.seen_end_ids.add(n.id)
-                if n.visited:
-                    self.visited_ids.add(n.id)
+            seen = {n.id for n in msg.nodes} - self.seen_end_ids
+            visited = {n.id for n in msg.nodes if n.visited} - self.visited_ids
+            self.seen_end_ids |= seen
+            self.visited_ids |= visited
+            seq = msg.header.src_seq
+            _keep(self.rel_by_seq, seq, msg)
+            _keep(self.ids_by_seq, seq, (seen, visited))
 
     def on_topo(self, msg: m.TopoGraph) -> None:
         with self.lock:
             if self._late(msg):
                 return
             self.topo = msg
+            _keep(self.topo_by_seq, msg.header.src_seq, msg)
 
     def on_map(self, msg: m.OccupancyGrid) -> None:
         with self.lock:
             if self._late(msg):
                 return
             self.grid = msg
-            self.grid_by_seq[msg.header.src_seq] = msg
-            for k in sorted(self.grid_by_seq)[:-GRIDS_KEPT]:
-                del self.grid_by_seq[k]
+            _keep(self.grid_by_seq, msg.header.src_seq, msg)
             sim = self.sim
             last = self.timeline[-1] if self.timeline else None
         if self.coverage_fn is None or sim is None:
@@ -244,6 +262,19 @@ class Monitor:
             cov = self.coverage_fn(msg)
             with self.lock:
                 self.timeline.append((sim.sim_time, sim.path_length, cov))
+
+
+def _keep(by_seq: dict[int, Any], seq: int, value: Any) -> None:
+    """by_seq[seq] = value, keeping only the GRIDS_KEPT latest scans."""
+    by_seq[seq] = value
+    for k in sorted(by_seq)[:-GRIDS_KEPT]:
+        del by_seq[k]
+
+
+def _at_scan(by_seq: dict[int, Any], seq: int, latest: Any) -> Any:
+    """The value of scan ``seq``, else of the latest earlier scan kept, else ``latest``."""
+    done = [k for k in by_seq if k <= seq]
+    return by_seq[max(done)] if done else latest
 
 
 class Truth:
@@ -880,7 +911,7 @@ class StackRun:
             if out.finished and st is not None and st.header.src_seq in mon.sim_by_seq:
                 out.sim = mon.sim_by_seq[st.header.src_seq]
             if out.finished and mon.end_seq is not None:
-                mon.grid = mon.ending_grid(mon.end_seq)
+                mon.use_ending(mon.end_seq)
         out.restarts = self.sup.restarts
         out.warmup = self.sup.warm_s
         out.memory = self.sup.memory() or None
