@@ -914,26 +914,36 @@ def test_a_frontier_group_near_the_robot_is_picked_up_before_a_farther_end_node(
     """pickup_radius: while end nodes are left, a frontier group the completion rules count
     within that path length of the robot is a candidate beside them (cost: path length), so
     the robot does not leave it for a trip back at the end; farther, or with the rule off,
-    the end node is the target."""
+    the end node is the target. pickup_age: only once a cell of the group has been a
+    frontier cell that long (the edge of the laser's reach of the moment is not left
+    behind)."""
     g, geom = half_known_room()  # the frontier: column 29, x = 2.95 m
     open_1 = {1: 0.5, 2: 0.95}  # end node 1 at (0.6, 3.05) open, 1.9 m from the robot
 
-    def first(pickup: float, x: float = 2.5):
-        core = PlannerCore(params(strategy=strategy, pickup_radius=pickup))
+    def core_for(pickup: float, age: float = 0.0) -> PlannerCore:
+        core = PlannerCore(params(strategy=strategy, pickup_radius=pickup, pickup_age=age,
+                                  blocked_time=100.0))  # it stands still: no blockage
         if strategy == "all-end-nodes":  # node 2 visited (the robot stands on it)
             core.update(0.0, (2.5, 3.05, 0.0), known_left_half_topo(), rel(open_1),
                         grid(g, geom))
-        return core.update(0.2, (x, 3.05, 0.0), known_left_half_topo(), rel(open_1),
+        return core
+
+    def at(core: PlannerCore, t: float):
+        return core.update(t, (2.5, 3.05, 0.0), known_left_half_topo(), rel(open_1),
                            grid(g, geom))
 
-    out = first(3.0)
+    out = at(core_for(3.0), 0.2)
     assert out.state == "exploring" and out.route.target_id == -1, out.status.reason
     assert "near the robot" in out.status.reason
     assert out.route.target_xy[0] == pytest.approx(2.95)
-    out = first(0.0)
+    assert at(core_for(0.0), 0.2).route.target_id == 1
+    out = at(core_for(0.3), 0.2)  # the group is 0.45 m away by path: beyond this radius
     assert out.route.target_id == 1, out.status.reason
-    out = first(0.3)  # the group is 0.45 m away by path: beyond this radius
+    aged = core_for(3.0, age=10.0)
+    out = at(aged, 0.2)  # a frontier since this update only: the end node
     assert out.route.target_id == 1, out.status.reason
+    out = at(aged, 10.4)  # a frontier for 10.2 s: picked up (a switch: 0.45 < 0.7 x 1.9 m)
+    assert out.route.target_id == -1 and "near the robot" in out.status.reason, out.status.reason
 
 
 def test_stop_when_mapped_ends_with_open_end_nodes_once_no_frontier_is_left():

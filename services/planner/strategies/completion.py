@@ -9,7 +9,8 @@
   rules, so no trip can add to the map.
 
 - Near the robot (``pickup_radius``, off by default): while end nodes are left, the groups
-  these rules count within that path length join them as candidates (:meth:`Completion.nearby`).
+  these rules count within that path length join them as candidates (:meth:`Completion.nearby`),
+  once a cell of the group has been a frontier cell for ``pickup_age``.
 
 Only groups of at least ``completion_min_size`` count, or shorter ones (down to
 ``min_frontier_size``) whose path is at most ``completion_near``, and none next to an enclosed
@@ -24,6 +25,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+
+import numpy as np
 
 from topoexplore.services.planner.strategies.base import Config, Evaluation, Update
 from topoexplore.services.planner.strategies.frontier import frontier_evaluation
@@ -46,6 +49,7 @@ class Completion:
         self._openings: Evaluation | None = None  # ... and the openings it left
         self._near_ev: Evaluation | None = None  # frontier groups near the robot ...
         self._near_t = -math.inf  # ... searched at this time [s]
+        self._first_seen: dict[tuple[int, int], float] = {}  # [s] by frontier cell (pickup)
 
     def phase(self, u: Update, ev: Evaluation) -> Evaluation:
         """The topological evaluation ev found no candidate: the frontier groups as
@@ -80,13 +84,33 @@ class Completion:
                                                     self._near_t):
             fe = self._search(u)
             cands = []
-            for c in fe.cands:
+            for c in self._aged(u, fe.cands):
                 if c.dist <= radius and not c.narrow:
                     c.cost, c.scale = c.dist, 1.0
                     c.label += NEAR_NOTE
                     cands.append(c)
             self._near_ev, self._near_t = dataclasses.replace(fe, cands=cands), u.t
         return self._near_ev if self._near_ev.cands else None
+
+    def _aged(self, u: Update, cands: list) -> list:
+        """The groups with a cell that has been a frontier cell for pickup_age [s] or more
+        (on the searches of :meth:`nearby`): the edge of the laser's reach of the moment is
+        not a group left behind."""
+        age = self.cfg.params.pickup_age
+        res = u.view.geom.resolution
+        seen: dict[tuple[int, int], float] = {}
+        kept = []
+        for c in cands:
+            keys = [] if c.cells is None else [
+                (int(a), int(b)) for a, b in np.round(np.asarray(c.cells) / res)]
+            first = u.t
+            for k in keys:
+                seen[k] = self._first_seen.get(k, u.t)
+                first = min(first, seen[k])
+            if u.t - first >= age:
+                kept.append(c)
+        self._first_seen = seen
+        return kept
 
     def mapped(self, u: Update) -> bool:
         """Is no frontier left by the completion rules, openings not yet looked into aside
