@@ -144,7 +144,7 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
     state, k, t0 = "exploring", -1, time.monotonic()
     while True:
         k += 1
-        t = c.sim.time
+        t = m.header(0, c.sim.time, "map").time  # as a stamp carries it, to the nanosecond
         odom = hop(c.sim.odom(), convert.odom_to_msg, convert.odom_from_msg, m.Odometry).pose
         scan = hop(c.sim.scan(), convert.scan_to_msg, convert.scan_from_msg, m.LaserScan)
         pose = loc.pose(odom, scan, c.sim.truth_pose())
