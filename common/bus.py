@@ -249,6 +249,16 @@ class Bus:
                    name)
 
     @classmethod
+    def peer(cls, connect: str = DEFAULT_ENDPOINT, listen: str = "tcp/127.0.0.1:0",
+             name: str = "", config_file: str | None = None,
+             shared_memory: bool = False) -> Bus:
+        """A peer session: it listens on ``listen`` (port 0: any free one), connects to the
+        router at ``connect``, and links straight to the other peers the router names, so a
+        message between two services takes one link instead of two (``bus.mode``)."""
+        return cls(make_config("peer", connect=connect, listen=listen, config_file=config_file,
+                               shared_memory=shared_memory), name)
+
+    @classmethod
     def router(cls, listen: str = DEFAULT_ENDPOINT, name: str = "router",
                config_file: str | None = None, shared_memory: bool = False) -> Bus:
         return cls(make_config("router", connect=None, listen=listen, config_file=config_file,

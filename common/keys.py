@@ -56,17 +56,18 @@ def check_segment(value: str, what: str) -> str:
     return value
 
 
-def check_endpoint(ep: str) -> str:
+def check_endpoint(ep: str, any_port: bool = False) -> str:
     """A Zenoh locator like tcp/127.0.0.1:7447 (tcp/udp/tls/quic need host:port, port
-    1..65535); ValueError otherwise."""
+    1..65535, or 0 with any_port: a listener on any free port); ValueError otherwise."""
     proto, sep, addr = ep.partition("/")
     if not sep or not proto or not addr:
         raise ValueError(f"bad endpoint {ep!r}: expected PROTOCOL/HOST:PORT, e.g. "
                          f"{DEFAULT_ENDPOINT}")
     if proto in ("tcp", "udp", "tls", "quic"):
         host, colon, port = addr.rpartition(":")
-        if not colon or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
-            raise ValueError(f"bad endpoint {ep!r}: port must be 1..65535")
+        low = 0 if any_port else 1
+        if not colon or not host or not port.isdigit() or not low <= int(port) <= 65535:
+            raise ValueError(f"bad endpoint {ep!r}: port must be {low}..65535")
     return ep
 
 

@@ -167,7 +167,9 @@ class Inbox:
     """Latest message per topic, plus an ordered queue for the primary input.
 
     In real-time mode the primary queue holds one message (conflation: keep the newest); in
-    lockstep it keeps every message so none is skipped.
+    lockstep it keeps every message so none is skipped, and the last few messages of every
+    other topic by the scan they came from (:meth:`at`): with ``runtime.plan_lag`` the stages
+    of one map work while newer maps arrive.
     """
 
     def __init__(self) -> None:
@@ -177,10 +179,25 @@ class Inbox:
         self._queues: dict[str, deque] = {}
         self.dropped: dict[str, int] = {}  # conflated: a newer message replaced it unread
         self.seqs = m.SeqGaps()  # lost on the way (by header.seq), publisher restarts
+        self._history: dict[str, dict[int, Any]] = {}  # topic -> src_seq -> message
+        self._keep: dict[str, int] = {}
 
     def make_queue(self, topic: str, maxlen: int) -> None:
         with self.cv:
             self._queues[topic] = deque(maxlen=maxlen)
+
+    def keep_history(self, topic: str, keep: int) -> None:
+        """Keep the last ``keep`` messages of topic by their ``header.src_seq``."""
+        with self.cv:
+            self._history[topic], self._keep[topic] = {}, keep
+
+    def at(self, topic: str, k: int) -> Any:
+        """The message of topic that came from scan k, else from the newest scan before k
+        that is kept; the latest message where none is (no history kept, or a restarted
+        service that did not see that scan's)."""
+        with self.cv:
+            older = [s for s in self._history.get(topic, ()) if s <= k]
+            return self._history[topic][max(older)] if older else self.latest.get(topic)
 
     def put(self, topic: str, msg: Any) -> None:
         with self.cv:
@@ -189,6 +206,11 @@ class Inbox:
             hdr = getattr(msg, "header", None)
             if hdr is not None and hdr.seq >= 0:  # -1: a publisher that does not count
                 self.seqs.check(topic, hdr.seq)
+            hist = self._history.get(topic)
+            if hist is not None and hdr is not None:
+                hist[hdr.src_seq] = msg
+                while len(hist) > self._keep[topic]:
+                    del hist[min(hist)]
             q = self._queues.get(topic)
             if q is not None:
                 if q.maxlen is not None and len(q) == q.maxlen:
@@ -351,8 +373,13 @@ class Node:
         self._apply_live: list[Callable[[Params], None]] = []
         self._pending_params: Params | None = None
         self._live_lock = threading.Lock()
-        self.bus = Bus.client(params.bus.connect, name=service, config_file=zenoh_config,
-                              wait_for_router=True, shared_memory=params.bus.shared_memory)
+        bp = params.bus
+        if bp.mode == "peer":
+            self.bus = Bus.peer(bp.connect, bp.listen, name=service, config_file=zenoh_config,
+                                shared_memory=bp.shared_memory)
+        else:
+            self.bus = Bus.client(bp.connect, name=service, config_file=zenoh_config,
+                                  wait_for_router=True, shared_memory=bp.shared_memory)
         self._seq: dict[str, int] = {}
         self.chaos = Chaos(params.runtime)
         self.add_live(CHAOS_LIVE, lambda p: self.chaos.configure(p.runtime))
@@ -368,6 +395,8 @@ class Node:
         """Deposit decoded messages of a topic into the inbox (and/or call on_msg)."""
         if queue:
             self.inbox.make_queue(topic, 10_000 if self.lockstep else 1)
+        elif self.lockstep:
+            self.inbox.keep_history(topic, 2 * self.params.runtime.plan_lag + 4)
 
         def deliver(msg: Any) -> None:
             if on_msg is not None:
@@ -529,8 +558,9 @@ class Node:
         self.bus.queryable(self.keys.state(self.service), self.state)
         self.bus.queryable(self.keys.params(self.service), self.params_query)
         self.bus.declare_token(self.keys.alive(self.service))
-        log.info("%s ready on %s (%s)", self.service, self.keys.prefix,
-                 "lockstep" if self.lockstep else "real-time")
+        log.info("%s ready on %s (%s, %s)", self.service, self.keys.prefix,
+                 "lockstep" if self.lockstep else "real-time",
+                 "peer" if self.params.bus.mode == "peer" else "client")
 
     def close(self) -> None:
         self.stop.set()

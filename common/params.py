@@ -161,6 +161,11 @@ class RuntimeParams(_P):
     lockstep_wait_for: list[str] = msgspec.field(
         default_factory=lambda: ["mapper", "topology", "reliability", "planner", "controller"])
     lockstep_wait: Pos = 60.0  # [s] wall time to wait for those services before the first scan
+    plan_lag: Annotated[int, Meta(ge=0, le=8)] = 0  # lockstep: map periods the controller
+    #   follows the plan behind the scans (scan k takes the plan of the map of scan
+    #   k - k % map_every - plan_lag x map_every), so the simulator and the controller run on
+    #   while topology, reliability and planner work on that map (a pipeline on the second
+    #   core); bench inproc follows it, and runs stay deterministic. 0: the plan of the newest map
     state_dir: str = ""  # directory of the services' checkpoints ("": none); a restarted
     #   service resumes from its checkpoint there (``run`` uses OUT/state)
     checkpoint_every: Pos = 1.0  # [s] between two checkpoints of a service (mapper: wall
@@ -188,12 +193,22 @@ class BusParams(_P):
     connect: str = DEFAULT_ENDPOINT
     shared_memory: bool = False  # zenoh's shared-memory transport between the processes of
     # one host, services and router alike (common/bus.py make_config: off saves ~130 MB)
+    mode: Literal["auto", "client", "peer"] = "auto"  # how a service joins the bus. client:
+    #   every message through the router. peer: the services also link to each other (each
+    #   listens on ``listen``, learns the others from the router) and messages go straight
+    #   from one to the next; clients (viewers, tools) still reach everything through the
+    #   router. auto: client, except in ``topoexplore run`` (its own router on this host, no
+    #   credentials), where it is peer: office in lockstep 33.7 s against 37.4 s of wall time
+    #   (docs/benchmarks.md)
+    listen: str = "tcp/127.0.0.1:0"  # a peer's own endpoint (port 0: any free port)
 
     def __post_init__(self) -> None:
         check_segment(self.namespace, "namespace")
         check_segment(self.robot, "robot name")
         for ep in self.connect.split(","):
             check_endpoint(ep.strip())
+        for ep in self.listen.split(","):
+            check_endpoint(ep.strip(), any_port=True)
 
 
 # --- one section per stage -----------------------------------------------------------------

@@ -152,6 +152,34 @@ def test_run_takes_a_strategy_variant_and_the_user_overrides_win():
     assert params.reliability.examined_radius == 0.0 and params.reliability.view_distance == 0.1
 
 
+def test_run_links_its_services_as_peers_unless_told_or_secured(tmp_path, monkeypatch):
+    """bus.mode auto: `run` (its own router on this host) makes the services peers; a
+    params file or --set that names a mode wins, and credentials keep them clients (a peer's
+    own endpoint would not ask for them)."""
+    import argparse
+
+    from topoexplore.common.bus import CREDENTIALS_ENV
+    from topoexplore.common.params import load_params
+    from topoexplore.tools.run import add_arguments, run_overrides
+
+    monkeypatch.delenv(CREDENTIALS_ENV, raising=False)
+    ap = argparse.ArgumentParser()
+    add_arguments(ap)
+    f = tmp_path / "p.toml"
+    f.write_text('[bus]\nmode = "client"\n')
+
+    def mode(*argv: str) -> str:
+        args = ap.parse_args(["--connect", "tcp/127.0.0.1:7447", *argv])
+        return load_params(getattr(args, "params", None), run_overrides(args)).bus.mode
+
+    assert load_params(None, []).bus.mode == "auto"
+    assert mode() == "peer"
+    assert mode("--set", 'bus.mode="client"') == "client"
+    assert mode("--params", str(f)) == "client"
+    monkeypatch.setenv(CREDENTIALS_ENV, str(tmp_path / "creds"))
+    assert mode() == "auto"  # a Node opens auto as a client
+
+
 def test_run_takes_world_seed_speed_and_strategy_from_the_params_file(tmp_path):
     """[sim] world/seed/speed and [planner] strategy of --params count unless the command
     line names them (they used to be overridden silently by the command line's defaults)."""

@@ -58,6 +58,7 @@ def _explore(world: str, strategy: str, seed: int, repeat: int, sets: tuple[str,
     report["_exit"] = r.returncode
     report["_stderr"] = r.stderr[-2000:]
     report["_out"] = str(out)
+    report["_ns"] = ns
     return report
 
 
@@ -123,6 +124,8 @@ def test_explores_world_to_the_end(world):
     for svc in ("mapper", "sim", "reliability", "controller"):
         assert at(svc, f"{svc}: ") == -1 and at(svc, f"{svc} ready on") >= 0, svc
     assert re.search(rf"^\[supervisor\] {stamp} mapper is up", logs, re.M)
+    # run's own router on this host: the services link to each other as peers (bus.mode)
+    assert at("planner", f"planner ready on {r['_ns']}/robot1 (lockstep, peer)") >= 0, logs
 
 
 @needs(lambda: [run_of("dead-end", sets=LIDAR_360)])
@@ -171,6 +174,24 @@ def test_reliability_travels_less_than_all_end_nodes(world):
     assert rel["path_length_m"] < allend["path_length_m"], (rel, allend)
     if world == "junction":  # the side arms of the T are accepted from the junction
         assert rel["end_nodes_accepted_remote"] >= 1, rel
+
+
+CLIENT_NO_LAG = ('bus.mode="client"', "runtime.plan_lag=0")
+
+
+@needs(lambda: [run_of("paper-room"), run_of("paper-room", sets=CLIENT_NO_LAG)])
+def test_clients_through_the_router_and_no_plan_lag_run_too():
+    """Services as clients of the router (every message through it) and the controller on
+    the plan of the newest map (no pipeline): the run explores as the in-process pipeline
+    with the same lag says, and differs from the default run only by that lag."""
+    from topoexplore.tools.bench import inproc
+
+    r = explore("paper-room", sets=CLIENT_NO_LAG)
+    assert r["_exit"] == 0 and r["finished"] and r["coverage"] >= 0.95, r["_stderr"]
+    assert "(lockstep, client)" in (Path(r["_out"]) / "logs.txt").read_text()
+    local = inproc.run("paper-room", "reliability", 0, ("runtime.plan_lag=0",), 1500.0)
+    assert local["path_length_m"] == pytest.approx(r["path_length_m"], abs=0.01)
+    assert local["sim_time_s"] == pytest.approx(r["sim_time_s"], abs=0.01)
 
 
 @pytest.mark.parametrize("world", ["dead-end", "office"])

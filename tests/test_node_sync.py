@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import threading
+from types import SimpleNamespace
 
 import pytest
 
@@ -49,6 +50,25 @@ def test_inbox_queue_lockstep_keeps_all_and_realtime_conflates():
     for i in range(5):
         rt.put("scan", i)
     assert rt.pop("scan") == 4 and rt.dropped["scan"] == 4
+
+
+def test_inbox_history_gives_the_message_of_a_given_scan():
+    """Lockstep with a plan lag: a stage works on the map of scan k while newer maps arrive;
+    it takes that scan's message, not the newest (``Inbox.at``)."""
+    from topoexplore.common import messages as m
+
+    ib = Inbox()
+    ib.keep_history("map", 3)
+    assert ib.at("map", 10) is None
+    for k in (0, 2, 4, 6):
+        ib.put("map", SimpleNamespace(header=m.header(k // 2, 0.1 * k, "map", k)))
+    assert ib.at("map", 4).header.src_seq == 4
+    assert ib.at("map", 5).header.src_seq == 4  # the newest at or before scan 5
+    assert ib.at("map", 100).header.src_seq == 6
+    assert ib.at("map", 1).header.src_seq == 6  # scan 0's was dropped (3 kept): the latest
+    assert ib.latest["map"].header.src_seq == 6
+    ib.put("plan", SimpleNamespace(header=m.header(0, 0.0, "map", 8)))
+    assert ib.at("plan", 0).header.src_seq == 8  # no history kept: the latest
 
 
 def test_inbox_wait_wakes_on_put():

@@ -73,6 +73,11 @@ def test_toml_and_overrides(tmp_path):
     ("", ['bus.namespace="a b"']),
     ("", ['bus.connect="tcp/127.0.0.1:99999"']),
     ("", ['bus.connect="localhost"']),
+    ("", ['bus.connect="tcp/127.0.0.1:0"']),  # port 0 only for a peer's own listener
+    ("", ['bus.listen="tcp/127.0.0.1"']),
+    ("", ['bus.mode="router"']),
+    ("", ["runtime.plan_lag=-1"]),
+    ("", ["runtime.plan_lag=9"]),
     ("", ["mapper.initial_size=50.0", "mapper.max_size=40.0"]),
     ("", ["mapper.l_free=0.4"]),
     ("", ["mapper.l_max=nan"]),

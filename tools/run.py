@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import threading
 import time
@@ -30,7 +31,7 @@ import msgspec
 
 from topoexplore.common import convert
 from topoexplore.common import messages as m
-from topoexplore.common.bus import Bus, BusError, check_config_file
+from topoexplore.common.bus import CREDENTIALS_ENV, Bus, BusError, check_config_file
 from topoexplore.common.checkpoint import clear_state_dir
 from topoexplore.common.keys import DEFAULT_ENDPOINT, Keys
 from topoexplore.common.node import (
@@ -650,7 +651,9 @@ def _fill_from_params(args: argparse.Namespace) -> None:
 
 def run_overrides(args: argparse.Namespace) -> list[str]:
     """The ``--set`` overrides every service gets: world, seed, mode, speed and strategy of the
-    run, the user's own ``--set``, and a free router port unless ``--connect`` names one."""
+    run, the user's own ``--set``, a free router port unless ``--connect`` names one, and
+    ``bus.mode`` peer where it is auto (the run's own router on this host: the services link
+    to each other) unless the bus takes credentials (a peer's own endpoint would not ask)."""
     _fill_from_params(args)
     overrides = [f"sim.world={json.dumps(args.world)}", f"sim.seed={args.seed}",
                  f"runtime.lockstep={'true' if args.lockstep else 'false'}",
@@ -660,6 +663,12 @@ def run_overrides(args: argparse.Namespace) -> list[str]:
         if port_open(endpoint):
             endpoint = f"tcp/127.0.0.1:{free_port()}"
         overrides.append(f'bus.connect="{endpoint}"')
+    try:
+        mode = load_params(getattr(args, "params", None), overrides).bus.mode
+    except ParamError as exc:
+        raise InputError(str(exc)) from None
+    if mode == "auto" and not os.environ.get(CREDENTIALS_ENV):
+        overrides.append('bus.mode="peer"')
     return overrides
 
 

@@ -1,8 +1,9 @@
 """Controller service: plan + odom + scan -> ``cmd_vel`` (pure pursuit with a safety stop).
 
 Runs once per scan; in lockstep it waits for the plan derived from the latest scan that has a
-map (the mapper publishes for ``src_seq % mapper.map_every == 0``), so the answer the
-simulator waits for is deterministic.
+map (the mapper publishes for ``src_seq % mapper.map_every == 0``), or with
+``runtime.plan_lag`` = L from the map L map periods before that, and follows exactly that plan,
+so the answer the simulator waits for is deterministic.
 """
 
 from __future__ import annotations
@@ -46,13 +47,19 @@ class ControllerService:
         node.add_state(self.state)
         node.add_live(LIVE, self.apply_params)
 
+    def plan_source(self, src_seq: int) -> int:
+        """Lockstep: the scan whose map's plan scan src_seq follows (negative: none yet)."""
+        P = self.node.params
+        every = P.mapper.map_every
+        return src_seq - src_seq % every - P.runtime.plan_lag * every
+
     def ready(self, scan: m.LaserScan) -> bool:
         ok = self.odom.newest >= scan.header.time - 1e-6
-        if self.node.lockstep:  # the plan and status of the latest scan that has a map
-            k = scan.header.src_seq
-            k -= k % self.node.params.mapper.map_every
+        if self.node.lockstep:  # the plan and status of that map
+            k = self.plan_source(scan.header.src_seq)
             inbox = self.node.inbox
-            ok = ok and inbox.src_seq("plan") >= k and inbox.src_seq("explore/status") >= k
+            ok = ok and (k < 0 or (inbox.src_seq("plan") >= k
+                                   and inbox.src_seq("explore/status") >= k))
         return ok
 
     def step(self) -> None:
@@ -62,6 +69,10 @@ class ControllerService:
         scan, _ = got
         inbox = self.node.inbox
         plan, status = inbox.latest.get("plan"), inbox.latest.get("explore/status")
+        if self.node.lockstep:
+            k = self.plan_source(scan.header.src_seq)
+            plan, status = ((inbox.at("plan", k), inbox.at("explore/status", k)) if k >= 0
+                            else (None, None))  # no plan to follow yet
         pose = self.odom.pose_near(scan.header.time)
         if pose is None:
             cmd = Command(0.0, 0.0, "no-pose")
@@ -130,11 +141,12 @@ class ControllerService:
     def plan_limit(self) -> float:
         """[s] robot time without a new plan message before the robot stops: plan_timeout; in
         lockstep, where plans come once per map and only when they are ready, at least two
-        map periods."""
+        map periods and the plan lag."""
         P = self.node.params
         limit = P.controller.plan_timeout
         if self.node.lockstep:
-            limit = max(limit, 2.0 * P.mapper.map_every / P.laser.scan_hz)
+            limit = max(limit, (2.0 + P.runtime.plan_lag) * P.mapper.map_every
+                        / P.laser.scan_hz)
         return limit
 
     def plan_age(self, t: float) -> float | None:

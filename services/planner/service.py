@@ -93,7 +93,8 @@ class PlannerService:
             return
         rel, _ = got
         inbox = self.node.inbox
-        topo, grid = inbox.latest.get("topo"), inbox.latest.get("map")
+        k = rel.header.src_seq  # lockstep: that scan's topology and map
+        topo, grid = inbox.at("topo", k), inbox.at("map", k)
         pose = self.odom.pose_near(rel.header.time)
         if pose is None:
             log.warning("reliability %d skipped: no pose", rel.header.src_seq)

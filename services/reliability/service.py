@@ -52,7 +52,7 @@ class ReliabilityService:
         if got is None:
             return
         topo, _ = got
-        grid = self.node.inbox.latest.get("map")
+        grid = self.node.inbox.at("map", topo.header.src_seq)  # lockstep: that scan's map
         pose = self.odom.pose_near(topo.header.time)
         if grid is None or pose is None:
             self.skipped += 1

@@ -8,8 +8,9 @@ loop in the order the services run them in lockstep (with ``--set localizer.enab
 the localizer too: each scan matched against the map of the scans before it, and every core
 then takes odometry composed with its correction): every scan is integrated; on the first
 scan of every ``mapper.map_every`` block the map goes through topology, reliability and
-planner; the controller answers every scan with the newest plan. The cores pass domain objects
-(``common.domain``) to each other; with ``--wire`` every hop goes through the same message
+planner; the controller answers every scan with the newest plan (with ``runtime.plan_lag`` = L,
+the plan of the map L map periods before, as the controller does in lockstep). The cores pass
+domain objects (``common.domain``) to each other; with ``--wire`` every hop goes through the same message
 conversions and codec as on the bus (``common.convert``). No bus and no processes, so
 a parameter sweep over the suite costs the compute alone (about 1/3 of the wall time of
 ``bench explore``). A run gives the same path, sim time and coverage as the bus run of the
@@ -24,6 +25,7 @@ import json
 import math
 import sys
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -141,6 +143,8 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
     loc = _Localized(P, hop)
     steps = max(1, round(P.sim.physics_hz / P.laser.scan_hz))
     plan = grid = None
+    lagged: deque = deque()  # (map scan, route) the controller has yet to follow
+    lag, route = P.runtime.plan_lag * P.mapper.map_every, None
     state, k, t0 = "exploring", -1, time.monotonic()
     while True:
         k += 1
@@ -162,7 +166,10 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
                 on_update(t, pose, graph, beliefs, plan, grid)
             if plan.status.finished:
                 break
-        route = hop(plan.route, convert.route_to_msg, convert.route_from_msg, m.Path)
+            lagged.append((k, plan.route))
+        while lagged and lagged[0][0] <= k - lag:  # the plan the controller follows now
+            route = hop(lagged.popleft()[1], convert.route_to_msg, convert.route_from_msg,
+                        m.Path)
         cmd = c.controller.update(t, pose, route, False, scan)
         c.sim.command(cmd.v, cmd.w)
         for _ in range(steps):
