@@ -8,9 +8,11 @@ on a topic against the n-th recorded. The first difference is reported with the 
 belongs to and the first field that differs; exit 1. A lockstep run is deterministic, so a
 recording replayed through unchanged code gives identical bytes (exit 0).
 
-Order: the recording's log order is kept. Before an input is published, every chain output
-the recording logged before that input must have been replayed (in lockstep the simulator
-waited for the chain too), so the services see their inputs interleaved as they did.
+Order: the recording's log order is kept. Before an input of scan s is published, every
+chain output the recording logged before it that came from a scan before s must have been
+replayed (in lockstep the simulator waited for the chain too), so the services see their
+inputs interleaved as they did; an output of scan s or later logged before it (the pipelined
+lockstep, ``runtime.plan_lag``, can log a scan's map before the scan) is not waited for.
 
 The comparison logic (:func:`first_difference`, :class:`Expectation`) is pure and unit-tested;
 the rest is the thin shell that runs processes and the bus.
@@ -167,9 +169,17 @@ class Expectation:
                                            describe(topic, rec[i], rep[i]),
                                            self._order[topic][i]))
 
-    def caught_up(self) -> bool:
-        """Every output recorded so far has been replayed."""
-        return all(len(self.replayed[t]) >= len(v) for t, v in self.recorded.items())
+    def caught_up(self, below: int | None = None) -> bool:
+        """Every output recorded so far has been replayed; with ``below``, every one that came
+        from a scan before that one (``src_seq < below``): a pipelined lockstep
+        (``runtime.plan_lag``) logs the map of a scan before the scan itself at times, and no
+        output can wait for an input of a later scan."""
+        for t, v in self.recorded.items():
+            n = len(self.replayed[t])
+            if n < len(v) and (below is None or (h := header_of(v[n])) is None
+                               or h.src_seq < below):
+                return False
+        return True
 
     def missing(self) -> tuple[str, int, int] | None:
         """(topic, n-th message, its scan) of the first recorded output not replayed yet."""
@@ -298,7 +308,8 @@ def _drive(args: argparse.Namespace, summary: dict, prefix: str, ins: list[str],
             with lock:
                 exp.expect(topic, bytes(data))
             continue
-        if not _wait(exp, lock, stop, args.timeout):
+        h = header_of(data)
+        if not _wait(exp, lock, stop, args.timeout, None if h is None else h.src_seq):
             return n_in
         if args.scans is not None and topic == "scan" and (h := header_of(data)) \
                 and h.seq >= args.scans:
@@ -318,14 +329,15 @@ GRACE = 2.0  # [s] after a divergence, for the other outputs of its scan (the ea
 
 
 def _wait(exp: Expectation, lock: threading.Condition, stop: threading.Event,
-          timeout: float) -> bool:
-    """Until the replay has caught up with the recording (False on a divergence, a stop or a
-    timeout: the verdict says which)."""
+          timeout: float, below: int | None = None) -> bool:
+    """Until the replay has caught up with the recording, up to the scan ``below`` (False
+    on a divergence, a stop or a timeout: the verdict says which)."""
     with lock:
-        lock.wait_for(lambda: exp.divergences or exp.caught_up() or stop.is_set(), timeout)
+        lock.wait_for(lambda: exp.divergences or exp.caught_up(below) or stop.is_set(),
+                      timeout)
         if exp.divergences and not stop.is_set():
-            lock.wait_for(lambda: exp.caught_up() or stop.is_set(), GRACE)
-        return not exp.divergences and exp.caught_up() and not stop.is_set()
+            lock.wait_for(lambda: exp.caught_up(below) or stop.is_set(), GRACE)
+        return not exp.divergences and exp.caught_up(below) and not stop.is_set()
 
 
 def _verdict(args: argparse.Namespace, through: list[str], exp: Expectation, n_in: int,
