@@ -161,11 +161,14 @@ class RuntimeParams(_P):
     lockstep_wait_for: list[str] = msgspec.field(
         default_factory=lambda: ["mapper", "topology", "reliability", "planner", "controller"])
     lockstep_wait: Pos = 60.0  # [s] wall time to wait for those services before the first scan
-    plan_lag: Annotated[int, Meta(ge=0, le=8)] = 0  # lockstep: map periods the controller
+    plan_lag: Annotated[int, Meta(ge=0, le=8)] = 2  # lockstep: map periods the controller
     #   follows the plan behind the scans (scan k takes the plan of the map of scan
     #   k - k % map_every - plan_lag x map_every), so the simulator and the controller run on
     #   while topology, reliability and planner work on that map (a pipeline on the second
-    #   core); bench inproc follows it, and runs stay deterministic. 0: the plan of the newest map
+    #   core); bench inproc follows it, and runs stay deterministic. 0: the plan of the newest
+    #   map. Office on the bus 37.1 s (0, clients) -> 27.9 s (2, peers) of wall time, 1.29 x
+    #   the in-process run; held-back worlds all finished at 2, coverage >= 0.991
+    #   (docs/benchmarks.md)
     state_dir: str = ""  # directory of the services' checkpoints ("": none); a restarted
     #   service resumes from its checkpoint there (``run`` uses OUT/state)
     checkpoint_every: Pos = 1.0  # [s] between two checkpoints of a service (mapper: wall
