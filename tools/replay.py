@@ -311,7 +311,7 @@ def _drive(args: argparse.Namespace, summary: dict, prefix: str, ins: list[str],
         h = header_of(data)
         if not _wait(exp, lock, stop, args.timeout, None if h is None else h.src_seq):
             return n_in
-        if args.scans is not None and topic == "scan" and (h := header_of(data)) \
+        if args.scans is not None and topic == "scan" and h is not None \
                 and h.seq >= args.scans:
             break
         pubs[topic].put(bytes(data))

@@ -8,10 +8,10 @@ loop in the order the services run them in lockstep (with ``--set localizer.enab
 the localizer too: each scan matched against the map of the scans before it, and every core
 then takes odometry composed with its correction): every scan is integrated; on the first
 scan of every ``mapper.map_every`` block the map goes through topology, reliability and
-planner; the controller answers every scan with the newest plan (with ``runtime.plan_lag`` = L,
-the plan of the map L map periods before, as the controller does in lockstep). The cores pass
-domain objects (``common.domain``) to each other; with ``--wire`` every hop goes through the same message
-conversions and codec as on the bus (``common.convert``). No bus and no processes, so
+planner; the controller answers every scan with the newest plan (with ``runtime.plan_lag`` =
+L, the plan of the map L map periods before, as the controller does in lockstep). The cores
+pass domain objects (``common.domain``) to each other; with ``--wire`` every hop goes through
+the same message conversions and codec as on the bus (``common.convert``). No bus and no processes, so
 a parameter sweep over the suite costs the compute alone (about 1/3 of the wall time of
 ``bench explore``). A run gives the same path, sim time and coverage as the bus run of the
 same world, strategy, seed and parameters (``tests/test_explore_e2e.py`` checks it); the
