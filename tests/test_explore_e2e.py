@@ -200,8 +200,9 @@ def test_in_process_pipeline_reproduces_the_bus_run(world):
     """`topoexplore bench inproc` (the tuning tool) calls the cores in the order the services
     run them in lockstep: the same path, sim time and coverage as the real processes. Office
     took 133.0 m in process against 126.0 m on the bus until the pipeline took its clock as
-    the stamps carry it (to the nanosecond): the planner's replan period (t - last >= period)
-    came one map earlier on the bus, where 64.8 - 62.8 was 2.0, than in process."""
+    the stamps carry it (to the nanosecond): the bus planner re-planned at scan 324 ("shorter
+    path to the target", a re-plan its replan period gates: t - last >= period), the one in
+    process a map later."""
     from topoexplore.tools.bench import inproc
 
     bus = explore(world)
