@@ -183,7 +183,7 @@ CLIENT_NO_LAG = ('bus.mode="client"', "runtime.plan_lag=0")
 def test_clients_through_the_router_and_no_plan_lag_run_too():
     """Services as clients of the router (every message through it) and the controller on
     the plan of the newest map (no pipeline): the run explores as the in-process pipeline
-    with the same lag says, and differs from the default run only by that lag."""
+    with the same lag says."""
     from topoexplore.tools.bench import inproc
 
     r = explore("paper-room", sets=CLIENT_NO_LAG)

@@ -663,11 +663,7 @@ def run_overrides(args: argparse.Namespace) -> list[str]:
         if port_open(endpoint):
             endpoint = f"tcp/127.0.0.1:{free_port()}"
         overrides.append(f'bus.connect="{endpoint}"')
-    try:
-        mode = load_params(getattr(args, "params", None), overrides).bus.mode
-    except ParamError as exc:
-        raise InputError(str(exc)) from None
-    if mode == "auto" and not os.environ.get(CREDENTIALS_ENV):
+    if _params_with(args, overrides).bus.mode == "auto" and not os.environ.get(CREDENTIALS_ENV):
         overrides.append('bus.mode="peer"')
     return overrides
 
