@@ -241,6 +241,7 @@ def occupied_mask(data: np.ndarray, p_occ: float = 0.65) -> np.ndarray:
 
 
 _KERNEL3 = np.ones((3, 3), np.uint8)
+_CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))  # the 4-neighbours and the cell
 
 
 def unknown_mask(grid: np.ndarray, p_free: float = 0.35, p_occ: float = 0.65) -> np.ndarray:
@@ -316,8 +317,8 @@ def open_unknown(grid: np.ndarray, pocket_cells: int = 0, p_free: float = 0.35,
     pocket = ~border & (stats[:, cv2.CC_STAT_AREA] < pocket_cells)
     pocket[0] = False  # label 0: the known cells
     if reach is not None and pocket.any():  # a pocket the robot can look into is no pocket
-        pocket &= ((_reachable_border(labels, np.asarray(reach, dtype=bool), n) < min_reach)
-                   | (stats[:, cv2.CC_STAT_AREA] < min_area))
+        pocket &= ((_reachable_border(labels, np.asarray(reach, dtype=bool), pocket)
+                    < min_reach) | (stats[:, cv2.CC_STAT_AREA] < min_area))
     if not pocket.any():
         return unknown
     out = unknown.copy()
@@ -327,13 +328,23 @@ def open_unknown(grid: np.ndarray, pocket_cells: int = 0, p_free: float = 0.35,
     return out
 
 
-def _reachable_border(labels: np.ndarray, reach: np.ndarray, n: int) -> np.ndarray:
-    """Per label 0..n-1: how many reach cells are 4-adjacent to a cell of that label (each
-    cell counted once per label): the four neighbours' labels of each reach cell, sorted, a
-    label counted where it differs from the one before."""
-    pad = np.pad(labels, 1, constant_values=n)  # n: outside the grid, not counted
-    nb = np.stack([pad[2:, 1:-1][reach], pad[:-2, 1:-1][reach], pad[1:-1, 2:][reach],
-                   pad[1:-1, :-2][reach]])
+def _reachable_border(labels: np.ndarray, reach: np.ndarray, wanted: np.ndarray
+                      ) -> np.ndarray:
+    """Per label 0..n-1 (n = len(wanted)): how many reach cells are 4-adjacent to a cell of
+    that label (each cell counted once per label), for the labels marked in ``wanted`` (the
+    others count 0): the four neighbours' labels of each reach cell beside a wanted label,
+    the unwanted ones set to n, sorted, a label counted where it differs from the one
+    before."""
+    n = len(wanted)
+    beside = cv2.dilate(wanted[labels].view(np.uint8), _CROSS).view(bool) & reach
+    rr, cc = np.nonzero(beside)  # the few reach cells that touch a wanted label
+    h, w = labels.shape
+    nb = np.full((4, rr.size), n, dtype=labels.dtype)  # n: outside the grid, not counted
+    for k, (dr, dc) in enumerate(((1, 0), (-1, 0), (0, 1), (0, -1))):
+        r, c = rr + dr, cc + dc
+        ok = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+        nb[k, ok] = labels[r[ok], c[ok]]
+    nb[~np.append(wanted, False)[nb]] = n
     nb.sort(axis=0)
     first = np.ones(nb.shape, dtype=bool)
     first[1:] = nb[1:] != nb[:-1]

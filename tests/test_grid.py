@@ -111,7 +111,10 @@ def test_reachable_border_counts_each_reachable_cell_once_per_label():
                       if 0 <= r + dr < h and 0 <= c + dc < w}
             for k in beside:
                 want[k] += 1
-        assert np.array_equal(_reachable_border(labels, reach, 6), want)
+        assert np.array_equal(_reachable_border(labels, reach, np.ones(6, bool)), want)
+        wanted = rng.random(6) < 0.5  # only these labels' counts: the others 0
+        assert np.array_equal(_reachable_border(labels, reach, wanted),
+                              np.where(wanted, want, 0))
 
 
 def test_best_clearance_is_the_greatest_of_the_four_sub_cells():

@@ -139,11 +139,12 @@ def best_clearance_map(occupied: np.ndarray, resolution: float) -> np.ndarray:
     of 3 (0.175 m), which the centre-to-centre :func:`clearance_map` cannot (0.2 m both)."""
     if not occupied.any():
         return np.full(occupied.shape, np.float32(1e6), dtype=np.float32)
-    fine = np.repeat(np.repeat(occupied, 2, axis=0), 2, axis=1)
-    d = distance_transform(np.where(fine, 0, 255).astype(np.uint8)) * np.float32(
-        0.5 * resolution)
-    return np.maximum(np.maximum(d[0::2, 0::2], d[0::2, 1::2]),
-                      np.maximum(d[1::2, 0::2], d[1::2, 1::2]))  # of the four sub-cells
+    h, w = occupied.shape
+    src = np.where(occupied, np.uint8(0), np.uint8(255))
+    fine = cv2.resize(src, (2 * w, 2 * h), interpolation=cv2.INTER_NEAREST)  # 2 x 2 each
+    d = distance_transform(fine)
+    rows = np.maximum(d[0::2], d[1::2])  # the four sub-cells' greatest, then to metres:
+    return np.maximum(rows[:, 0::2], rows[:, 1::2]) * np.float32(0.5 * resolution)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -273,8 +274,11 @@ def grid_search(free: np.ndarray, passable: np.ndarray, clearance: np.ndarray,
     h, w = passable.shape
     row, col = (int(v) for v in geom.world_to_cell(x, y))
     fit = robot_radius if fit is None else fit
-    mult = cost_multiplier(clearance, robot_radius, fit, soft_radius, soft_penalty,
-                           narrow_penalty)
+    on_passable = 0 <= row < h and 0 <= col < w and bool(passable[row, col])
+    mult = None  # a reach-only search from a passable cell prices no step (nor does escape)
+    if not (reach_only and on_passable):
+        mult = cost_multiplier(clearance, robot_radius, fit, soft_radius, soft_penalty,
+                               narrow_penalty)
     esc = escape(free, passable, clearance, row, col, fit, geom.resolution, mult=mult)
     dist = np.full((h, w), np.inf)
     parent = np.full(h * w, -1, dtype=np.int64)
@@ -408,9 +412,11 @@ def _fits(ok: np.ndarray, r: int, c: int) -> bool:
 
 def _reached(passable: np.ndarray, seeds: np.ndarray) -> np.ndarray:
     """The cells a search from the seeds reaches (4-connected components of passable)."""
-    _, labels = cv2.connectedComponents(passable.view(np.uint8), connectivity=4)
-    comps = np.unique(labels.ravel()[seeds])
-    return np.isin(labels, comps[comps > 0])
+    n, labels = cv2.connectedComponents(passable.view(np.uint8), connectivity=4)
+    keep = np.zeros(n, dtype=bool)  # per label: does a seed lie in it (0: not passable)
+    keep[labels.ravel()[seeds]] = True
+    keep[0] = False
+    return keep[labels]
 
 
 def look_point(unknown: np.ndarray, geom: GridGeometry, rc: tuple[int, int],
