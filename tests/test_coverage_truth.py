@@ -221,5 +221,13 @@ def test_inproc_reports_both_coverages():
 
     r = inproc.run("dead-end", "frontier", 0, max_sim_time=20.0)
     assert 0.0 < r["coverage_free"] <= r["coverage"] <= 1.0
+    stages = r["stage_s"]  # compute per core: every core ran, and within the run's wall time
+    assert set(stages) == {"sim", "mapper", "topology", "reliability", "planner", "controller"}
+    assert all(v > 0.0 for v in stages.values())
+    assert sum(stages.values()) <= r["wall_s"] + 0.1
+    line = inproc.stage_line([r, r])
+    assert line.startswith("compute per stage, summed over the runs: sim ")
+    assert f"planner {2 * stages['planner']:.1f} s" in line
+    assert inproc.stage_line([{"stage_s": None}]) == "compute per stage: none measured"
     stub = inproc._one(("x", "no-such-world", "frontier", 0, (), 10.0, False))
     assert stub["state"] == "error" and stub["coverage"] is None and stub["coverage_free"] is None

@@ -11,9 +11,11 @@ scan of every ``mapper.map_every`` block the map goes through topology, reliabil
 planner; the controller answers every scan with the newest plan (with ``runtime.plan_lag`` =
 L, the plan of the map L map periods before, as the controller does in lockstep). The cores
 pass domain objects (``common.domain``) to each other; with ``--wire`` every hop goes through
-the same message conversions and codec as on the bus (``common.convert``). No bus and no processes, so
-a parameter sweep over the suite costs the compute alone (about 1/3 of the wall time of
-``bench explore``). A run gives the same path, sim time and coverage as the bus run of the
+the same message conversions and codec as on the bus (``common.convert``). Each run also
+reports ``stage_s``, the compute seconds of each core (the sim's scans and physics steps,
+the mapper, topology, reliability, planner, controller), summed in one line over the runs.
+No bus and no processes, so a parameter sweep over the suite costs the compute alone (about
+1/3 of the wall time of ``bench explore``). A run gives the same path, sim time and coverage as the bus run of the
 same world, strategy, seed and parameters (``tests/test_explore_e2e.py`` checks it); the
 figures to publish still come from ``bench explore``, which runs the real processes.
 """
@@ -117,6 +119,26 @@ class _Localized:
                 "pose_max_m": round(float(e.max()), 4) if e.size else None}
 
 
+class _Stages:
+    """Compute seconds per core over a run (``perf_counter`` round each call): where an
+    exploration's time goes, with no bus in it. ``sim`` is its scans and physics steps,
+    ``mapper`` its scan integration and map copies."""
+
+    NAMES = ("sim", "mapper", "topology", "reliability", "planner", "controller")
+
+    def __init__(self) -> None:
+        self.s = dict.fromkeys(self.NAMES, 0.0)
+
+    def __call__(self, name: str, fn: Callable, *args: Any, **kw: Any) -> Any:
+        t = time.perf_counter()
+        out = fn(*args, **kw)
+        self.s[name] += time.perf_counter() - t
+        return out
+
+    def figures(self) -> dict[str, float]:
+        return {k: round(v, 3) for k, v in self.s.items()}
+
+
 def _pipeline(P: Params, world: World) -> SimpleNamespace:
     """The six cores, built as the services build them."""
     occ = P.mapper.occupancy
@@ -146,21 +168,23 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
     lagged: deque = deque()  # (map scan, route) the controller has yet to follow
     lag, route = P.runtime.plan_lag * P.mapper.map_every, None
     state, k, t0 = "exploring", -1, time.monotonic()
+    st = _Stages()
     while True:
         k += 1
         t = m.header(0, c.sim.time, "map").time  # as a stamp carries it, to the nanosecond
         odom = hop(c.sim.odom(), convert.odom_to_msg, convert.odom_from_msg, m.Odometry).pose
-        scan = hop(c.sim.scan(), convert.scan_to_msg, convert.scan_from_msg, m.LaserScan)
+        scan = hop(st("sim", c.sim.scan), convert.scan_to_msg, convert.scan_from_msg,
+                   m.LaserScan)
         pose = loc.pose(odom, scan, c.sim.truth_pose())
-        c.mapper.integrate(pose, scan)
+        st("mapper", c.mapper.integrate, pose, scan)
         if k % P.mapper.map_every == 0:
-            grid = loc.grid = hop(c.mapper.grid(copy=True), convert.grid_to_msg,
+            grid = loc.grid = hop(st("mapper", c.mapper.grid, copy=True), convert.grid_to_msg,
                                   convert.grid_from_msg, m.OccupancyGrid)
-            graph = hop(c.topology.update(grid, (pose.x, pose.y)).graph, convert.graph_to_msg,
-                        convert.graph_from_msg, m.TopoGraph)
-            beliefs = hop(c.reliability.update(graph, pose, grid), convert.beliefs_to_msg,
-                          convert.beliefs_from_msg, m.Reliability)
-            plan = c.planner.update(t, pose, graph, beliefs, grid)
+            graph = hop(st("topology", c.topology.update, grid, (pose.x, pose.y)).graph,
+                        convert.graph_to_msg, convert.graph_from_msg, m.TopoGraph)
+            beliefs = hop(st("reliability", c.reliability.update, graph, pose, grid),
+                          convert.beliefs_to_msg, convert.beliefs_from_msg, m.Reliability)
+            plan = st("planner", c.planner.update, t, pose, graph, beliefs, grid)
             state = plan.status.state
             if on_update is not None:
                 on_update(t, pose, graph, beliefs, plan, grid)
@@ -170,10 +194,10 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
         while lagged and lagged[0][0] <= k - lag:  # the plan the controller follows now
             route = hop(lagged.popleft()[1], convert.route_to_msg, convert.route_from_msg,
                         m.Path)
-        cmd = c.controller.update(t, pose, route, False, scan)
+        cmd = st("controller", c.controller.update, t, pose, route, False, scan)
         c.sim.command(cmd.v, cmd.w)
         for _ in range(steps):
-            c.sim.step()
+            st("sim", c.sim.step)
         if c.sim.time >= max_sim_time:
             state = "timeout"
             break
@@ -191,7 +215,7 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
             "blocked_released": snap["blocked"]["released"],
             "recoveries": c.controller.recoveries,  # the controller's stuck recoveries ...
             "backups_refused": c.controller.backups_refused,  # ... that only turned
-            **loc.figures()}
+            "stage_s": st.figures(), **loc.figures()}
 
 
 def _coverages(P: Params, w: World, grid: Any) -> tuple[float, float]:
@@ -215,6 +239,16 @@ def _one(item: tuple) -> dict[str, Any]:
              "coverage_free": None, "collisions": None, "wall_s": None}
     r["world_label"] = label
     return r
+
+
+def stage_line(runs: Sequence[dict[str, Any]]) -> str:
+    """One line: each core's compute summed over the runs (``stage_s``), with its share."""
+    tot = {k: sum((r.get("stage_s") or {}).get(k, 0.0) for r in runs) for k in _Stages.NAMES}
+    whole = sum(tot.values())
+    if whole <= 0.0:
+        return "compute per stage: none measured"
+    return "compute per stage, summed over the runs: " + ", ".join(
+        f"{k} {v:.1f} s ({100.0 * v / whole:.0f} %)" for k, v in tot.items())
 
 
 class _Parser(argparse.ArgumentParser):
@@ -272,6 +306,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{r['world_label']:14s} {r['strategy']:14s} s{r['seed']} {r['state']:8s} "
               f"path {r['path_length_m']} m  sim {r['sim_time_s']} s  coverage {cov} "
               f"(free {cov_free})  collisions {r['collisions']}  wall {r['wall_s']} s")
+    print(stage_line(runs))
     strategies = sorted({r["strategy"] for r in runs}, key=STRATEGY_NAMES.index)
     ratios = {}
     for den in ("frontier", "all-end-nodes"):
