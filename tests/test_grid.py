@@ -131,6 +131,43 @@ def test_best_clearance_is_the_greatest_of_the_four_sub_cells():
         assert np.array_equal(best_clearance_map(occ, 0.1), want.astype(np.float32))
 
 
+def test_fit_mask_is_the_best_clearance_test_without_the_transform():
+    from topoexplore.services.planner.gridsearch import best_clearance_map, fit_mask
+
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        occ = rng.random(tuple(rng.integers(1, 40, 2))) < rng.choice([0.0, 0.02, 0.1, 0.4, 1.0])
+        res = float(rng.choice([0.05, 0.07, 0.1]))
+        fit = float(rng.choice([0.0, 0.1, 0.175, 0.225, rng.uniform(0.0, 0.7)]))
+        want = best_clearance_map(occ, res) + 1e-6 >= fit
+        assert np.array_equal(fit_mask(occ, res, fit), want), (occ.shape, res, fit)
+
+
+def test_a_reach_only_narrow_search_leaves_the_best_clearance_until_asked():
+    """The robot on a passable cell: the reach-only search through narrow passages takes
+    its cells from fit_mask and makes the best clearance only when its clearance is read;
+    a view that made the best clearance first reaches the same cells."""
+    from topoexplore.common.domain import GridMap
+    from topoexplore.common.grid import Occupancy
+    from topoexplore.services.planner.mapview import MapView
+
+    data = np.zeros((40, 60), np.int8)  # two rooms joined by a door 5 cells (0.5 m) wide
+    data[[0, -1], :] = 100
+    data[:, [0, 29, -1]] = 100
+    data[18:23, 29] = 0
+    geom = GridGeometry(0.1, 0.0, 0.0, 60, 40)
+    kw = dict(fit=0.2, soft_radius=0.6, soft_penalty=1.0, narrow_penalty=2.0, reach_only=True)
+    lazy = MapView(GridMap(data, geom), Occupancy())
+    search = lazy.search(1.5, 2.0, 0.35, **kw)
+    assert not lazy._best.made
+    eager = MapView(GridMap(data, geom), Occupancy())
+    assert eager.best_clearance is not None  # made first: fits() reads it
+    again = eager.search(1.5, 2.0, 0.35, **kw)
+    assert np.array_equal(search.dist, again.dist) and np.isfinite(search.dist[20, 45])
+    assert np.array_equal(search.clearance, eager.best_clearance)  # made on asking
+    assert lazy._best.made
+
+
 def test_crop_known_keeps_a_ring_of_unknown_and_world_coordinates():
     geom = GridGeometry(0.1, -5.0, -2.0, 100, 60)
     g = np.full((60, 100), -1, np.int8)

@@ -9,6 +9,7 @@ one update all read the same arrays.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -52,6 +53,26 @@ class _once:
         return value
 
 
+class _Lazy:
+    """A value made on the first call and then kept. A view hands it to its searches (a
+    reach-only search may never need it) instead of a closure over the view: a search kept in
+    the view's memo would otherwise close a reference cycle, and every view with its grids
+    would stay alive until the cyclic collector ran."""
+
+    def __init__(self, make: Callable[[], Any]):
+        self._make: Callable[[], Any] | None = make
+        self._value: Any = None
+
+    def __call__(self) -> Any:
+        if self._make is not None:
+            self._value, self._make = self._make(), None
+        return self._value
+
+    @property
+    def made(self) -> bool:
+        return self._make is None
+
+
 class MapView:
     """Lazily derived grids of one map (on its observed part) for one planning update."""
 
@@ -66,6 +87,7 @@ class MapView:
         self._looked = looked  # geom -> the frontier cells looked into from close
         self._open: dict[tuple[int, int | None, int, int], tuple[Any, np.ndarray]] = {}
         self._passable: dict[float, np.ndarray] = {}
+        self._fits: dict[float, np.ndarray] = {}
         self._memo: dict[Any, Any] = {}
 
     def without_blocked(self) -> MapView:
@@ -139,11 +161,18 @@ class MapView:
         """float32 distance [m] to the nearest occupied cell (unknown is no obstacle)."""
         return gs.clearance_map(self.occupied, self.geom.resolution)
 
-    @_once
+    @property
     def best_clearance(self) -> np.ndarray:
         """float32 largest clearance [m] of a point in each cell (:func:`gridsearch
         .best_clearance_map`): what narrow passages are judged by."""
-        return gs.best_clearance_map(self.occupied, self.geom.resolution)
+        return self._best()
+
+    @_once
+    def _best(self) -> _Lazy:
+        """:attr:`best_clearance` as a value made on first call, which the searches of this
+        view share without holding the view."""
+        return _Lazy(functools.partial(gs.best_clearance_map, self.occupied,
+                                       self.geom.resolution))
 
     @_once
     def unknown(self) -> np.ndarray:
@@ -221,6 +250,16 @@ class MapView:
         """How many cells are known free."""
         return int(np.count_nonzero(self.free))
 
+    def fits(self, fit: float) -> np.ndarray:
+        """Known free cells with a point at least fit [m] from every occupied cell (the test
+        of :attr:`best_clearance` + 1e-6 >= fit), from :attr:`best_clearance` once it is
+        made, else without it (:func:`gridsearch.fit_mask`: the same cells)."""
+        if fit not in self._fits:
+            ok = (self.best_clearance + 1e-6 >= fit if self._best.made
+                  else gs.fit_mask(self.occupied, self.geom.resolution, fit))
+            self._fits[fit] = self.free & ok
+        return self._fits[fit]
+
     def passable(self, radius: float) -> np.ndarray:
         """Known free cells at least radius [m] from every occupied cell."""
         if radius not in self._passable:
@@ -268,12 +307,12 @@ class MapView:
         narrow_penalty, the cells whose best point (:attr:`best_clearance`) has fit count
         too, at that extra cost (:func:`gridsearch.grid_search`)."""
         narrow = narrow_penalty is not None and fit is not None and fit < radius
-        if narrow:  # narrow passages are judged by the best point of each cell
-            clear = self.best_clearance
-            return gs.grid_search(self.free, self.free & (clear + 1e-6 >= fit), clear,
-                                  self.geom, x, y, radius, fit=fit, soft_radius=soft_radius,
-                                  soft_penalty=soft_penalty, narrow_penalty=narrow_penalty,
-                                  reach_only=reach_only)
+        if narrow:  # narrow passages are judged by the best point of each cell; a reach-only
+            #   search may need none of its values (:func:`gridsearch.grid_search`)
+            clear = self._best if reach_only else self.best_clearance
+            return gs.grid_search(self.free, self.fits(fit), clear, self.geom, x, y, radius,
+                                  fit=fit, soft_radius=soft_radius, soft_penalty=soft_penalty,
+                                  narrow_penalty=narrow_penalty, reach_only=reach_only)
         return gs.grid_search(self.free, self.passable(radius), self.clearance, self.geom,
                               x, y, radius, fit=fit, soft_radius=soft_radius,
                               soft_penalty=soft_penalty, reach_only=reach_only)
