@@ -241,7 +241,7 @@ def occupied_mask(data: np.ndarray, p_occ: float = 0.65) -> np.ndarray:
 
 
 _KERNEL3 = np.ones((3, 3), np.uint8)
-_CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))  # the 4-neighbours and the cell
+CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))  # a cell and its 4-neighbours
 
 
 def unknown_mask(grid: np.ndarray, p_free: float = 0.35, p_occ: float = 0.65) -> np.ndarray:
@@ -336,7 +336,7 @@ def _reachable_border(labels: np.ndarray, reach: np.ndarray, wanted: np.ndarray
     the unwanted ones set to n, sorted, a label counted where it differs from the one
     before."""
     n = len(wanted)
-    beside = cv2.dilate(wanted[labels].view(np.uint8), _CROSS).view(bool) & reach
+    beside = cv2.dilate(wanted[labels].view(np.uint8), CROSS).view(bool) & reach
     rr, cc = np.nonzero(beside)  # the few reach cells that touch a wanted label
     h, w = labels.shape
     nb = np.full((4, rr.size), n, dtype=labels.dtype)  # n: outside the grid, not counted

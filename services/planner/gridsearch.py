@@ -284,7 +284,8 @@ def _cells_near(mask: np.ndarray, row: int, col: int, rad: int
 
 
 def grid_search(free: np.ndarray, passable: np.ndarray,
-                clearance: np.ndarray | Callable[[], np.ndarray], geom: GridGeometry, x: float, y: float, robot_radius: float,
+                clearance: np.ndarray | Callable[[], np.ndarray], geom: GridGeometry,
+                x: float, y: float, robot_radius: float,
                 fit: float | None = None, soft_radius: float = 0.0, soft_penalty: float = 0.0,
                 narrow_penalty: float = 0.0, reach_only: bool = False) -> GridSearch:
     """Dijkstra path costs [m] from the robot at (x, y) [m] over the `passable` cells.

@@ -32,6 +32,7 @@ from scipy.spatial import cKDTree
 from topoexplore.common.checkpoint import CheckpointError, checked
 from topoexplore.common.domain import Belief, Graph, GridMap, Pose
 from topoexplore.common.grid import (
+    CROSS,
     GridGeometry,
     Occupancy,
     cells_for,
@@ -239,9 +240,6 @@ def _in_fov_range(nx: float, ny: float, lx: float, ly: float, theta: float,
     return abs(rel) <= 0.5 * laser.fov + 1e-12
 
 
-_CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
-
-
 def frontier_cells(grid: np.ndarray, p_free: float = 0.35, min_cells: int = 1,
                    unknown: np.ndarray | None = None) -> np.ndarray:
     """(n, 2) int (row, col) of the frontier cells (known free, 4-adjacent to unknown) that lie
@@ -252,7 +250,7 @@ def frontier_cells(grid: np.ndarray, p_free: float = 0.35, min_cells: int = 1,
     free = (g >= 0) & (g < p_free * 100.0)
     unknown = (g < 0 if unknown is None else np.asarray(unknown, bool)).view(np.uint8)
     # 4-neighbourhood "touches unknown" (cells outside the grid count as unknown)
-    touch = cv2.dilate(unknown, _CROSS, borderType=cv2.BORDER_CONSTANT, borderValue=1)
+    touch = cv2.dilate(unknown, CROSS, borderType=cv2.BORDER_CONSTANT, borderValue=1)
     front = (free & touch.view(bool)).view(np.uint8)
     nz = cv2.findNonZero(front)  # (n, 1, 2) x, y; ~4 x faster than np.argwhere here
     if nz is None:
