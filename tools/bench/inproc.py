@@ -15,9 +15,11 @@ the same message conversions and codec as on the bus (``common.convert``). Each 
 reports ``stage_s``, the compute seconds of each core (the sim's scans and physics steps,
 the mapper, topology, reliability, planner, controller), summed in one line over the runs.
 No bus and no processes, so a parameter sweep over the suite costs the compute alone (about
-1/3 of the wall time of ``bench explore``). A run gives the same path, sim time and coverage as the bus run of the
-same world, strategy, seed and parameters (``tests/test_explore_e2e.py`` checks it); the
-figures to publish still come from ``bench explore``, which runs the real processes.
+1/3 of the wall time of ``bench explore``). A run gives the same path, sim time and coverage
+as the bus run of the same world, strategy, seed and parameters (``tests/test_explore_e2e.py``
+checks it on dead-end, office and paper-room; a 60 x 60 m world run for 1800 s leaves the
+bus run's path, not yet traced: docs/benchmarks.md); the figures to publish still come from
+``bench explore``, which runs the real processes.
 """
 
 from __future__ import annotations
