@@ -286,7 +286,9 @@ def test_a_service_killed_mid_run_resumes(kill_runs, service):
     if service == "mapper":
         # it resumed the map it had: the checkpoint, then the cells of its last map (kept by
         # the planner and reliability) that changed after it; known cells never become unknown
-        assert ck["resumed_cells"] >= run["known_at_kill"], (ck, run["known_at_kill"])
+        assert ck["resumed_cells"] >= run["known_at_kill"], (
+            f"{ck} known at the kill {run['known_at_kill']}; the run's output: "
+            f"{run['stdout'][-3000:]}")
     else:
         # one clock and one path: at most checkpoint_every (1 s of sim time) of motion lost
         assert report["path_length_m"] >= st["path_length"] - 0.3, (report, st)

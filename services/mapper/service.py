@@ -141,8 +141,11 @@ class MapperService:
         block = src // self.node.params.mapper.map_every
         if block != self.last_block:  # else integrated; this block's map went out already
             self.last_block = block
-            self.last_map = self.make_map(scan.header.time, src)
-            self.pub_map.put(self.last_map)
+            grid = self.make_map(scan.header.time, src)
+            self.pub_map.put(grid)
+            # the state shows a map only once it went out: a state query answered between
+            # the two lines would otherwise show a map that no peer may ever get
+            self.last_map = grid
         if self.ckpt.due(time.monotonic()):
             self.save_checkpoint()  # after the map went out: it does not wait for the disk
 
