@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -133,7 +134,9 @@ def _evaluate(cfg: Config, u: Update, min_size: float | None, pocket_area: float
     ev.done = done
     ev.unreachable = unreachable
     ev.status_of = lambda c: "was cleared (no frontier group there any more)"
-    ev.path_ok = path_fits(view, search.clearance, cfg.radius)
+    # the search's clearance is the best clearance on the whole map when the search did
+    # not need it (a reach-only one): made only if a path is checked
+    ev.path_ok = path_fits(view, lambda: search.clearance, cfg.radius)
     return ev
 
 
@@ -249,11 +252,13 @@ def _candidate(g: gs.FrontierGroup, search: gs.GridSearch, res: float, scale: fl
                      face=g.look_xy)
 
 
-def path_fits(view: MapView, clearance: np.ndarray, radius: float):
+def path_fits(view: MapView, clearance: np.ndarray | Callable[[], np.ndarray], radius: float):
     """path_ok of a grid path (a frontier's, or an end node's with grid_paths): every
     waypoint on the grid, on no occupied cell and with at least half the robot radius of
-    clearance [m] (the search's clearance map)."""
+    clearance [m] (the search's clearance map, or a function that makes it: called on the
+    first check, so an update that checks no path never makes it)."""
     geom = view.geom
+    made: list[np.ndarray] = []
 
     def path_ok(wps: np.ndarray) -> bool:
         if len(wps) == 0:
@@ -262,7 +267,9 @@ def path_fits(view: MapView, clearance: np.ndarray, radius: float):
         inside = geom.inside(rows, cols)
         if not np.all(inside):
             return False
-        bad = view.occupied[rows, cols] | (clearance[rows, cols] < 0.5 * radius)
+        if not made:
+            made.append(clearance() if callable(clearance) else clearance)
+        bad = view.occupied[rows, cols] | (made[0][rows, cols] < 0.5 * radius)
         return not bool(np.any(bad))
 
     return path_ok
