@@ -109,6 +109,23 @@ class World:
     def shape_count(self) -> int:
         return len(self.segments) + len(self.circles) + len(self.boxes)
 
+    @property
+    def area(self) -> float:
+        """[m^2] of the world rectangle (a map's whole extent, unknown cells included)."""
+        return float(self.size[0] * self.size[1])
+
+
+def time_limit(area: float) -> float:
+    """[s] sim time an exploration of a world of this area [m^2] may take: 6 s per m^2, at
+    least 2400 s (``topoexplore run``'s default, and ``bench robust``'s). Generous on purpose
+    (a cluttered 24 x 22 m floor needs about 1700 s at the robot's slow speeds near obstacles,
+    a 24 x 40 m office of 46 rooms 3600-4400 s): a run that stops making progress is told
+    apart by its stagnant map (livelock), not by the limit. There is no upper cap: a cap of
+    12000 s (until 2026-12-03) stopped every strategy on the 60 x 60 m office while it was
+    still finishing (reliability: done at 12768 s, coverage 0.993), and its slow last pockets
+    were then called a livelock."""
+    return float(max(2400.0, 6.0 * area))
+
 
 # --------------------------------------------------------------------------------------------
 # built-in worlds and loading

@@ -216,3 +216,30 @@ def test_bench_codec_prints_every_message():
     assert [x["type"] for x in rows] == ["Odometry", "LaserScan", "LaserScan", "Path",
                                          "OccupancyGrid"]
     assert all(x["bytes"] > 0 and x["to_wire_us"] > 0 and x["from_wire_us"] > 0 for x in rows)
+
+
+def test_run_gives_a_world_time_to_finish_by_its_area(tmp_path):
+    """Without --max-sim-time, `run` allows 6 s of sim time per m^2 of the world (at least
+    2400 s), as `bench robust` does: a fixed 900 s stopped large-office a quarter through."""
+    import argparse
+
+    from topoexplore.sim.world import load_world, time_limit
+    from topoexplore.tools import run as runner
+
+    ap = argparse.ArgumentParser()
+    runner.add_arguments(ap)
+    args = ap.parse_args(["--world", "large-office", "--out", str(tmp_path / "a")])
+    runner.check_input(args)
+    assert args.max_sim_time == time_limit(load_world("large-office").area) > 3600.0
+    args = ap.parse_args(["--world", "paper-room", "--out", str(tmp_path / "b")])
+    runner.check_input(args)
+    assert args.max_sim_time == 2400.0  # a small world: the floor
+    args = ap.parse_args(["--world", "paper-room", "--max-sim-time", "30",
+                          "--out", str(tmp_path / "c")])
+    runner.check_input(args)
+    assert args.max_sim_time == 30.0
+    for bad in ("0", "-5", "nan"):
+        args = ap.parse_args(["--world", "paper-room", "--max-sim-time", bad,
+                              "--out", str(tmp_path / "d")])
+        with pytest.raises(runner.InputError, match="--max-sim-time"):
+            runner.check_input(args)

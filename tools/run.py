@@ -72,8 +72,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "else 1)")
     p.add_argument("--seed", type=int, default=None,
                    help="default: [sim] seed of --params, else 0")
-    p.add_argument("--max-sim-time", type=float, default=900.0,
-                   help="give up after this much simulated time [s]")
+    p.add_argument("--max-sim-time", type=float, default=None,
+                   help="give up after this much simulated time [s] (default: 6 s per m^2 of "
+                   "the world's area, at least 2400 s)")
     p.add_argument("--max-wall-time", type=float, default=0.0,
                    help="give up after this much wall time [s] (0: no limit)")
     p.add_argument("--out", default="runs/latest", help="output directory")
@@ -588,7 +589,7 @@ class Setup:
 
 def check_input(args: argparse.Namespace) -> Setup:
     """Check every argument and parameter before anything starts; InputError otherwise."""
-    from topoexplore.sim.world import WorldError, load_world
+    from topoexplore.sim.world import WorldError, load_world, time_limit
 
     _fill_from_params(args)
     try:
@@ -599,12 +600,14 @@ def check_input(args: argparse.Namespace) -> Setup:
         raise InputError(str(exc)) from None
     if not (args.speed > 0 and math.isfinite(args.speed)):
         raise InputError("--speed must be a positive number")
-    if not (args.max_sim_time > 0):
+    if args.max_sim_time is not None and not (args.max_sim_time > 0):
         raise InputError("--max-sim-time must be positive")
     try:
-        load_world(args.world)
+        world = load_world(args.world)
     except WorldError as exc:
         raise InputError(str(exc)) from None
+    if args.max_sim_time is None:  # room to finish: a user's building is no fixed size
+        args.max_sim_time = time_limit(world.area)
     if args.zenoh_config:
         try:
             check_config_file(args.zenoh_config)

@@ -30,7 +30,7 @@ Every run is classified: ``finished`` (done, coverage >= 0.95), ``early-done`` (
 that), ``failed`` (the planner gave up: the robot could not plan at all), ``livelock`` (the
 time limit came while the map had stopped growing for the last ``STAGNANT_S`` of sim time),
 ``timeout`` (the time limit came while it still grew). The time limit scales with the world's
-area (:func:`time_limit`).
+area (:func:`topoexplore.sim.world.time_limit`).
 
 Writes to ``--out``: ``results.json`` (every run, the analysis, the corpus and the command),
 ``summary.md`` (tables per strategy and half, path ratios per world, the worst ten runs with
@@ -59,6 +59,7 @@ from typing import Any
 import numpy as np
 
 from topoexplore.common.params import STRATEGIES, STRATEGY_NAMES
+from topoexplore.sim.world import time_limit
 from topoexplore.tools.bench.explore import (
     BenchArgError,
     check_overrides,
@@ -133,7 +134,7 @@ def build_corpus(corpus_dir: Path, half: str, quick: bool = False,
         path = write_generated(gen, corpus_dir, level)
         w = load_world(str(path))
         out.append(Item(path.stem, str(path), style, seed, level, half_of(seed),
-                        float(w.size[0] * w.size[1])))
+                        w.area))
     if half in ("all", "real") and not quick:
         out += _real_maps()
     return out
@@ -147,18 +148,8 @@ def _real_maps() -> list[Item]:
     for p in sorted(maps.glob("*.yaml")) if maps else []:
         w = load_world(str(p))
         items.append(Item(p.stem, str(p), "real", -1, None, "real",
-                          float(w.size[0] * w.size[1])))
+                          w.area))
     return items
-
-
-def time_limit(area: float) -> float:
-    """[s] sim time allowed on a world of this area [m^2]: 6 s per m^2, at least 2400 s.
-    Generous on purpose (a cluttered 24 x 22 m floor needs about 1700 s at the robot's slow
-    speeds near obstacles): a run that stops making progress is told apart by its stagnant map
-    (livelock), not by the limit. There is no upper cap: a cap of 12000 s (until 2026-12-03)
-    stopped every strategy on the 60 x 60 m office while it was still finishing (reliability:
-    done at 12768 s, coverage 0.993), and its slow last pockets were then called a livelock."""
-    return float(max(2400.0, 6.0 * area))
 
 
 # --------------------------------------------------------------------------------------------
