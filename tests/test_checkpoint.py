@@ -247,11 +247,24 @@ def _killed_mid_run(tmp_path: Path, endpoint: str, namespace: str, service: str)
             assert st and st["checkpoint"]["written"] >= 3, st and st["checkpoint"]
             os.kill(st["pid"], signal.SIGKILL)
             known_at_kill = _known(mp)
+            # what the peers hold now (lockstep stands still until a new mapper maps): the
+            # map a restarted mapper takes back
+            held = _peers_known(bus, keys) if service == "mapper" else None
         stdout, _ = run.communicate(timeout=400)
     finally:
         _reap(run)
     report = json.loads(Path(out / "report.json").read_text())
-    return {"report": report, "stdout": stdout, "st": st, "known_at_kill": known_at_kill}
+    return {"report": report, "stdout": stdout, "st": st, "known_at_kill": known_at_kill,
+            "peers_known": held}
+
+
+def _peers_known(bus: Bus, keys: Keys) -> list[int]:
+    """Known cells of the last map each peer keeps for a restarted mapper (``latest/map``)."""
+    from topoexplore.common import messages as m
+
+    return [int((np.frombuffer(m.decode(payload, m.OccupancyGrid).data, np.int8) >= 0).sum())
+            for _key, payload, _err in bus.get(f"{keys.prefix}/*/latest/map", timeout=2.0)
+            if payload]
 
 
 @pytest.fixture(scope="module")
@@ -285,10 +298,14 @@ def test_a_service_killed_mid_run_resumes(kill_runs, service):
     assert ck["failed"] == 0 and ck["resumed_age_s"] is not None, ck
     if service == "mapper":
         # it resumed the map it had: the checkpoint, then the cells of its last map (kept by
-        # the planner and reliability) that changed after it; known cells never become unknown
-        assert ck["resumed_cells"] >= run["known_at_kill"], (
-            f"{ck} known at the kill {run['known_at_kill']}; the run's output: "
-            f"{run['stdout'][-3000:]}")
+        # the planner and reliability) that changed after it; known cells never become unknown.
+        # Its state shows a map once it was published, and the peers' copies (read right
+        # after the kill) say which map arrived: both go into the message
+        why = (f"{ck}; known at the kill {run['known_at_kill']}, held by the peers "
+               f"{run['peers_known']}; the run's output: {run['stdout'][-3000:]}")
+        assert run["peers_known"], why
+        assert ck["resumed_cells"] >= max(run["peers_known"]), why
+        assert ck["resumed_cells"] >= run["known_at_kill"], why
     else:
         # one clock and one path: at most checkpoint_every (1 s of sim time) of motion lost
         assert report["path_length_m"] >= st["path_length"] - 0.3, (report, st)
