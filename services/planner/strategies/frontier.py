@@ -255,10 +255,9 @@ def _candidate(g: gs.FrontierGroup, search: gs.GridSearch, res: float, scale: fl
 def path_fits(view: MapView, clearance: np.ndarray | Callable[[], np.ndarray], radius: float):
     """path_ok of a grid path (a frontier's, or an end node's with grid_paths): every
     waypoint on the grid, on no occupied cell and with at least half the robot radius of
-    clearance [m] (the search's clearance map, or a function that makes it: called on the
-    first check, so an update that checks no path never makes it)."""
+    clearance [m] (the search's clearance map, or a function that gives it, called at each
+    check: an update that checks no path never makes a clearance the search left unmade)."""
     geom = view.geom
-    made: list[np.ndarray] = []
 
     def path_ok(wps: np.ndarray) -> bool:
         if len(wps) == 0:
@@ -267,9 +266,8 @@ def path_fits(view: MapView, clearance: np.ndarray | Callable[[], np.ndarray], r
         inside = geom.inside(rows, cols)
         if not np.all(inside):
             return False
-        if not made:
-            made.append(clearance() if callable(clearance) else clearance)
-        bad = view.occupied[rows, cols] | (made[0][rows, cols] < 0.5 * radius)
+        clear = clearance() if callable(clearance) else clearance  # the search keeps it
+        bad = view.occupied[rows, cols] | (clear[rows, cols] < 0.5 * radius)
         return not bool(np.any(bad))
 
     return path_ok
