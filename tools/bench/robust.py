@@ -59,7 +59,7 @@ from typing import Any
 import numpy as np
 
 from topoexplore.common.params import STRATEGIES, STRATEGY_NAMES
-from topoexplore.sim.world import time_limit
+from topoexplore.sim.world import load_world, time_limit
 from topoexplore.tools.bench.explore import (
     BenchArgError,
     check_overrides,
@@ -117,8 +117,6 @@ def build_corpus(corpus_dir: Path, half: str, quick: bool = False,
     """Generate (or reuse: the files are deterministic) the corpus's worlds of one half, only
     those of `seeds` and of at most `max_area` [m^2] if given."""
     from topoexplore.sim.generate import DEFAULT_SIZES, generate, write_generated
-    from topoexplore.sim.world import load_world
-
     specs = QUICK if quick else [(st, seed, lvl, size_of(st, seed, lvl)) for st in STYLES
                                  for seed in SEEDS for lvl in (None, NOISE)]
     out: list[Item] = []
@@ -133,22 +131,18 @@ def build_corpus(corpus_dir: Path, half: str, quick: bool = False,
         gen = generate(style, seed, size)
         path = write_generated(gen, corpus_dir, level)
         w = load_world(str(path))
-        out.append(Item(path.stem, str(path), style, seed, level, half_of(seed),
-                        w.area))
+        out.append(Item(path.stem, str(path), style, seed, level, half_of(seed), w.area))
     if half in ("all", "real") and not quick:
         out += _real_maps()
     return out
 
 
 def _real_maps() -> list[Item]:
-    from topoexplore.sim.world import load_world
-
     maps = shared_maps_dir()
     items = []
     for p in sorted(maps.glob("*.yaml")) if maps else []:
         w = load_world(str(p))
-        items.append(Item(p.stem, str(p), "real", -1, None, "real",
-                          w.area))
+        items.append(Item(p.stem, str(p), "real", -1, None, "real", w.area))
     return items
 
 

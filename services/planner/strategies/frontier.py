@@ -252,11 +252,11 @@ def _candidate(g: gs.FrontierGroup, search: gs.GridSearch, res: float, scale: fl
                      face=g.look_xy)
 
 
-def path_fits(view: MapView, clearance: np.ndarray | Callable[[], np.ndarray], radius: float):
+def path_fits(view: MapView, clearance: Callable[[], np.ndarray], radius: float):
     """path_ok of a grid path (a frontier's, or an end node's with grid_paths): every
     waypoint on the grid, on no occupied cell and with at least half the robot radius of
-    clearance [m] (the search's clearance map, or a function that gives it, called at each
-    check: an update that checks no path never makes a clearance the search left unmade)."""
+    clearance [m] (``clearance()``: the search's clearance map, asked for at each check, so
+    an update that checks no path never makes a clearance the search left unmade)."""
     geom = view.geom
 
     def path_ok(wps: np.ndarray) -> bool:
@@ -266,8 +266,7 @@ def path_fits(view: MapView, clearance: np.ndarray | Callable[[], np.ndarray], r
         inside = geom.inside(rows, cols)
         if not np.all(inside):
             return False
-        clear = clearance() if callable(clearance) else clearance  # the search keeps it
-        bad = view.occupied[rows, cols] | (clear[rows, cols] < 0.5 * radius)
+        bad = view.occupied[rows, cols] | (clearance()[rows, cols] < 0.5 * radius)
         return not bool(np.any(bad))
 
     return path_ok

@@ -254,7 +254,7 @@ class Topological:
         for c in ev.cands:
             if not c.partial and not c.around:
                 c.path = _grid_or(c.path, search, view.geom)
-        on_skeleton, fits = ev.path_ok, path_fits(view, view.clearance, cfg.radius)
+        on_skeleton, fits = ev.path_ok, path_fits(view, lambda: view.clearance, cfg.radius)
         ev.path_ok = lambda wps: on_skeleton(wps) or fits(wps)
 
     def _candidate(self, s: Scene, i: int) -> Candidate | None:
