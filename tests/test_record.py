@@ -340,6 +340,38 @@ def test_first_difference_and_expectation():
     e2.got("reliability", m.encode(rel_msg(4)))  # differs, arrives first
     e2.got("topo", m.encode(topo_msg(4)))  # differs too, recorded first
     assert e2.divergence.topic == "topo" and len(e2.divergences) == 2
+    # logged in the other order (the recorder hears each service over its own route): the
+    # upstream topic of the chain is still the one reported, and an earlier scan before both
+    e4 = Expectation(["topo", "reliability"])
+    e4.expect("reliability", m.encode(rel_msg(3)))
+    e4.expect("topo", m.encode(topo_msg(3)))
+    e4.got("reliability", m.encode(rel_msg(4)))
+    e4.got("topo", m.encode(topo_msg(4)))
+    assert e4.divergence.topic == "topo" and e4.divergence.index == 0
+    e4.expect("reliability", m.encode(rel_msg(2)))
+    e4.got("reliability", m.encode(rel_msg(5)))
+    assert e4.divergence.topic == "reliability" and e4.divergence.scan == 2
+
+
+def test_a_divergence_reads_on_for_the_rest_of_its_scan():
+    """The drive stops at the input after a divergence; outputs of the same scan logged after
+    that input (an upstream one, logged late) are still expected, and later scans' are not."""
+    import threading
+
+    from topoexplore.tools.replay import Expectation, _expect_rest_of_scan
+
+    e = Expectation(["topo", "reliability"])
+    e.expect("reliability", m.encode(rel_msg(3)))
+    e.got("reliability", m.encode(rel_msg(4)))
+    e.got("topo", m.encode(topo_msg(4)))  # the replayed topology, already in
+    log = iter([("p/odom", m.encode(pose_msg(3, 0.6, 0.0)), 0), ("p/topo", m.encode(topo_msg(3)), 1),
+                ("p/odom", m.encode(pose_msg(4, 0.8, 0.0)), 2), ("p/topo", m.encode(topo_msg(4)), 3),
+                ("p/reliability", m.encode(rel_msg(4)), 4)])
+    _expect_rest_of_scan(log, "p", ["topo", "reliability"], e, threading.Condition(),
+                         threading.Event())
+    assert e.divergence.topic == "topo" and e.divergence.scan == 3
+    assert len(e.recorded["topo"]) == 1 and len(e.recorded["reliability"]) == 1
+    assert next(log)[0] == "p/reliability"  # stopped at the first output of a later scan
 
 
 def _replay(path: Path, *extra: str) -> subprocess.CompletedProcess:

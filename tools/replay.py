@@ -131,10 +131,14 @@ class Divergence:
 
 class Expectation:
     """The recorded outputs, compared with the replayed ones as they arrive (pure). Outputs of
-    one scan on different topics may arrive in any order; the divergence reported is the first
-    in the recording's log order, so the verdict does not depend on arrival order."""
+    one scan on different topics may arrive in any order, and may have been logged in any
+    order too (the recorder hears each service over its own route); the divergence reported
+    is the earliest by scan, then by the topic's place in ``chain`` (upstream first: a topology
+    that differs explains the reliability that differs with it), then by log order, so the
+    verdict depends neither on arrival nor on logging order."""
 
-    def __init__(self) -> None:
+    def __init__(self, chain: list[str] | tuple[str, ...] = ()) -> None:
+        self._rank = {t: i for i, t in enumerate(chain)}
         self.recorded: dict[str, list[bytes]] = defaultdict(list)
         self.replayed: dict[str, list[bytes]] = defaultdict(list)
         self._order: dict[str, list[int]] = defaultdict(list)
@@ -144,7 +148,10 @@ class Expectation:
 
     @property
     def divergence(self) -> Divergence | None:
-        return min(self.divergences, key=lambda d: d.order) if self.divergences else None
+        if not self.divergences:
+            return None
+        return min(self.divergences,
+                   key=lambda d: (d.scan, self._rank.get(d.topic, len(self._rank)), d.order))
 
     def expect(self, topic: str, payload: bytes) -> None:
         self.recorded[topic].append(payload)
@@ -253,7 +260,7 @@ def replay(args: argparse.Namespace) -> int:
                      sink=lines.append)
     stop = threading.Event()
     restore = stop_on_signals(stop.set, sup.interrupted.set)
-    exp = Expectation()
+    exp = Expectation(outs)
     t0 = time.monotonic()
     bus = None
     try:
@@ -302,7 +309,8 @@ def _drive(args: argparse.Namespace, summary: dict, prefix: str, ins: list[str],
     """Publish the recorded inputs in log order, each after the outputs logged before it."""
     wanted = {f"{prefix}/{t}" for t in ins + outs}
     n_in = 0
-    for key, data, _t in raw_messages(args.file, wanted):
+    log = raw_messages(args.file, wanted)
+    for key, data, _t in log:
         topic = key[len(prefix) + 1:]
         if topic in outs:
             with lock:
@@ -310,6 +318,8 @@ def _drive(args: argparse.Namespace, summary: dict, prefix: str, ins: list[str],
             continue
         h = header_of(data)
         if not _wait(exp, lock, stop, args.timeout, None if h is None else h.src_seq):
+            if exp.divergences and not stop.is_set():
+                _expect_rest_of_scan(log, prefix, outs, exp, lock, stop)
             return n_in
         if args.scans is not None and topic == "scan" and h is not None \
                 and h.seq >= args.scans:
@@ -326,6 +336,29 @@ def _drive(args: argparse.Namespace, summary: dict, prefix: str, ins: list[str],
 
 
 GRACE = 2.0  # [s] after a divergence, for the other outputs of its scan (the earliest wins)
+LOOKAHEAD = 1000  # inputs read at most past a divergence for the rest of its scan's outputs
+
+
+def _expect_rest_of_scan(log, prefix: str, outs: list[str], exp: Expectation,
+                         lock: threading.Condition, stop: threading.Event) -> None:
+    """After a divergence, the outputs of its scan logged after the input the drive stopped at
+    (an upstream output may have been logged after a downstream one): expected too, and waited
+    for a grace, so that the earliest divergence of the scan is the one reported."""
+    with lock:
+        scan = min(d.scan for d in exp.divergences)
+    for n, (key, data, _t) in enumerate(log):
+        topic = key[len(prefix) + 1:]
+        if topic not in outs:  # an input (not published: the replay stops here)
+            if n >= LOOKAHEAD:
+                break
+            continue
+        h = header_of(data)
+        if h is None or h.src_seq > scan:
+            break
+        with lock:
+            exp.expect(topic, bytes(data))
+    with lock:
+        lock.wait_for(lambda: exp.caught_up(scan + 1) or stop.is_set(), GRACE)
 
 
 def _wait(exp: Expectation, lock: threading.Condition, stop: threading.Event,
