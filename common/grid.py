@@ -384,6 +384,34 @@ def nearest_occupied(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry,
     return float(min(limit, np.hypot(x - nx, y - ny).min()))
 
 
+def open_never_near(grid: np.ndarray, geom: GridGeometry, x: float, y: float, half: float,
+                    pocket_cells: int) -> np.ndarray:
+    """The never-observed cells within half [m] of (x, y) [m] whose 8-connected never-observed
+    component, counted within that square alone, has pocket_cells cells or more (bool, the
+    grid's shape; False elsewhere): a subset of :func:`open_unknown` (grid, pocket_cells, any
+    reach) found without looking at the rest of the map.
+
+    Why a subset: such a cell is unexplored (``unknown_mask`` holds every never-observed cell),
+    and its component there is no pocket. Either the square's component lies inside the
+    observed cells' window, and then its unknown component there is at least as large; or it
+    leaves that window, and then its part inside reaches the window's edge (a pocket never
+    does) or the cell lies outside (all unexplored there). Used as a sufficient test before the
+    whole-map one (``near_frontier`` with this mask finds no more than with open_unknown's)."""
+    out = np.zeros(np.shape(grid), dtype=bool)
+    win = _window(x, y, geom, half)
+    if win is None:
+        return out
+    r0, r1, c0, c1 = win
+    never = (np.asarray(grid)[r0:r1, c0:c1] == -1).view(np.uint8)
+    if not never.any():
+        return out
+    _n, labels, stats, _ = cv2.connectedComponentsWithStats(never, connectivity=8)
+    big = stats[:, cv2.CC_STAT_AREA] >= max(1, pocket_cells)
+    big[0] = False  # label 0: the observed cells
+    out[r0:r1, c0:c1] = big[labels]
+    return out
+
+
 def near_frontier(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, radius: float,
                   p_free: float = 0.35, unknown: np.ndarray | None = None,
                   min_cells: int = 1, heading: float | None = None,

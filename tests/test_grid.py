@@ -14,6 +14,7 @@ from topoexplore.common.grid import (
     crop_known,
     distance_transform,
     known_window,
+    open_never_near,
     open_unknown,
     ray_cells,
     reframe,
@@ -95,6 +96,31 @@ def test_a_pocket_is_kept_where_the_robot_can_reach_enough_of_its_border():
     assert open_unknown(g, 100, reach=few, min_reach=10).sum() == 0
     assert open_unknown(g, 100, reach=few, min_reach=3).sum() == 36
     assert open_unknown(g, 100, reach=free, min_reach=10, min_area=37).sum() == 0  # too small
+
+
+def test_open_never_near_is_a_subset_of_open_unknown_whatever_the_reach():
+    """The planner's quick test (beside_unknown) may say yes only where the whole-map one
+    would: its cells are open_unknown's for any reach, and it finds the big ones it should."""
+    rng = np.random.default_rng(11)
+    found = 0
+    for g in random_grids(400, seed=7):
+        geom = GridGeometry(0.1, 0.0, 0.0, g.shape[1], g.shape[0])
+        reach = (g >= 0) & (g < 35) & (rng.random(g.shape) < 0.5)
+        for pocket in (0, 3, 20, 60):
+            x, y = rng.uniform(-0.5, 0.1 * g.shape[1] + 0.5), rng.uniform(-0.5, 0.1 * g.shape[0])
+            half = float(rng.uniform(0.1, 2.0))
+            quick = open_never_near(g, geom, x, y, half, pocket)
+            assert quick.shape == g.shape and not (quick & (g != -1)).any()
+            for r in (None, reach):
+                assert not (quick & ~open_unknown(g, pocket, reach=r, min_reach=2)).any()
+            found += int(quick.any())
+    assert found > 200  # not vacuous
+    g = np.zeros((40, 40), np.int8)  # a room with an open side: 10 x 40 never observed
+    g[:, 30:] = -1
+    geom = GridGeometry(0.1, 0.0, 0.0, 40, 40)
+    # the square of half 0.5 m (and a cell) holds 13 x 7 of them: too few for 600
+    assert open_never_near(g, geom, 3.0, 2.0, 0.5, 600).sum() == 0
+    assert open_never_near(g, geom, 3.0, 2.0, 1.0, 50).sum() == 23 * 10  # clipped at 4 m
 
 
 def test_reachable_border_counts_each_reachable_cell_once_per_label():

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from topoexplore.common.grid import GridGeometry, cells_for, near_frontier
+from topoexplore.common.grid import GridGeometry, cells_for, near_frontier, open_never_near
 from topoexplore.services.planner import graph as gr
 from topoexplore.services.planner import gridsearch as gs
 from topoexplore.services.planner.strategies.base import (
@@ -46,6 +46,8 @@ from topoexplore.services.planner.strategies.frontier import (
 )
 
 P_UNSEEN = 0.5  # P of an end node the reliability message does not list yet (paper: initial P)
+LOCAL_SIDE = 2.0  # beside_unknown's quick test looks this many pocket sides (the side of a
+#   square of completion_pocket_area) beyond its radius: room for a component to show its size
 ENTRY_WINDOW = 4.0  # [m] the way onto the skeleton is checked for the body's fit this far
 #   from the robot (farther, the nearest edge point is taken as before)
 
@@ -342,10 +344,17 @@ class Topological:
         p, v = self.cfg.params, u.view
         if v is None:
             return True
-        res = v.geom.resolution
+        res, area = v.geom.resolution, p.completion_pocket_area
+        n = cells_for(p.min_frontier_size, res)
+        # first the never-observed space around the point alone (a subset of the cells the
+        # whole-map test counts, so a yes is its yes), as a rule enough where the map stops
+        if near_frontier(x, y, v.data, v.geom, radius, v.occ.p_free,
+                         open_never_near(v.data, v.geom, x, y,
+                                         radius + LOCAL_SIDE * math.sqrt(area),
+                                         int(area / res ** 2)), min_cells=n):
+            return True
         return near_frontier(x, y, v.data, v.geom, radius, v.occ.p_free,
-                             open_unknown(self.cfg, u, p.completion_pocket_area),
-                             min_cells=cells_for(p.min_frontier_size, res))
+                             open_unknown(self.cfg, u, area), min_cells=n)
 
     def _has_looked(self, px: float, py: float) -> bool:
         r2 = self.cfg.params.blacklist_radius ** 2
