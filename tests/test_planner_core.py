@@ -1112,3 +1112,24 @@ def test_the_planner_keeps_no_chain_of_old_map_views():
     gc.collect()  # earlier tests' garbage cycles (cores, their closures) are not this run's
     inproc.run("office", strategy="reliability", max_sim_time=120.0, on_update=count)
     assert len(updates) > 200 and max(alive[20:]) <= 5, max(alive)
+
+
+def test_narrower_than_answers_as_the_whole_maps_clearance():
+    """A view asked whether points are narrower than a limit before it has the whole map's
+    clearance answers from the box around the points alone: the same as the whole map's."""
+    rng = np.random.default_rng(4)
+    for _ in range(120):
+        h, w = (int(v) for v in rng.integers(5, 70, 2))
+        g = np.full((h, w), -1, np.int8)
+        g[rng.random((h, w)) < 0.6] = 0
+        g[rng.random((h, w)) < rng.uniform(0.0, 0.05)] = 100
+        geom = GridGeometry(0.05, -1.0, 0.5, w, h)
+        pts = np.column_stack([rng.uniform(-1.2, -1.0 + 0.05 * w + 0.2, 12),
+                               rng.uniform(0.3, 0.5 + 0.05 * h + 0.2, 12)])
+        for limit in (0.05, 0.17, 0.4):
+            local = MapView(grid(g, geom), Occupancy())
+            got = local.narrower_than(pts, limit)
+            assert "clearance" not in local.__dict__  # no whole-map transform was made
+            whole = MapView(grid(g, geom), Occupancy())
+            assert np.array_equal(got, whole.clearance_at(pts) < limit)
+            assert np.array_equal(whole.narrower_than(pts, limit), got)  # made: used as is

@@ -362,8 +362,8 @@ class PlannerCore:
         wide = tg.planned_clearance[tg.idx + 1:] + 1e-6 >= need
         if not np.any(wide):
             return False
-        now = self._view.clearance_at(tg.wps[tg.idx + 1:][wide])
-        return bool(np.any(now < need - NARROWED_TOLERANCE * self._view.geom.resolution))
+        limit = need - NARROWED_TOLERANCE * self._view.geom.resolution
+        return bool(np.any(self._view.narrower_than(tg.wps[tg.idx + 1:][wide], limit)))
 
     # --- decision machine --------------------------------------------------------------------
 

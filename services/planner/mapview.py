@@ -270,6 +270,28 @@ class MapView:
         """Clearance [m] at (n, 2) points [m]; inf outside the grid."""
         return self._clearance_lookup(pts)
 
+    def narrower_than(self, pts: np.ndarray, limit: float) -> np.ndarray:
+        """clearance_at(pts) < limit [m], per (n, 2) point [m] (False outside the grid): from
+        the whole map's clearance when this view has it, else from the distance transform of
+        the box of cells around the points alone. Every occupied cell nearer than limit to a
+        point lies in that box, so the answer is the same, without the whole map's transform
+        on an update that needs nothing else of it (a target followed between searches)."""
+        pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+        if "clearance" in self.__dict__ or len(pts) == 0:
+            return self.clearance_at(pts) < limit
+        geom, out = self.geom, np.zeros(len(pts), dtype=bool)
+        rows, cols = geom.world_to_cell(pts[:, 0], pts[:, 1])
+        inside = geom.inside(rows, cols)
+        if not inside.any():
+            return out
+        rows, cols, k = rows[inside], cols[inside], int(math.ceil(limit / geom.resolution)) + 1
+        r0, c0 = max(0, int(rows.min()) - k), max(0, int(cols.min()) - k)
+        r1 = min(geom.height, int(rows.max()) + k + 1)
+        c1 = min(geom.width, int(cols.max()) + k + 1)
+        near = gs.clearance_map(self.occupied[r0:r1, c0:c1], geom.resolution)
+        out[inside] = near[rows - r0, cols - c0] < limit
+        return out
+
     @_once
     def _clearance_lookup(self):
         return gr.grid_clearance(self.clearance, self.geom)
