@@ -32,8 +32,9 @@ the same for every strategy:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -125,7 +126,7 @@ class PlannerCore:
         self._view: MapView | None = None  # this update's map view
         self._u: Update | None = None  # ... and the update the strategy evaluated
         self._walled: str | None = None  # walled in by marks after RELEASE_LIMIT releases
-        self._narrowed_now = False  # ... under which the followed path narrowed (_narrowed)
+        self._narrowed_now = lambda: False  # ... under which the followed path narrowed
 
     # --- public ------------------------------------------------------------------------------
 
@@ -153,7 +154,8 @@ class PlannerCore:
             self._looked.observe(x, y, th, self._view.classes, self._view.geom)
         rem = None if tg is None else tg.remaining(x, y)  # [m] the robot located on its
         #   path: _narrowed judges what is ahead, the watchdog how near the target is
-        self._narrowed_now = tg is not None and self._narrowed(tg)
+        self._narrowed_now = self._narrowed(tg)  # asked late: by then the evaluation may
+        #   have made the whole map's clearance
         u = Update(t, x, y, th, graph, beliefs, self._view,
                    None if self._target is None else self._target.cand.detached(),
                    self._blacklist.covers,
@@ -344,10 +346,11 @@ class PlannerCore:
         """Clearance [m] of the waypoints on this update's map (None: no map)."""
         return None if self._view is None else self._view.clearance_at(wps)
 
-    def _narrowed(self, tg: Target) -> bool:
-        """The rest of the path now passes closer to an obstacle than it was planned to: a
-        waypoint planned with the clearance the planner needs (robot radius +
-        clearance_margin) now has more than NARROWED_TOLERANCE cells less. (A waypoint planned
+    def _narrowed(self, tg: Target | None) -> Callable[[], bool]:
+        """Does the rest of the path now pass closer to an obstacle than it was planned to (a
+        question asked when needed, once per update)? That is, has a waypoint planned with
+        the clearance the planner needs (robot radius + clearance_margin) now more than
+        NARROWED_TOLERANCE cells less? (A waypoint planned
         through a narrow passage is not judged: there a cell more or less of a ragged wall is
         the passage, and a new path would be no wider.)
 
@@ -356,14 +359,18 @@ class PlannerCore:
         body's limit, while path_ok, which only asks for the skeleton or a free cell, keeps it.
         The controller then stops for the wall it grazes, and the mark it earns there closes
         the corridor (a house floor: "done" at coverage 0.40)."""
-        if tg.planned_clearance is None or self._view is None or tg.idx + 1 >= len(tg.wps):
-            return False
+        view = self._view
+        if tg is None or tg.planned_clearance is None or view is None \
+                or tg.idx + 1 >= len(tg.wps):
+            return lambda: False
         need = self._cfg.need
         wide = tg.planned_clearance[tg.idx + 1:] + 1e-6 >= need
         if not np.any(wide):
-            return False
-        limit = need - NARROWED_TOLERANCE * self._view.geom.resolution
-        return bool(np.any(self._view.narrower_than(tg.wps[tg.idx + 1:][wide], limit)))
+            return lambda: False
+        pts, limit = tg.wps[tg.idx + 1:][wide], need - NARROWED_TOLERANCE * view.geom.resolution
+        # the question, not its answer: asked only if needed, once; it holds the points and
+        # this update's view, never the target (whose path would hold older updates)
+        return functools.cache(lambda: bool(np.any(view.narrower_than(pts, limit))))
 
     # --- decision machine --------------------------------------------------------------------
 
@@ -482,7 +489,7 @@ class PlannerCore:
             # waypoints may still lie near the skeleton on its far side, so path_ok passes
             return Decision.repath(tg.progress_t, "the path crosses an obstacle seen since it "
                                    "was made: new path", cross=True)
-        if self._narrowed_now:
+        if self._narrowed_now():
             return Decision.repath(tg.progress_t, "the path passes closer to an obstacle seen "
                                    "since it was made: new path")
         if t - self._last_eval_t >= p.replan_period:

@@ -125,12 +125,13 @@ class Update:
     view: MapView | None  # None: no map yet
     target: Candidate | None  # the target followed since the previous update
     blacklisted: Callable[[Candidate], bool]
-    fresh: bool = False  # the map changed under the followed path: no cached search
+    fresh: Callable[[], bool] = lambda: False  # the map changed under the followed path: no
+    #   cached search (asked only when a search could be reused: it may cost a transform)
 
     def may_reuse(self, period: float, made_t: float) -> bool:
-        """A search made at made_t [s] may serve this update: a target is followed, the map
-        has not changed under its path, and the search is younger than period [s]."""
-        return self.target is not None and not self.fresh and 0.0 <= self.t - made_t < period
+        """A search made at made_t [s] may serve this update: a target is followed, the search
+        is younger than period [s], and the map has not changed under its path."""
+        return self.target is not None and 0.0 <= self.t - made_t < period and not self.fresh()
 
 
 class Strategy(Protocol):
