@@ -336,7 +336,7 @@ def _drive(args: argparse.Namespace, summary: dict, prefix: str, ins: list[str],
 
 
 GRACE = 2.0  # [s] after a divergence, for the other outputs of its scan (the earliest wins)
-LOOKAHEAD = 1000  # inputs read at most past a divergence for the rest of its scan's outputs
+LOOKAHEAD = 1000  # messages read at most past a divergence for the rest of its scan's outputs
 
 
 def _expect_rest_of_scan(log, prefix: str, outs: list[str], exp: Expectation,
