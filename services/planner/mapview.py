@@ -100,6 +100,10 @@ class MapView:
             self._memo[key] = make()
         return self._memo[key]
 
+    def memo_made(self, key: Any) -> Any:
+        """What :meth:`memo` holds for key, or None if it was not made (nothing is made)."""
+        return self._memo.get(key)
+
     @_once
     def _crop(self) -> tuple[np.ndarray, GridGeometry]:
         return crop_known(self._grid.data, self._grid.geom)
@@ -188,8 +192,8 @@ class MapView:
         known free cells; pocket_cells <= 0: :attr:`unknown`."""
         if pocket_cells <= 0:
             return self.unknown
-        min_area = math.ceil(share * self.free_cells) if search is not None else 0
-        key = (pocket_cells, None if search is None else id(search), min_reach, min_area)
+        key = self._open_key(pocket_cells, search, min_reach, share)
+        min_area = key[3]
         hit = self._open.get(key)
         if hit is None or hit[0] is not search:  # the search is kept: its id stays its own
             reach = None if search is None else np.isfinite(search.dist)
@@ -197,6 +201,20 @@ class MapView:
                 self.data, pocket_cells, self.occ.p_free, self.occ.p_occ, reach, min_reach,
                 min_area))
         return hit[1]
+
+    def open_unknown_made(self, pocket_cells: int, search: gs.GridSearch | None = None,
+                          min_reach: int = 1, share: float = 0.0) -> np.ndarray | None:
+        """:meth:`open_unknown` with these arguments if this view has made it, else None
+        (nothing is computed)."""
+        if pocket_cells <= 0:
+            return self.__dict__.get("unknown")
+        hit = self._open.get(self._open_key(pocket_cells, search, min_reach, share))
+        return None if hit is None or hit[0] is not search else hit[1]
+
+    def _open_key(self, pocket_cells: int, search: gs.GridSearch | None, min_reach: int,
+                  share: float) -> tuple[int, int | None, int, int]:
+        min_area = math.ceil(share * self.free_cells) if search is not None else 0
+        return pocket_cells, None if search is None else id(search), min_reach, min_area
 
     def openings(self, fit: float) -> tuple[np.ndarray, np.ndarray]:
         """(mouth, wide): where the frontier may be a door seen only from afar

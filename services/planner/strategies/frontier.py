@@ -207,6 +207,18 @@ def open_unknown(cfg: Config, u: Update, pocket_area: float) -> np.ndarray:
                                cells_for(p.completion_min_size, res), p.completion_pocket_share)
 
 
+def open_unknown_made(cfg: Config, u: Update, pocket_area: float) -> np.ndarray | None:
+    """:func:`open_unknown` (cfg, u, pocket_area) if this update has made it, else None
+    (nothing is computed)."""
+    p, res = cfg.params, u.view.geom.resolution
+    reach = u.view.memo_made(("reach", True, u.x, u.y))
+    if reach is None:
+        return None
+    return u.view.open_unknown_made(int(pocket_area / res ** 2), reach,
+                                    cells_for(p.completion_min_size, res),
+                                    p.completion_pocket_share)
+
+
 def robot_reach(cfg: Config, u: Update, narrow: bool = True) -> gs.GridSearch:
     """Where the robot can get at all (narrow passages too, or with narrow False only where
     :func:`robot_search` paths go; no path costs), once per map view and robot position."""

@@ -40,6 +40,7 @@ from topoexplore.services.planner.strategies.completion import Completion
 from topoexplore.services.planner.strategies.frontier import (
     NARROW_PENALTY,
     open_unknown,
+    open_unknown_made,
     path_fits,
     robot_reach,
     robot_search,
@@ -346,15 +347,18 @@ class Topological:
             return True
         res, area = v.geom.resolution, p.completion_pocket_area
         n = cells_for(p.min_frontier_size, res)
-        # first the never-observed space around the point alone (a subset of the cells the
-        # whole-map test counts, so a yes is its yes), as a rule enough where the map stops
-        if near_frontier(x, y, v.data, v.geom, radius, v.occ.p_free,
-                         open_never_near(v.data, v.geom, x, y,
-                                         radius + LOCAL_SIDE * math.sqrt(area),
-                                         int(area / res ** 2)), min_cells=n):
+        whole = open_unknown_made(self.cfg, u, area)
+        # unless this update has the whole-map mask already: first the never-observed space
+        # around the point alone (a subset of the cells the whole-map test counts, so a yes
+        # is its yes), as a rule enough where the map stops
+        if whole is None and near_frontier(
+                x, y, v.data, v.geom, radius, v.occ.p_free,
+                open_never_near(v.data, v.geom, x, y, radius + LOCAL_SIDE * math.sqrt(area),
+                                int(area / res ** 2)), min_cells=n):
             return True
-        return near_frontier(x, y, v.data, v.geom, radius, v.occ.p_free,
-                             open_unknown(self.cfg, u, area), min_cells=n)
+        if whole is None:
+            whole = open_unknown(self.cfg, u, area)
+        return near_frontier(x, y, v.data, v.geom, radius, v.occ.p_free, whole, min_cells=n)
 
     def _has_looked(self, px: float, py: float) -> bool:
         r2 = self.cfg.params.blacklist_radius ** 2
