@@ -1133,3 +1133,23 @@ def test_narrower_than_answers_as_the_whole_maps_clearance():
             whole = MapView(grid(g, geom), Occupancy())
             assert np.array_equal(got, whole.clearance_at(pts) < limit)
             assert np.array_equal(whole.narrower_than(pts, limit), got)  # made: used as is
+
+
+def test_open_unknown_made_only_reports_what_the_update_made():
+    """beside_unknown's shortcut: the whole-map mask of this update if made, never made by
+    asking."""
+    from topoexplore.services.planner.strategies.base import Update
+    from topoexplore.services.planner.strategies.frontier import open_unknown, open_unknown_made
+
+    g, geom = half_known_room()
+    g[20:23, 10:13] = -1  # a small enclosed pocket
+    cfg = Config(params(), RADIUS, 0.9)
+    view = MapView(grid(g, geom), Occupancy())
+    u = Update(0.0, 1.05, 3.05, 0.0, None, None, view, None, lambda c: False)
+    assert open_unknown_made(cfg, u, 1.5) is None
+    assert view.memo_made(("reach", True, u.x, u.y)) is None  # nothing was made by asking
+    whole = open_unknown(cfg, u, 1.5)
+    assert open_unknown_made(cfg, u, 1.5) is whole
+    assert open_unknown_made(cfg, u, 0.5) is None  # other arguments: not made
+    assert view.open_unknown_made(0) is None and view.open_unknown_made(0) is None
+    assert view.open_unknown(0) is view.open_unknown_made(0)
