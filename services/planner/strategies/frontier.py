@@ -202,27 +202,36 @@ def open_unknown(cfg: Config, u: Update, pocket_area: float) -> np.ndarray:
     those the robot can look into (:meth:`MapView.open_unknown`): completion_min_size of
     their edge reached from where it is (:func:`robot_reach`), completion_pocket_share of the
     known free cells or more."""
-    p, res = cfg.params, u.view.geom.resolution
-    return u.view.open_unknown(int(pocket_area / res ** 2), robot_reach(cfg, u),
-                               cells_for(p.completion_min_size, res), p.completion_pocket_share)
+    cells, reach, share = _pocket_rule(cfg, u, pocket_area)
+    return u.view.open_unknown(cells, robot_reach(cfg, u), reach, share)
 
 
 def open_unknown_made(cfg: Config, u: Update, pocket_area: float) -> np.ndarray | None:
     """:func:`open_unknown` (cfg, u, pocket_area) if this update has made it, else None
     (nothing is computed)."""
-    p, res = cfg.params, u.view.geom.resolution
-    reach = u.view.memo_made(("reach", True, u.x, u.y))
-    if reach is None:
+    search = u.view.memo_made(_reach_key(u, True))
+    if search is None:
         return None
-    return u.view.open_unknown_made(int(pocket_area / res ** 2), reach,
-                                    cells_for(p.completion_min_size, res),
-                                    p.completion_pocket_share)
+    cells, reach, share = _pocket_rule(cfg, u, pocket_area)
+    return u.view.open_unknown_made(cells, search, reach, share)
+
+
+def _pocket_rule(cfg: Config, u: Update, pocket_area: float) -> tuple[int, int, float]:
+    """(pocket cells, border cells reached to look in, share of the free cells) of
+    :meth:`MapView.open_unknown` for pocket_area [m^2]."""
+    p, res = cfg.params, u.view.geom.resolution
+    return int(pocket_area / res ** 2), cells_for(p.completion_min_size, res), \
+        p.completion_pocket_share
 
 
 def robot_reach(cfg: Config, u: Update, narrow: bool = True) -> gs.GridSearch:
     """Where the robot can get at all (narrow passages too, or with narrow False only where
     :func:`robot_search` paths go; no path costs), once per map view and robot position."""
-    return u.view.memo(("reach", narrow, u.x, u.y), lambda: robot_search(cfg, u, narrow, True))
+    return u.view.memo(_reach_key(u, narrow), lambda: robot_search(cfg, u, narrow, True))
+
+
+def _reach_key(u: Update, narrow: bool) -> tuple:
+    return "reach", narrow, u.x, u.y
 
 
 def robot_search(cfg: Config, u: Update, narrow: bool = False, reach_only: bool = False
