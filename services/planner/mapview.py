@@ -100,6 +100,10 @@ class MapView:
             self._memo[key] = make()
         return self._memo[key]
 
+    def _made(self, name: str) -> bool:
+        """Has this view computed its :class:`_once` property ``name``?"""
+        return name in self.__dict__
+
     def memo_made(self, key: Any) -> Any:
         """What :meth:`memo` holds for key, or None if it was not made (nothing is made)."""
         return self._memo.get(key)
@@ -207,7 +211,7 @@ class MapView:
         """:meth:`open_unknown` with these arguments if this view has made it, else None
         (nothing is computed)."""
         if pocket_cells <= 0:
-            return self.__dict__.get("unknown")
+            return self.unknown if self._made("unknown") else None
         hit = self._open.get(self._open_key(pocket_cells, search, min_reach, share))
         return None if hit is None or hit[0] is not search else hit[1]
 
@@ -295,7 +299,7 @@ class MapView:
         point lies in that box, so the answer is the same, without the whole map's transform
         on an update that needs nothing else of it (a target followed between searches)."""
         pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
-        if "clearance" in self.__dict__ or len(pts) == 0:
+        if self._made("clearance") or len(pts) == 0:
             return self.clearance_at(pts) < limit
         geom, out = self.geom, np.zeros(len(pts), dtype=bool)
         rows, cols = geom.world_to_cell(pts[:, 0], pts[:, 1])
