@@ -328,6 +328,118 @@ def open_unknown(grid: np.ndarray, pocket_cells: int = 0, p_free: float = 0.35,
     return out
 
 
+def open_unknown_at(grid: np.ndarray, rows: slice, cols: slice, pocket_cells: int = 0,
+                    p_free: float = 0.35, p_occ: float = 0.65, margin: int | None = None
+                    ) -> np.ndarray | None:
+    """``open_unknown(grid, pocket_cells, p_free, p_occ)[rows, cols]`` (no reach rule) worked
+    out from the cells within margin of the window alone, or None where they cannot settle it
+    (then the whole-map mask is the answer: :class:`OpenUnknown`).
+
+    The whole-map rules, read in the square S = the window grown by margin (clipped to the
+    grid), whose sides inside the grid are its *open* edges:
+    - an undecided component is unexplored iff it is 8-adjacent to a never-observed cell. One
+      without a cell on an open edge has all its neighbours in S; one on an open edge that is
+      not seen to touch never-observed cells in S may do so outside: unsettled.
+    - an unknown component is a pocket iff it does not reach the grid's border and has fewer
+      than pocket_cells cells (open_unknown's known window is only a shortcut: its border
+      cells are unobserved, joined to everything outside). One with a cell on an open edge
+      has at least its cells in S: with pocket_cells of them it is no pocket, with fewer it is
+      unsettled. Only components with a cell in the window matter.
+    rows, cols: slices with step 1 inside the grid. margin [cells]: default twice the side of
+    a square pocket, at least 4."""
+    g = np.asarray(grid)
+    h_all, w_all = g.shape
+    if margin is None:
+        margin = max(4, 2 * int(math.ceil(math.sqrt(max(pocket_cells, 1)))))
+    r0, r1, c0, c1 = rows.start, rows.stop, cols.start, cols.stop
+    a0, a1 = max(0, r0 - margin), min(h_all, r1 + margin)
+    b0, b1 = max(0, c0 - margin), min(w_all, c1 + margin)
+    sub = g[a0:a1, b0:b1]
+    h, w = sub.shape
+    edge = np.zeros((h, w), dtype=bool)  # the open edges: neighbours outside S in the grid
+    edge[0, :] |= a0 > 0
+    edge[-1, :] |= a1 < h_all
+    edge[:, 0] |= b0 > 0
+    edge[:, -1] |= b1 < w_all
+    never = sub == -1
+    unknown = never
+    undecided = (classify(sub, p_free, p_occ) == UNKNOWN) & ~never
+    if undecided.any():
+        n, labels = cv2.connectedComponents(undecided.view(np.uint8), connectivity=8)
+        keep = np.zeros(n, dtype=bool)
+        keep[labels[cv2.dilate(never.view(np.uint8), _KERNEL3).view(bool) & undecided]] = True
+        cut = np.zeros(n, dtype=bool)
+        cut[labels[edge & undecided]] = True
+        keep[0] = cut[0] = False
+        if (cut & ~keep).any():
+            return None
+        unknown = never | keep[labels]
+    win = np.s_[r0 - a0:r1 - a0, c0 - b0:c1 - b0]
+    if pocket_cells <= 0 or not unknown[win].any():
+        return unknown[win].copy()
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(unknown.view(np.uint8), connectivity=8)
+    x, y = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
+    bw, bh = stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]
+    border = (((x == 0) & (b0 == 0)) | ((y == 0) & (a0 == 0))
+              | ((x + bw == w) & (b1 == w_all)) | ((y + bh == h) & (a1 == h_all)))
+    small = stats[:, cv2.CC_STAT_AREA] < pocket_cells
+    cut = np.zeros(n, dtype=bool)
+    cut[labels[edge & unknown]] = True
+    inside = np.zeros(n, dtype=bool)
+    inside[labels[win]] = True
+    inside[0] = False  # label 0: the known cells
+    if (inside & cut & small & ~border).any():
+        return None
+    pocket = inside & ~cut & small & ~border
+    lab = labels[win]
+    return unknown[win] & ~pocket[lab]
+
+
+class OpenUnknown:
+    """:func:`open_unknown` (grid, pocket_cells, p_free, p_occ), asked a window at a time:
+    ``mask[r0:r1, c0:c1]`` is worked out from the cells around the window
+    (:func:`open_unknown_at`; where its default margin leaves it unsettled, again with
+    WIDER), and the whole-map mask is made (once) only where neither settles it, or for
+    ``np.asarray(mask)``. For callers that read a few small windows of a
+    large map (:func:`near_frontier`, :func:`nearest_occupied`). ``local`` and ``whole``
+    count the windows answered each way."""
+
+    WIDER = 64  # [cells] the margin of a second try, where the default one left it unsettled
+
+    def __init__(self, grid: np.ndarray, pocket_cells: int = 0, p_free: float = 0.35,
+                 p_occ: float = 0.65):
+        self.grid = np.asarray(grid)
+        self.shape = self.grid.shape
+        self._args = (int(pocket_cells), float(p_free), float(p_occ))
+        self._whole: np.ndarray | None = None
+        self.local = 0
+        self.whole = 0
+
+    def full(self) -> np.ndarray:
+        """The whole-map mask, made on the first call."""
+        if self._whole is None:
+            self._whole = open_unknown(self.grid, *self._args)
+        return self._whole
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        m = self.full()
+        return m if dtype is None else m.astype(dtype)
+
+    def __getitem__(self, key):
+        if self._whole is None and isinstance(key, tuple) and len(key) == 2 and all(
+                isinstance(k, slice) and k.step in (None, 1) for k in key):
+            (r0, r1, _), (c0, c1, _) = (k.indices(n) for k, n in zip(key, self.shape, strict=True))
+            if r0 < r1 and c0 < c1:
+                for margin in (None, self.WIDER):
+                    out = open_unknown_at(self.grid, slice(r0, r1), slice(c0, c1), *self._args,
+                                          margin=margin)
+                    if out is not None:
+                        self.local += 1
+                        return out
+        self.whole += 1
+        return self.full()[key]
+
+
 def _reachable_border(labels: np.ndarray, reach: np.ndarray, wanted: np.ndarray
                       ) -> np.ndarray:
     """Per label 0..n-1 (n = len(wanted)): how many reach cells are 4-adjacent to a cell of

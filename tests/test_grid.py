@@ -9,6 +9,7 @@ import pytest
 from topoexplore.common.grid import (
     UNKNOWN,
     GridGeometry,
+    OpenUnknown,
     cells_for,
     classify,
     crop_known,
@@ -16,6 +17,7 @@ from topoexplore.common.grid import (
     known_window,
     open_never_near,
     open_unknown,
+    open_unknown_at,
     ray_cells,
     reframe,
     unknown_mask,
@@ -313,3 +315,60 @@ def test_reframe_keeps_a_layer_in_place_as_the_map_grows():
     assert not reframe(a, old, GridGeometry(0.1, 0.05, 0.0, 4, 3)).any()
     assert not reframe(a, old, GridGeometry(0.05, 0.0, 0.0, 8, 6)).any()
     assert (reframe(a, old, GridGeometry(0.1, 5.0, 5.0, 2, 2), fill=7) == 7).all()  # apart
+
+
+def test_open_unknown_at_answers_as_the_whole_map_or_not_at_all():
+    """A window of open_unknown worked out from the cells around it is the whole-map mask's
+    window, or None (unsettled); and it settles most windows."""
+    rng = np.random.default_rng(5)
+    settled = unsettled = 0
+    for g in random_grids(300, seed=13):
+        h, w = g.shape
+        for pocket in (0, 1, 5, 20, 60):
+            whole = open_unknown(g, pocket)
+            for _ in range(3):
+                r0, c0 = int(rng.integers(0, h)), int(rng.integers(0, w))
+                r1, c1 = int(rng.integers(r0 + 1, h + 1)), int(rng.integers(c0 + 1, w + 1))
+                out = open_unknown_at(g, slice(r0, r1), slice(c0, c1), pocket,
+                                      margin=int(rng.integers(1, 9)))
+                if out is None:
+                    unsettled += 1
+                    continue
+                assert np.array_equal(out, whole[r0:r1, c0:c1])
+                settled += 1
+    assert settled > 2 * unsettled  # not vacuous
+
+
+def test_open_unknown_at_settles_by_the_rules_it_states():
+    """A room with a 3 x 3 pocket and an open side: the pocket is dropped (it lies in the
+    square), the open side's unknown is kept (on the square's edge with enough cells), an
+    undecided speck is dropped, and a window whose square cuts a small component without
+    reaching its end is unsettled."""
+    g = np.zeros((60, 60), np.int8)
+    g[[0, -1], :] = g[:, [0, -1]] = 100
+    g[:, 45:] = -1  # open side, reaching the grid's border
+    g[20:23, 20:23] = -1  # a pocket of 9 cells
+    g[30, 10] = 50  # an undecided speck among free cells
+    out = open_unknown_at(g, slice(15, 35), slice(5, 50), 20)
+    assert out is not None and np.array_equal(out, open_unknown(g, 20)[15:35, 5:50])
+    assert not out[5:8, 15:18].any() and not out[15, 5] and out[:, 40:].all()
+    g[40, 2:40] = -1  # a row of 38 unknown cells: a pocket for 50, seen only in part
+    assert open_unknown_at(g, slice(38, 43), slice(30, 45), 50, margin=2) is None
+    assert np.array_equal(open_unknown_at(g, slice(38, 43), slice(30, 45), 50, margin=40),
+                          open_unknown(g, 50)[38:43, 30:45])
+
+
+def test_open_unknown_mask_reads_windows_locally_and_the_whole_map_when_it_must():
+    """OpenUnknown: a window as open_unknown's, counted as local or whole; the whole-map
+    mask for np.asarray and for anything that is not a plain window."""
+    g = np.zeros((60, 300), np.int8)
+    g[:, 280:] = -1
+    g[40, 2:200] = -1  # 198 cells: a pocket for 250, longer than the second try's square
+    m = OpenUnknown(g, 250)
+    whole = open_unknown(g, 250)
+    assert np.array_equal(m[10:20, 270:290], whole[10:20, 270:290])
+    assert (m.local, m.whole) == (1, 0)
+    assert np.array_equal(m[39:42, 150:155], whole[39:42, 150:155]) and m.whole == 1
+    assert not whole[40, 2:200].any()
+    assert np.array_equal(np.asarray(m), whole) and np.array_equal(m[::2, 3], whole[::2, 3])
+    assert m.shape == g.shape

@@ -35,11 +35,11 @@ from topoexplore.common.grid import (
     CROSS,
     GridGeometry,
     Occupancy,
+    OpenUnknown,
     cells_for,
     classify,
     near_frontier,
     nearest_occupied,
-    open_unknown,
 )
 from topoexplore.common.params import LaserParams, ReliabilityParams
 from topoexplore.common.surfaces import Surfaces
@@ -490,13 +490,16 @@ class ReliabilityCore:
             tr.n_bearings += 1
             tr.alpha_max = circular_spread(tr.bins[~np.isnan(tr.bins)])
 
-    def _unknown(self, grid: np.ndarray, geom: GridGeometry) -> np.ndarray | None:
-        """Unexplored cells for the frontier and examined tests (None when all are off)."""
+    def _unknown(self, grid: np.ndarray, geom: GridGeometry) -> OpenUnknown | None:
+        """Unexplored cells for the frontier and examined tests (None when all are off):
+        :func:`open_unknown`, asked window by window around the nodes seen (the tests read
+        a few small windows; the whole-map mask is made only where one cannot be settled
+        from the cells around it)."""
         pr = self.params
         if pr.frontier_group <= 0 and pr.frontier_radius <= 0 and pr.examined_radius <= 0:
             return None
-        return open_unknown(grid, int(pr.pocket_area / geom.resolution ** 2), self.occ.p_free,
-                            self.occ.p_occ)
+        return OpenUnknown(grid, int(pr.pocket_area / geom.resolution ** 2), self.occ.p_free,
+                           self.occ.p_occ)
 
     def _front(self, g: np.ndarray, geom: GridGeometry) -> np.ndarray:
         """The grid the frontier tests read: g with the surface cells it shows free marked
