@@ -493,12 +493,16 @@ def _disk(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 def find_frontiers(free: np.ndarray, unknown: np.ndarray, geom: GridGeometry,
                    search: GridSearch, min_frontier_size: float, potential_scale: float,
-                   gain_scale: float) -> tuple[list[FrontierGroup], int]:
+                   gain_scale: float, look: bool = True,
+                   stop: Callable[[FrontierGroup], bool] | None = None
+                   ) -> tuple[list[FrontierGroup], int]:
     """Frontier groups (size >= min_frontier_size [m]) with goal, path length and cost.
 
     free: known free cells; unknown: the cells that count as unexplored
     (``MapView.unknown`` / ``MapView.open_unknown``). Returns (groups, number of groups
     dropped as too small). Unreachable groups are returned with goal None and cost inf.
+    look False: no look points (look_xy None); stop: the groups end with the first one it
+    says yes to (the count of dropped groups then only counts those before it).
     """
     fmask = frontier_mask(free, unknown)
     if not fmask.any():
@@ -521,15 +525,17 @@ def find_frontiers(free: np.ndarray, unknown: np.ndarray, geom: GridGeometry,
         cx, cy = geom.cell_to_world(cents[k, 1], cents[k, 0])  # centroid is (x=col, y=row)
         groups.append(_group(k, size, (float(cx), float(cy)), rows[bounds[k - 1]:bounds[k]],
                              cols[bounds[k - 1]:bounds[k]], unknown, geom, search,
-                             potential_scale, gain_scale))
+                             potential_scale, gain_scale, look))
+        if stop is not None and stop(groups[-1]):
+            break
     return groups, dropped
 
 
 def _group(k: int, size: int, centroid: tuple[float, float], r: np.ndarray, c: np.ndarray,
            unknown: np.ndarray, geom: GridGeometry, search: GridSearch,
-           potential_scale: float, gain_scale: float) -> FrontierGroup:
+           potential_scale: float, gain_scale: float, look: bool = True) -> FrontierGroup:
     """Frontier group k of cells (r, c): its goal (the reachable cell nearest the centroid),
-    path length and explore_lite cost."""
+    path length and explore_lite cost; with look, its look point."""
     cx, cy = centroid
     wx, wy = geom.cell_to_world(r, c)
     d = search.dist[r, c]
@@ -541,7 +547,7 @@ def _group(k: int, size: int, centroid: tuple[float, float], r: np.ndarray, c: n
         goal_xy = (float(wx[j]), float(wy[j]))
         plen = float(d[j])
         cost = potential_scale * plen - gain_scale * size * geom.resolution
-        look = look_point(unknown, geom, goal_rc, LOOK_RADIUS)
+        look = look_point(unknown, geom, goal_rc, LOOK_RADIUS) if look else None
     else:
         goal_rc, goal_xy, plen, cost, look = None, None, math.inf, math.inf, None
     return FrontierGroup(k, size, centroid, np.stack([wx, wy], axis=1), goal_rc, goal_xy,

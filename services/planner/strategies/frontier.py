@@ -36,7 +36,8 @@ def frontier_evaluation(cfg: Config, u: Update, min_size: float | None = None,
     most near [m], and with openings the shorter ones beside an opening not yet looked into
     (:meth:`MapView.openings`); with pocket_area > 0 [m^2], not those bordering a smaller
     enclosed unknown pocket. reach_only: no path costs, only which groups are reachable at all (see
-    :func:`gridsearch.grid_search`).
+    :func:`gridsearch.grid_search`), no look points, and (without near or openings) the
+    search ends at the first group that counts: whether there is one, not how many.
 
     Paths keep the clearance margin (cells with clearance >= robot radius + margin); only
     when no group is reachable that way, the search goes again through narrow passages too
@@ -97,8 +98,15 @@ def _evaluate(cfg: Config, u: Update, min_size: float | None, pocket_area: float
         return ev
     res = view.geom.resolution
     unknown = open_unknown(cfg, u, pocket_area) if pocket_area > 0 else view.unknown
+    stop = None
+    if reach_only and near <= 0 and not openings:  # only whether one group counts: the
+        #   groups end with the first (all are min_size or longer: floor is min_size)
+        def stop(g: gs.FrontierGroup) -> bool:
+            return g.goal_xy is not None and not u.blacklisted(
+                _candidate(g, search, res, p.potential_scale))
     groups, dropped = gs.find_frontiers(view.frontier_free, unknown, view.geom, search, floor,
-                                        p.potential_scale, p.gain_scale)
+                                        p.potential_scale, p.gain_scale, look=not reach_only,
+                                        stop=stop)
     fit = cfg.fit(res)
     unreachable, black, doors = 0, 0, 0
     for g in groups:
