@@ -393,20 +393,26 @@ class Topological:
 def _near_skeleton(index: gr.TopoIndex, tolerance: float, lead: np.ndarray | None = None
                    ) -> Callable[[np.ndarray], bool]:
     """path_ok of a topological path: every waypoint within tolerance [m] of the skeleton or of
-    this update's grid lead-in to it (the KD-tree is built on the first call)."""
-    tree: list = []
+    this update's grid lead-in to it (the points are gathered on the first call; each call
+    searches only those in the waypoints' box grown by the tolerance, which no other point
+    can be within)."""
+    every: list = []
 
     def path_ok(wps: np.ndarray) -> bool:
         if len(wps) == 0:
             return True
-        if not tree:
+        if not every:
             pts = index.all_points()
             if lead is not None and len(lead):
                 pts = np.vstack([pts.reshape(-1, 2), lead]) if len(pts) else lead
-            tree.append(cKDTree(pts) if len(pts) else None)
-        if tree[0] is None:
+            every.append(np.asarray(pts, dtype=np.float64).reshape(-1, 2))
+        pts = every[0]
+        bound = tolerance + 1e-9
+        lo, hi = wps.min(axis=0) - 2.0 * bound, wps.max(axis=0) + 2.0 * bound
+        pts = pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
+        if len(pts) == 0:
             return False
-        d, _ = tree[0].query(wps, k=1, distance_upper_bound=tolerance + 1e-9)
+        d, _ = cKDTree(pts).query(wps, k=1, distance_upper_bound=bound)
         return bool(np.all(np.isfinite(d)))
 
     return path_ok
