@@ -1153,3 +1153,50 @@ def test_open_unknown_made_only_reports_what_the_update_made():
     assert open_unknown_made(cfg, u, 0.5) is None  # other arguments: not made
     assert view.open_unknown_made(0) is None and view.open_unknown_made(0) is None
     assert view.open_unknown(0) is view.open_unknown_made(0)
+
+
+def test_find_frontiers_without_look_points_and_ending_at_the_first_group_it_is_told():
+    """The map-complete check's quick pass: the same groups without look points, and with
+    ``stop`` the list ends at the first group stop says yes to."""
+    g, geom = half_known_room()
+    g[1:50, 15] = 100  # a wall with a gap at the top, and a second unknown area behind it
+    g[20:40, 3:6] = -1
+    view = MapView(grid(g, geom), Occupancy())
+    search = view.search(0.55, 1.05, 0.2)
+    args = (view.free, view.unknown, view.geom, search, 0.5, 3.0, 1.0)
+    full, dropped = gs.find_frontiers(*args)
+    assert len(full) >= 2 and all(f.look_xy is not None for f in full if f.goal_xy)
+    bare, dropped2 = gs.find_frontiers(*args, look=False)
+    assert dropped2 == dropped and all(b.look_xy is None for b in bare)
+    assert [(b.label, b.size, b.goal_rc, b.path_length) for b in bare] == [
+        (f.label, f.size, f.goal_rc, f.path_length) for f in full]
+    first, _ = gs.find_frontiers(*args, look=False, stop=lambda grp: grp.goal_xy is not None)
+    k = next(i for i, f in enumerate(full) if f.goal_xy is not None)
+    assert [f.label for f in first] == [f.label for f in full[:k + 1]]
+    none, _ = gs.find_frontiers(*args, look=False, stop=lambda grp: False)
+    assert len(none) == len(full)
+
+
+def test_topological_path_check_matches_a_search_over_every_skeleton_point():
+    """_near_skeleton's path_ok, which searches only the points in the waypoints' box, gives
+    the answer of a check against every skeleton and lead-in point."""
+    from topoexplore.services.planner.strategies.topological import _near_skeleton
+
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        pts = rng.uniform(0.0, 20.0, size=(int(rng.integers(0, 60)), 2))
+        lead = rng.uniform(0.0, 20.0, size=(int(rng.integers(0, 4)), 2))
+        edges = [gr.Edge(0, 0, 1, pts, np.zeros(len(pts)), 1.0)] if len(pts) else []
+        index = gr.TopoIndex({}, edges, [], {}, {})
+        tol = float(rng.uniform(0.05, 3.0))
+        ok = _near_skeleton(index, tol, lead)
+        every = np.vstack([pts.reshape(-1, 2), lead])
+        for _ in range(3):
+            wps = rng.uniform(0.0, 20.0, size=(int(rng.integers(1, 8)), 2))
+            if len(every):
+                d = np.hypot(*(wps[:, None, :] - every[None, :, :]).transpose(2, 0, 1))
+                want = bool(np.all(d.min(axis=1) <= tol))
+            else:
+                want = False
+            assert ok(wps) == want
+        assert ok(np.zeros((0, 2)))
