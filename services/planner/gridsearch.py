@@ -326,16 +326,17 @@ def grid_search(free: np.ndarray, passable: np.ndarray,
                                narrow_penalty)
     esc = escape(free, passable, clearance, row, col, fit, geom.resolution, mult=mult)
     dist = np.full((h, w), np.inf)
-    parent = np.full(h * w, -1, dtype=np.int64)
     start = None
     if not esc.stuck:
         s = int(esc.seeds[int(np.argmin(esc.cost))])
         start = (s // w, s % w)
-    if start is not None and reach_only:
-        dist = np.where(_reached(passable, esc.seeds), 0.0, np.inf)
-    elif start is not None:
+    if start is not None and not reach_only:
         d, parent = _dijkstra8(passable, mult, esc.seeds, esc.cost, float(geom.resolution))
         dist = d.reshape(h, w)
+    else:  # no parents: a read-only view of -1, no memory per cell
+        parent = np.broadcast_to(np.int64(-1), (h * w,))
+        if start is not None:
+            dist[_reached(passable, esc.seeds)] = 0.0
     return GridSearch(geom, passable, clearance, start, dist, parent, esc)
 
 
@@ -461,7 +462,13 @@ def _reached(passable: np.ndarray, seeds: np.ndarray) -> np.ndarray:
     keep = np.zeros(n, dtype=bool)  # per label: does a seed lie in it (0: not passable)
     keep[labels.ravel()[seeds]] = True
     keep[0] = False
-    return keep[labels]
+    ks = np.flatnonzero(keep)
+    if len(ks) > 4:
+        return keep[labels]
+    out = np.zeros(labels.shape, dtype=bool)  # the seeds' few labels: a comparison each is
+    for k in ks:  # cheaper than a lookup per cell
+        out |= labels == k
+    return out
 
 
 def look_point(unknown: np.ndarray, geom: GridGeometry, rc: tuple[int, int],
