@@ -270,6 +270,14 @@ _KERNEL3 = np.ones((3, 3), np.uint8)
 CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))  # a cell and its 4-neighbours
 
 
+def _undecided(g: np.ndarray, never: np.ndarray, p_free: float, p_occ: float) -> np.ndarray:
+    """The observed cells of g (never: its never-observed ones) that are neither free nor
+    occupied."""
+    if g.dtype == np.int8:
+        return _lookup(g, _undecided_table(float(p_free), float(p_occ))).view(bool)
+    return (classify(g, p_free, p_occ) == UNKNOWN) & ~never
+
+
 def unknown_mask(grid: np.ndarray, p_free: float = 0.35, p_occ: float = 0.65) -> np.ndarray:
     """Unexplored cells (bool): never observed (-1), plus the undecided cells (between p_free
     and p_occ) 8-connected to never-observed space: the band of once-seen cells at the edge of
@@ -282,10 +290,7 @@ def unknown_mask(grid: np.ndarray, p_free: float = 0.35, p_occ: float = 0.65) ->
         out[win] = unknown_mask(g[win], p_free, p_occ)
         return out
     never = g == -1
-    if g.dtype == np.int8:
-        undecided = _lookup(g, _undecided_table(float(p_free), float(p_occ))).view(bool)
-    else:
-        undecided = (classify(g, p_free, p_occ) == UNKNOWN) & ~never
+    undecided = _undecided(g, never, p_free, p_occ)
     if not undecided.any() or not never.any():
         return never
     # an undecided component joins never-observed space iff one of its cells is 8-adjacent to
@@ -392,7 +397,7 @@ def open_unknown_at(grid: np.ndarray, rows: slice, cols: slice, pocket_cells: in
     edge[:, -1] |= b1 < w_all
     never = sub == -1
     unknown = never
-    undecided = (classify(sub, p_free, p_occ) == UNKNOWN) & ~never
+    undecided = _undecided(sub, never, p_free, p_occ)
     if undecided.any():
         n, labels = cv2.connectedComponents(undecided.view(np.uint8), connectivity=8)
         keep = np.zeros(n, dtype=bool)
@@ -564,7 +569,8 @@ def near_frontier(nx: float, ny: float, grid: np.ndarray, geom: GridGeometry, ra
     A place next to a frontier is where the map simply stops; a wall hides the unknown behind
     it (occupied cells are never frontier). grid: int8 occupancy (-1 unknown, 0..100);
     radius <= 0: False. unknown: the unknown mask to use, the grid's shape
-    (:func:`open_unknown`; default: every never-observed cell). Used by the reliability index
+    (:func:`open_unknown`, or an :class:`OpenUnknown`: only the window around the point is
+    read; default: every never-observed cell). Used by the reliability index
     (is an end node's surrounding examined?) and the planner (is a place still open?).
     """
     if radius <= 0.0:
