@@ -456,8 +456,8 @@ class OpenUnknown:
         return self._whole
 
     def __array__(self, dtype=None, copy=None) -> np.ndarray:
-        m = self.full()
-        return m if dtype is None else m.astype(dtype)
+        m = self.full()  # kept for the later windows: a copy when one is asked for
+        return m.astype(dtype) if dtype is not None else (m.copy() if copy else m)
 
     def __getitem__(self, key):
         if self._whole is None and isinstance(key, tuple) and len(key) == 2 and all(

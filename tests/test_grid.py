@@ -370,5 +370,8 @@ def test_open_unknown_mask_reads_windows_locally_and_the_whole_map_when_it_must(
     assert (m.local, m.whole) == (1, 0)
     assert np.array_equal(m[39:42, 150:155], whole[39:42, 150:155]) and m.whole == 1
     assert not whole[40, 2:200].any()
+    copy = np.array(m)
+    copy[:] = True
+    assert np.array_equal(np.asarray(m), whole)  # a copy asked for is a copy
     assert np.array_equal(np.asarray(m), whole) and np.array_equal(m[::2, 3], whole[::2, 3])
     assert m.shape == g.shape
