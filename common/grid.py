@@ -278,6 +278,16 @@ def _undecided(g: np.ndarray, never: np.ndarray, p_free: float, p_occ: float) ->
     return (classify(g, p_free, p_occ) == UNKNOWN) & ~never
 
 
+def _joined(never: np.ndarray, undecided: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(labels, keep): the 8-connected components of the undecided cells, and per label
+    whether it is 8-adjacent to a never-observed cell (label 0, the other cells: False)."""
+    n, labels = cv2.connectedComponents(undecided.view(np.uint8), connectivity=8)
+    keep = np.zeros(n, dtype=bool)
+    keep[labels[cv2.dilate(never.view(np.uint8), _KERNEL3).view(bool) & undecided]] = True
+    keep[0] = False
+    return labels, keep
+
+
 def unknown_mask(grid: np.ndarray, p_free: float = 0.35, p_occ: float = 0.65) -> np.ndarray:
     """Unexplored cells (bool): never observed (-1), plus the undecided cells (between p_free
     and p_occ) 8-connected to never-observed space: the band of once-seen cells at the edge of
@@ -296,11 +306,7 @@ def unknown_mask(grid: np.ndarray, p_free: float = 0.35, p_occ: float = 0.65) ->
     # an undecided component joins never-observed space iff one of its cells is 8-adjacent to
     # a never-observed cell (two undecided components are never adjacent): label only the
     # undecided cells, which are few, instead of the whole unknown area
-    n, labels = cv2.connectedComponents(undecided.view(np.uint8), connectivity=8)
-    touch = cv2.dilate(never.view(np.uint8), _KERNEL3).view(bool) & undecided
-    keep = np.zeros(n, dtype=bool)
-    keep[labels[touch]] = True
-    keep[0] = False
+    labels, keep = _joined(never, undecided)
     if not keep.any():
         return never
     if keep[1:].all():
@@ -399,12 +405,10 @@ def open_unknown_at(grid: np.ndarray, rows: slice, cols: slice, pocket_cells: in
     unknown = never
     undecided = _undecided(sub, never, p_free, p_occ)
     if undecided.any():
-        n, labels = cv2.connectedComponents(undecided.view(np.uint8), connectivity=8)
-        keep = np.zeros(n, dtype=bool)
-        keep[labels[cv2.dilate(never.view(np.uint8), _KERNEL3).view(bool) & undecided]] = True
-        cut = np.zeros(n, dtype=bool)
+        labels, keep = _joined(never, undecided)
+        cut = np.zeros(len(keep), dtype=bool)
         cut[labels[edge & undecided]] = True
-        keep[0] = cut[0] = False
+        cut[0] = False
         if (cut & ~keep).any():
             return None
         unknown = never | keep[labels]
