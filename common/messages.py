@@ -326,7 +326,8 @@ class ExploreStatus(msgspec.Struct, kw_only=True):
     strategy: str = ""
     target_id: int = -1
     target_p: float = 0.0
-    candidates: int = 0
+    candidates: int = 0  # at the last update that judged them all (every update without a
+    #   target, every planner.replan_period while one is followed: docs/design.md)
     end_nodes: int = 0
     reliable: int = 0
     blacklisted: list[int] = []

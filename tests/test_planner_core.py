@@ -1200,3 +1200,68 @@ def test_topological_path_check_matches_a_search_over_every_skeleton_point():
                 want = False
             assert ok(wps) == want
         assert ok(np.zeros((0, 2)))
+
+
+def test_candidates_judge_a_later_member_only_when_the_list_is_read():
+    """Between two re-evaluations the core asks only for the target it follows: a
+    :class:`Later` member is judged when the list is read as a whole (in its place, once),
+    or when asked for by its id; a judged member answers bool() without judging any."""
+    from topoexplore.services.planner.strategies.base import Candidate, Candidates, Later, find
+
+    calls = []
+
+    def cand(i):
+        return Candidate(i, float(i), 0.0, 1.0, 1.0, 1.0, 0.5, lambda: np.zeros((0, 2)))
+
+    def later(i, keep=True):
+        def judge():
+            calls.append(i)
+            return cand(i) if keep else None
+        return Later(i, judge)
+
+    cs = Candidates([cand(1), later(2), later(3, keep=False), cand(4)],
+                    summary=lambda: f"judged {sorted(calls)}")
+    assert cs and find(cs, 4).id == 4 and not calls
+    assert find(cs, 2).id == 2 and calls == [2] and not cs.settled()
+    joined = cs + [cand(-1)]
+    assert [c.id for c in joined] == [1, 2, 4, -1] and calls == [2, 3]
+    assert [c.id for c in cs] == [1, 2, 4] and calls == [2, 3]  # shared: judged once
+    assert cs.settled() and len(cs) == 3 and cs[1].id == 2 and cs.summary() == "judged [2, 3]"
+    empty = Candidates([later(5, keep=False)], summary=lambda: "none")
+    assert not empty and calls[-1] == 5 and empty.summary() == "none"
+    assert find([cand(7)], 7).id == 7 and find([cand(7)], 8) is None
+
+
+@pytest.mark.parametrize("beyond", [True, False])
+def test_a_node_behind_a_narrow_passage_is_judged_when_asked_as_if_judged_at_once(beyond):
+    """While the robot follows end node 1, end node 2 behind a door is judged only when the
+    candidates are read: then they (and the done text) are those of an evaluation that
+    judged everything at once. beyond: unexplored space behind the door (2 is a candidate
+    up to the door), else mapped (2 is unreachable)."""
+    from topoexplore.services.planner.strategies.base import Candidates, Update, find
+
+    g, geom = corridor_grid()
+    g[10:17, 30] = 100  # 0.3 m door at x in [2.0, 2.1]
+    if beyond:
+        g[10:20, 60:71] = -1
+    tp, beliefs = topo(*door_parts()), rel({1: 0.5, 2: 0.5})
+    cfg = Config(params(), RADIUS, 0.9)
+
+    def evaluate(target):
+        view = MapView(grid(g, geom), Occupancy())
+        s = strategies.make(cfg)
+        return s.evaluate(Update(0.0, 1.2, 0.5, math.pi, tp, beliefs, view, target,
+                                 lambda c: False))
+
+    at_once = evaluate(None)
+    assert isinstance(at_once.cands, list)
+    follow = find(at_once.cands, 1).detached()
+    lazy = evaluate(follow)
+    assert isinstance(lazy.cands, Candidates) and not lazy.cands.settled()
+    assert find(lazy.cands, 1).cost == follow.cost and not lazy.cands.settled()
+    got = lazy.settled()
+    assert [(c.id, c.cost, c.label, c.partial) for c in got.cands] == \
+        [(c.id, c.cost, c.label, c.partial) for c in at_once.cands]
+    assert [c.id for c in got.cands] == ([1, 2] if beyond else [1])
+    assert got.done == at_once.done
+    assert ("(ids 2)" in got.done) != beyond

@@ -61,9 +61,11 @@ from topoexplore.services.planner.examined import Examined
 from topoexplore.services.planner.mapview import MapView
 from topoexplore.services.planner.strategies.base import (
     Candidate,
+    Candidates,
     Config,
     Evaluation,
     Update,
+    find,
     id_list,
 )
 from topoexplore.services.planner.strategies.frontier import (
@@ -123,6 +125,7 @@ class PlannerCore:
         self._had_path = False
         self._last: Plan | None = None
         self._updates = 0
+        self._ncand = 0  # candidates at the last update that judged them all
         self._view: MapView | None = None  # this update's map view
         self._u: Update | None = None  # ... and the update the strategy evaluated
         self._walled: str | None = None  # walled in by marks after RELEASE_LIMIT releases
@@ -198,6 +201,7 @@ class PlannerCore:
                                  f"meanwhile ({'; '.join(given[:3])}"
                                  + (", ..." if len(given) > 3 else "") + ")")
                 self._target = None
+                ev = ev.settled()
                 ev.cands = [c for c in ev.cands if not self._blacklist.covers(c)]
             elif step == "nearest_frontier":
                 notes.append(f"watchdog: {what}: to the nearest frontier")
@@ -284,10 +288,7 @@ class PlannerCore:
         """The candidate that is the current target now: the same end node id, or for a
         frontier goal the group with a cell nearest to it (within frontier_match_radius)."""
         if cur.id >= 0:
-            for c in cands:
-                if c.id == cur.id:
-                    return c
-            return None
+            return find(cands, cur.id)
         best, best_d = None, self.p.frontier_match_radius
         for c in cands:
             cells = c.cells if c.cells is not None and len(c.cells) else np.array([[c.x, c.y]])
@@ -395,10 +396,12 @@ class PlannerCore:
         self._look = None
         self._walled = None
         c = tg.cand
-        head = f"target {c.label}: {tg.why}; path {c.dist:.1f} m; {len(cands)} candidate(s)"
+        if not isinstance(cands, Candidates) or cands.settled():
+            self._ncand = len(cands)  # else: the count when they were last all judged
+        head = f"target {c.label}: {tg.why}; path {c.dist:.1f} m; {self._ncand} candidate(s)"
         if self._blacklist:
             notes.append(f"blacklisted: {id_list(self._blacklist.ids())}")
-        return self._emit(ExploreState.EXPLORING, "; ".join([head] + notes), ev, len(cands))
+        return self._emit(ExploreState.EXPLORING, "; ".join([head] + notes), ev, self._ncand)
 
     def _follow(self, t: float, x: float, y: float, th: float, ev: Evaluation,
                 notes: list[str]) -> tuple[list[Candidate], bool]:
@@ -535,6 +538,7 @@ class PlannerCore:
         must not end the run); stuck (turning on the spot to look around) when the robot
         cannot get anywhere, failed only after stuck_timeout."""
         p = self.p
+        ev = ev.settled()
         if ev.failed is None and self._walled is not None:
             ev = dataclasses.replace(ev, failed=self._walled)
         if ev.failed is not None:

@@ -95,13 +95,101 @@ def _never(c: Candidate) -> bool:
     return False
 
 
+class Later:
+    """A candidate judged only when it is first asked for: judge() -> Candidate or None (not
+    a candidate after all), run once. id: the end node it is about."""
+
+    __slots__ = ("id", "_judge", "_result", "_judged")
+
+    def __init__(self, i: int, judge: Callable[[], Candidate | None]):
+        self.id = i
+        self._judge = judge
+        self._result: Candidate | None = None
+        self._judged = False
+
+    def value(self) -> Candidate | None:
+        if not self._judged:
+            self._result, self._judged = self._judge(), True
+            self._judge = None  # its closure holds the update's map view
+        return self._result
+
+
+class Candidates(Sequence):
+    """One update's candidates, some of which (:class:`Later`) are judged only when the list
+    is read as a whole: between two re-evaluations the planner core follows one target and
+    needs no other (docs/design.md, "Candidates judged when needed"). Iterating, len(),
+    indexing and + judge every member, in its place and once, so the list reads as if all had
+    been judged at once; bool() and find() judge none while a judged member answers.
+    summary() -> the strategy's "done" text, every member judged."""
+
+    def __init__(self, items: Sequence[Candidate | Later],
+                 summary: Callable[[], str] | None = None):
+        self._items = list(items)
+        self._summary = summary
+
+    def _all(self) -> list[Candidate]:
+        if any(isinstance(x, Later) for x in self._items):
+            self._items = [c for c in (x.value() if isinstance(x, Later) else x
+                                       for x in self._items) if c is not None]
+        return self._items
+
+    def settled(self) -> bool:
+        """Is every member judged?"""
+        return not any(isinstance(x, Later) for x in self._items)
+
+    def judged(self) -> list[Candidate]:
+        """The members judged so far (none is judged by asking)."""
+        return [x for x in self._items if not isinstance(x, Later)]
+
+    def find(self, i: int) -> Candidate | None:
+        """The candidate for end node i (i >= 0), judging only a member about i."""
+        for x in self._items:
+            if x.id == i:
+                c = x.value() if isinstance(x, Later) else x
+                if c is not None:
+                    return c
+        return None
+
+    def summary(self) -> str:
+        self._all()
+        return "" if self._summary is None else self._summary()
+
+    def __bool__(self) -> bool:
+        return bool(self.judged()) or bool(self._all())
+
+    def __len__(self) -> int:
+        return len(self._all())
+
+    def __getitem__(self, k):
+        return self._all()[k]
+
+    def __iter__(self):
+        return iter(self._all())
+
+    def __add__(self, other: Sequence[Candidate]) -> Candidates:
+        """These members (judged later as well) followed by other's."""
+        return Candidates(self._items + list(other), self._summary)
+
+    def __repr__(self) -> str:
+        return f"Candidates({self._items!r})"
+
+
+def find(cands: Sequence[Candidate], i: int) -> Candidate | None:
+    """The candidate for end node i (i >= 0) in cands; a :class:`Candidates` list judges
+    nothing else."""
+    if isinstance(cands, Candidates):
+        return cands.find(i)
+    return next((c for c in cands if c.id == i), None)
+
+
 @dataclass
 class Evaluation:
     """What one strategy sees in one update."""
 
     waiting: str | None = None  # an input is missing: stop and say what for
     failed: str | None = None  # the robot cannot plan at all (confirmed by the core)
-    cands: list[Candidate] = field(default_factory=list)
+    cands: list[Candidate] | Candidates = field(default_factory=list)  # Candidates: some
+    #   judged when first read (:meth:`settled` before reading done)
     end_nodes: int = 0
     reliable: int = 0
     done: str = ""  # summary when no candidate is left
@@ -110,6 +198,13 @@ class Evaluation:
     path_ok: Callable[[np.ndarray], bool] = _always  # the rest of a path still fits the map
     path_clear: Callable[[np.ndarray], bool] = _always  # no segment crosses a wall
     flickered: Callable[[Candidate], bool] = _never  # still open, only not reachable now
+
+    def settled(self) -> Evaluation:
+        """This evaluation with every candidate judged, and its done text with them: self if
+        they were judged when made (a plain list)."""
+        if not isinstance(self.cands, Candidates):
+            return self
+        return replace(self, cands=list(self.cands), done=self.cands.summary())
 
 
 @dataclass(frozen=True, eq=False)

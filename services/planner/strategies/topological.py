@@ -31,8 +31,10 @@ from topoexplore.services.planner import graph as gr
 from topoexplore.services.planner import gridsearch as gs
 from topoexplore.services.planner.strategies.base import (
     Candidate,
+    Candidates,
     Config,
     Evaluation,
+    Later,
     Update,
     id_list,
 )
@@ -138,7 +140,7 @@ class Topological:
                 or u.view is None:
             return ev
         if not ev.cands:
-            return self.completion.phase(u, ev)
+            return self.completion.phase(u, ev.settled())
         near = self.completion.nearby(u, p.pickup_radius)
         if near is None:
             return ev
@@ -222,20 +224,37 @@ class Topological:
     def _evaluation(self, s: Scene) -> Evaluation:
         ev = Evaluation(end_nodes=len(s.ends),
                         reliable=sum(1 for i in s.ends if s.prob(i) >= self.cfg.p_reliable))
-        unreachable, black = [], []
+        outcome: dict[int, str] = {}  # end node id -> "unreachable" | "blacklisted"
+        items: list[Candidate | Later] = []
+
+        def judged(i: int, c: Candidate | None) -> Candidate | None:
+            if c is None:
+                outcome[i] = "unreachable"
+            elif s.u.blacklisted(c):
+                outcome[i] = "blacklisted"
+            else:
+                return c
+            return None
+
         for i in s.open_ids:
             c = self._candidate(s, i)
-            if c is None:
-                unreachable.append(i)
-            elif s.u.blacklisted(c):
-                black.append(i)
-            else:
-                ev.cands.append(c)
+            if isinstance(c, Later):
+                items.append(Later(i, partial(lambda i, c: judged(i, c.value()), i, c)))
+            elif judged(i, c) is not None:
+                items.append(c)
         if s.entry is None and s.open_ids:
             ev.failed = (f"cannot join the skeleton: no edge with clearance >= "
                          f"{self.cfg.need:.2f} m (of {len(s.index.narrow)} narrow); "
                          f"{len(s.open_ids)} end node(s) still open (ids {id_list(s.open_ids)})")
-        ev.done = self._done(s, unreachable, black)
+
+        def done() -> str:
+            return self._done(s, [i for i in s.open_ids if outcome.get(i) == "unreachable"],
+                              [i for i in s.open_ids if outcome.get(i) == "blacklisted"])
+
+        if any(isinstance(x, Later) for x in items):
+            ev.cands = Candidates(items, done)
+        else:
+            ev.cands, ev.done = items, done()
         ev.status_of = lambda c: self._status_of(s, c)
         ev.flickered = lambda c: (not c.partial and c.id in s.index.nodes
                                   and c.id in s.open_ids and c.id not in s.dist)
@@ -251,17 +270,19 @@ class Topological:
     def _grid_paths(self, s: Scene, ev: Evaluation) -> None:
         """grid_paths: the way to each end node on the grid, as a frontier strategy's, where
         the grid search reaches the skeleton path's last point; the skeleton path elsewhere.
-        The search runs only when a path is made."""
+        The search runs only when a path is made. (A candidate judged later is one behind a
+        narrow passage, partial or around: it has its path already.)"""
         view, cfg = s.u.view, self.cfg
         search = partial(s.grid, cfg)
-        for c in ev.cands:
+        for c in ev.cands.judged() if isinstance(ev.cands, Candidates) else ev.cands:
             if not c.partial and not c.around:
                 c.path = _grid_or(c.path, search, view.geom)
         on_skeleton, fits = ev.path_ok, path_fits(view, lambda: view.clearance, cfg.radius)
         ev.path_ok = lambda wps: on_skeleton(wps) or fits(wps)
 
-    def _candidate(self, s: Scene, i: int) -> Candidate | None:
-        """Open end node i as a candidate; None if it is unreachable."""
+    def _candidate(self, s: Scene, i: int) -> Candidate | Later | None:
+        """Open end node i as a candidate; None if it is unreachable; a :class:`Later` to
+        judge when asked for when it lies behind a narrow passage (:meth:`_approach`)."""
         _, nx, ny = s.index.nodes[i]
         if i not in s.dist:
             return self._approach(s, i, nx, ny)
@@ -276,9 +297,16 @@ class Topological:
         return Candidate(i, nx, ny, s.dist[i], s.dist[i], 1.0, self.target_p(i, s), path,
                          label=self.label(i, s))
 
-    def _approach(self, s: Scene, i: int, nx: float, ny: float) -> Candidate | None:
+    def _approach(self, s: Scene, i: int, nx: float, ny: float) -> Candidate | Later | None:
         """Candidate for open end node i behind a narrow edge: the path up to the narrow point
-        (approach_narrow); None if there is none or the robot has looked from there."""
+        (approach_narrow); None if there is none or the robot has looked from there.
+
+        The path and its narrow point are found now. While the robot follows another end
+        node, the rest (is there unexplored space around the node, can the robot go around
+        the narrow stretch, has it looked from that point) is judged when the candidate is
+        asked for (a :class:`Later`), unless the robot stands at the narrow point (where the
+        rest records that it looked: judged now, in order). Judged later, it sees the looks
+        recorded before it, as it would have now."""
         if not (self.cfg.params.approach_narrow and s.entry is not None
                 and s.clearance_at is not None):
             return None
@@ -293,23 +321,35 @@ class Topological:
                                                          self.cfg.need)])
         if len(pts) - nlead < 2 or len(pts) == len(full):
             return None
+        u, px, py = s.u, float(pts[-1, 0]), float(pts[-1, 1])
+        rest = partial(self._approach_rest, s, i, nx, ny, full, dist[i], pts, len(self._looked))
+        if (u.target is None or u.target.id == i or u.target.id < 0
+                or math.hypot(px - u.x, py - u.y) <= self.cfg.params.goal_tolerance):
+            return rest()
+        return Later(i, rest)
+
+    def _approach_rest(self, s: Scene, i: int, nx: float, ny: float, full: np.ndarray,
+                       cost: float, pts: np.ndarray, looks: int) -> Candidate | None:
+        """:meth:`_approach` for end node i at (nx, ny) [m], from its skeleton path ``full``
+        (``cost`` [m] long) cut at the narrow point (``pts``): the first ``looks`` recorded
+        looks count."""
         r = self.cfg.params.approach_radius
         if r > 0 and not self.beside_unknown(s.u, nx, ny, r):
             return None  # its surroundings are mapped: nothing to look at through the gap
-        around = self._around(s, i, nx, ny, full, dist[i])
+        around = self._around(s, i, nx, ny, full, cost)
         if around is not None:
             return around
         reach = float(gr.polyline_lengths(pts)[-1])
         px, py = float(pts[-1, 0]), float(pts[-1, 1])
         u = s.u
         if math.hypot(px - u.x, py - u.y) <= self.cfg.params.goal_tolerance:
-            if not self._has_looked(px, py):
+            if not self._has_looked(px, py, looks):
                 self._looked.append(_Look(i, px, py, u.t))
             return None
-        if self._has_looked(px, py):
+        if self._has_looked(px, py, looks):
             return None
         to_entry = math.hypot(pts[0, 0] - u.x, pts[0, 1] - u.y)
-        return Candidate(i, nx, ny, dist[i], to_entry + reach, 1.0, self.target_p(i, s),
+        return Candidate(i, nx, ny, cost, to_entry + reach, 1.0, self.target_p(i, s),
                          lambda: pts, label=f"{self.label(i, s)} up to a narrow passage",
                          partial=True)
 
@@ -360,9 +400,11 @@ class Topological:
             whole = open_unknown(self.cfg, u, area)
         return near_frontier(x, y, v.data, v.geom, radius, v.occ.p_free, whole, min_cells=n)
 
-    def _has_looked(self, px: float, py: float) -> bool:
+    def _has_looked(self, px: float, py: float, looks: int) -> bool:
+        """Has the robot looked from within blacklist_radius of (px, py) [m], by the first
+        ``looks`` looks recorded?"""
         r2 = self.cfg.params.blacklist_radius ** 2
-        return any((b.x - px) ** 2 + (b.y - py) ** 2 <= r2 for b in self._looked)
+        return any((b.x - px) ** 2 + (b.y - py) ** 2 <= r2 for b in self._looked[:looks])
 
     def _done(self, s: Scene, unreachable: list[int], black: list[int]) -> str:
         """Why there is no candidate (if there is none)."""
