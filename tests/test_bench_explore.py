@@ -282,6 +282,11 @@ def test_smoke_suite_files_and_ratio_arithmetic(tmp_path):
         kept = run_dir / "run.mcap"
         assert kept.is_file() == (not run["finished"])
         assert run["recording_file"] == (run["run_dir"] + "/run.mcap" if kept.is_file() else None)
+        if kept.is_file():  # recorded raw, its Foxglove channels added after the run
+            from topoexplore.tools.record import read_summary
+
+            assert run["recording_note"].startswith("Foxglove channels added"), run
+            assert "/viz/map" in read_summary(kept)["channels"]
     for w in worlds:
         if any(doc["runs"][i]["timeline"] for i in range(6) if doc["runs"][i]["world_label"] == w):
             assert (out / "curves" / f"{w}.png").stat().st_size > 0

@@ -185,6 +185,58 @@ def test_recorder_file_channels_schemas_counts_and_gaps(tmp_path):
     assert "$defs" in schema or "properties" in schema
 
 
+def test_a_raw_recording_gets_its_foxglove_channels_afterwards(tmp_path, capsys):
+    """run --record-raw / record --no-foxglove, then add_foxglove (record --from): the file
+    a recorder with Foxglove channels writes, the same raw bytes, times and metadata; the
+    pictures use the recording's own parameters (the laser mount of its overrides)."""
+    from topoexplore.tools.record import add_foxglove, main_record, recorded_params
+
+    keys = Keys("ns", "r1")
+    meta = {"command": "run", "overrides": json.dumps(["laser.offset=0.3"]), "params_toml": ""}
+    samples = [(keys.topic("map"), m.encode(grid_msg(s)), 1_000 + s) for s in range(3)]
+    samples += [(keys.topic("scan"), m.encode(scan_msg(0, 0.5, [1.0] * 181)), 1_500),
+                (keys.topic("plan"), m.encode(path_msg(0, 0.5, [])), 1_600),
+                (keys.topic("topo"), m.encode(topo_msg(0)), 2_000)]
+    files = {}
+    for name, foxglove in (("raw", False), ("live", True)):
+        rec = Recorder(tmp_path / f"{name}.mcap", keys.prefix, foxglove=foxglove,
+                       laser_offset=0.3, metadata=meta)
+        for k, b, t in samples:
+            rec.put(k, b, t)
+        rec.close()
+        files[name] = tmp_path / f"{name}.mcap"
+    assert recorded_params(meta).laser.offset == 0.3 and recorded_params({}) is None
+    raw = read_summary(files["raw"])
+    assert all(c["encoding"] == "msgpack" for c in raw["channels"].values())
+    st = add_foxglove(files["raw"], tmp_path / "after.mcap")
+    assert st["messages"] == len(samples) and st["errors"] == 0 and st["bad"] == {}
+    live, after = read_summary(files["live"]), read_summary(tmp_path / "after.mcap")
+    assert after["channels"] == live["channels"] and after["metadata"] == live["metadata"]
+    assert list(raw_messages(tmp_path / "after.mcap")) == list(raw_messages(files["live"]))
+    from mcap.reader import make_reader
+
+    def fox_data(path):
+        with open(path, "rb") as f:
+            return [(c.topic, msg.log_time, msg.data) for _s, c, msg in
+                    make_reader(f).iter_messages(log_time_order=True)
+                    if c.message_encoding != "msgpack"]
+
+    assert fox_data(tmp_path / "after.mcap") == fox_data(files["live"])  # laser at 0.3 m
+    # the command line: one line and exit 2 on a bad call, the counts on a good one
+    out = tmp_path / "cli.mcap"
+    assert main_record(["--from", str(files["raw"]), "--out", str(out)]) == 0
+    assert read_summary(out)["channels"] == live["channels"]
+    assert "Foxglove messages" in capsys.readouterr().out
+    for argv in (["--from", str(files["raw"]), "--out", str(files["raw"])],
+                 ["--from", str(tmp_path / "none.mcap"), "--out", str(out)],
+                 ["--from", str(files["raw"]), "--out", str(out), "--keys", "map"],
+                 ["--from", str(tmp_path / "nodir" / "x.mcap"), "--out",
+                  str(tmp_path / "nodir" / "y.mcap")]):
+        assert main_record(argv) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+
+
 def test_header_of_reads_only_the_header():
     raw = m.encode(topo_msg(5))
     assert header_of(raw).seq == 5 and header_of(b"\x01") is None

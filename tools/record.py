@@ -31,6 +31,7 @@ import json
 import math
 import queue
 import sys
+import tempfile
 import threading
 import time
 from collections import Counter
@@ -43,7 +44,7 @@ from topoexplore.common import messages as m
 from topoexplore.common.bus import Bus, BusError
 from topoexplore.common.keys import DEFAULT_ENDPOINT, TOPICS, Keys, type_for_key
 from topoexplore.common.node import add_bus_args, add_param_args, params_from_args, stop_on_signals
-from topoexplore.common.params import ParamError
+from topoexplore.common.params import ParamError, Params, load_params
 from topoexplore.tools.argtypes import OneLineParser, UsageError, fail, non_negative, positive
 from topoexplore.tools.extras import ExtraMissing, require
 from topoexplore.tools.fox import channel_schema, json_schema
@@ -97,7 +98,7 @@ class Recorder:
 
     def __init__(self, path: str | Path, prefix: str, *, foxglove: bool = True,
                  laser_offset: float = 0.0, p_reliable: float = 0.9,
-                 metadata: dict[str, str] | None = None):
+                 metadata: dict[str, str] | None = None, threaded: bool = True):
         require("mcap", *(["foxglove"] if foxglove else []), what="recording")
         from mcap.writer import CompressionType, Writer
 
@@ -125,8 +126,10 @@ class Recorder:
         self._written = 0
         self._closed = False
         self._lock = threading.Lock()
-        self._thread = threading.Thread(target=self._loop, name="mcap-writer", daemon=True)
-        self._thread.start()
+        self._thread: threading.Thread | None = None  # threaded False: put() writes itself
+        if threaded:
+            self._thread = threading.Thread(target=self._loop, name="mcap-writer", daemon=True)
+            self._thread.start()
 
     # -- input (any thread) -----------------------------------------------------------------
     def put(self, key: str, payload: bytes, log_time_ns: int | None = None) -> None:
@@ -135,8 +138,11 @@ class Recorder:
                 return
             self.queued += 1
             self.max_backlog = max(self.max_backlog, self.queued - self._written)
-            self._q.put((key, bytes(payload), time.time_ns() if log_time_ns is None
-                         else log_time_ns))
+            item = (key, bytes(payload), time.time_ns() if log_time_ns is None else log_time_ns)
+            if self._thread is None:
+                self._one(item)
+            else:
+                self._q.put(item)
 
     def close(self) -> dict[str, Any]:
         with self._lock:
@@ -144,7 +150,8 @@ class Recorder:
                 return self.stats()
             self._closed = True
             self._q.put(None)
-        self._thread.join()
+        if self._thread is not None:
+            self._thread.join()
         self._w.finish()
         self._file.close()
         return self.stats()
@@ -170,13 +177,16 @@ class Recorder:
             item = self._q.get()
             if item is None:
                 return
-            try:
-                self._write(*item)
-            except Exception as exc:  # noqa: BLE001 - one bad sample must not end the file
-                self.errors += 1
-                self.last_error = f"{item[0]}: {type(exc).__name__}: {exc}"
-            finally:
-                self._written += 1
+            self._one(item)
+
+    def _one(self, item: tuple[str, bytes, int]) -> None:
+        try:
+            self._write(*item)
+        except Exception as exc:  # noqa: BLE001 - one bad sample must not end the file
+            self.errors += 1
+            self.last_error = f"{item[0]}: {type(exc).__name__}: {exc}"
+        finally:
+            self._written += 1
 
     def _channel(self, topic: str, encoding: str, schema: tuple[str, str, bytes] | None,
                  metadata: dict[str, str]) -> int:
@@ -272,6 +282,54 @@ def raw_messages(path: str | Path, topics: set[str] | None = None, start_ns: int
             yield ch.topic, msg.data, msg.log_time
 
 
+def recorded_params(meta: dict[str, str]) -> Params | None:
+    """The parameters a ``run --record`` recording was made with, from its metadata (the
+    --params text and the overrides: :func:`tools.run.recording_metadata`); None for a
+    recording that does not say (``topoexplore record``)."""
+    if "overrides" not in meta and not meta.get("params_toml"):
+        return None
+    try:
+        overrides = json.loads(meta.get("overrides") or "[]")
+        if not isinstance(overrides, list) or not all(isinstance(o, str) for o in overrides):
+            raise ValueError("not a list of strings")
+        with tempfile.TemporaryDirectory() as tmp:
+            path = None
+            if meta.get("params_toml"):
+                path = Path(tmp) / "params.toml"
+                path.write_text(meta["params_toml"])
+            return load_params(path, overrides)
+    except (ValueError, ParamError) as exc:
+        raise RecordError(f"the recording's parameters are unreadable: {exc}") from None
+
+
+def add_foxglove(src: str | Path, dst: str | Path, params: Params | None = None
+                 ) -> dict[str, Any]:
+    """The raw recording src (``run --record-raw``, ``record --no-foxglove``) written again
+    to dst with the Foxglove channels beside the raw ones, as if it had been recorded with
+    them: the same raw bytes, log times and metadata (Foxglove channels src had are made
+    anew). The laser mount and P limit of the pictures are the recording's own parameters
+    (:func:`recorded_params`), else params', else the defaults. Converting after the run costs
+    the run nothing; the conversion takes the time the recorder would have spent during it.
+    Returns the recorder's counts."""
+    summary = read_summary(src)
+    meta = dict(summary["metadata"].get("topoexplore", {}))
+    prefix = meta.pop("prefix", "")
+    if not prefix or not any(c["encoding"] == MESSAGE_ENCODING
+                             for c in summary["channels"].values()):
+        raise RecordError(f"{src} holds no topoexplore recording (no raw msgpack channels)")
+    if Path(src).resolve() == Path(dst).resolve():
+        raise RecordError(f"{dst}: write the converted recording to another file")
+    P = recorded_params(meta) or params or Params()
+    rec = Recorder(dst, prefix, laser_offset=P.laser.offset,
+                   p_reliable=P.reliability.p_reliable, metadata=meta, threaded=False)
+    try:
+        for key, data, log_ns in raw_messages(src):
+            rec.put(key, data, log_ns)
+    finally:
+        st = rec.close()
+    return st
+
+
 LAYOUT_PROBE = 5000  # messages read at most to find each channel's first one
 
 
@@ -342,6 +400,8 @@ def cmd_record(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.parent and not out.parent.exists():
         return fail(f"cannot write {out}: folder {out.parent} does not exist")
+    if args.from_file is not None:
+        return _convert(args, P, out)
     stop = threading.Event()
     restore = stop_on_signals(stop.set)  # kept until the file is finished: a second Ctrl-C
     bus = rec = None  # must not leave it without its summary
@@ -378,6 +438,24 @@ def cmd_record(args: argparse.Namespace) -> int:
     print(f"recorded {st['messages']} messages on {len(st['per_key'])} keys "
           f"({st['bytes'] / 1e6:.1f} MB raw, {out.stat().st_size / 1e6:.1f} MB file), "
           f"{st['gaps']} lost by seq, {sum(st['bad'].values())} bad, {st['errors']} errors")
+    if args.stats:
+        Path(args.stats).write_text(json.dumps(st, indent=1))
+    return 0
+
+
+def _convert(args: argparse.Namespace, P: Any, out: Path) -> int:
+    """record --from: a raw recording with the Foxglove channels added."""
+    if args.keys or args.duration or args.no_foxglove:
+        return fail("--from converts a whole recording: no --keys, --duration or --no-foxglove")
+    try:
+        st = add_foxglove(args.from_file, out, P)
+    except (RecordError, ExtraMissing) as exc:
+        return fail(str(exc))
+    except OSError as exc:
+        return fail(f"cannot write {out}: {exc.strerror or exc}")
+    if not args.quiet:
+        print(f"wrote {st['messages']} raw messages and "
+              f"{sum(st['foxglove'].values())} Foxglove messages into {out}")
     if args.stats:
         Path(args.stats).write_text(json.dumps(st, indent=1))
     return 0
@@ -443,6 +521,9 @@ def build_record_parser(prog: str = "topoexplore record") -> argparse.ArgumentPa
                    f"{', '.join(TOPICS)}")
     p.add_argument("--duration", type=positive, default=None, help="stop after S seconds")
     p.add_argument("--no-foxglove", action="store_true", help="raw channels only")
+    p.add_argument("--from", dest="from_file", default=None, metavar="FILE",
+                   help="instead of the bus, a raw recording (run --record-raw, record "
+                   "--no-foxglove): write it to --out with the Foxglove channels added")
     p.add_argument("--stats", default=None, help="write the recorder's counts as JSON here")
     p.add_argument("--quiet", "-q", action="store_true")
     add_bus_args(p)

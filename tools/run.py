@@ -83,6 +83,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--record", action="store_true",
                    help="record every key into OUT/run.mcap (raw + Foxglove channels; "
                    "topoexplore play / Foxglove read it)")
+    p.add_argument("--record-raw", action="store_true",
+                   help="record, the raw channels only: cheaper during the run; add the "
+                   "Foxglove channels later with topoexplore record --from OUT/run.mcap --out F")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--quiet", "-q", action="store_true", help="print only the final summary")
     add_bus_args(p)
@@ -594,7 +597,9 @@ def check_input(args: argparse.Namespace) -> Setup:
     _fill_from_params(args)
     try:
         require("pymunk", "tqdm", what="topoexplore run")
-        if getattr(args, "record", False):
+        if getattr(args, "record_raw", False):
+            require("mcap", what="topoexplore run --record-raw")
+        elif getattr(args, "record", False):
             require("mcap", "foxglove", what="topoexplore run --record")
     except ExtraMissing as exc:
         raise InputError(str(exc)) from None
@@ -853,21 +858,23 @@ class StackRun:
         bus.subscribe(keys.reliability, m.Reliability, lambda msg, k: mon.on_rel(msg))
         bus.subscribe(keys.topo, m.TopoGraph, lambda msg, k: mon.on_topo(msg))
         bus.subscribe(keys.map, m.OccupancyGrid, lambda msg, k: mon.on_map(msg))
-        if args.record:
-            self._record(bus)
+        if args.record or getattr(args, "record_raw", False):
+            self._record(bus, foxglove=not getattr(args, "record_raw", False))
         if not self.sup.start():
             self.outcome.reason = "stack did not come up (see logs.txt)"
         self.outcome.startup = time.monotonic() - t0
         return time.monotonic()
 
-    def _record(self, bus: Bus) -> None:
+    def _record(self, bus: Bus, foxglove: bool) -> None:
         """Every key of the robot into OUT/run.mcap, subscribed before any service starts so
-        that the file holds the run from its first message."""
+        that the file holds the run from its first message (foxglove False: the raw channels
+        only, --record-raw)."""
         from topoexplore.tools.record import Recorder
 
         p = self.setup.params
         rec = self.recorder = Recorder(
-            self.setup.out / "run.mcap", self.setup.keys.prefix, laser_offset=p.laser.offset,
+            self.setup.out / "run.mcap", self.setup.keys.prefix, foxglove=foxglove,
+            laser_offset=p.laser.offset,
             p_reliable=p.reliability.p_reliable,
             metadata=recording_metadata(self.args, self.setup))
         bus.subscribe_raw(f"{self.setup.keys.prefix}/**", lambda k, b, _e: rec.put(k, b))

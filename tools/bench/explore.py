@@ -837,6 +837,21 @@ def _stop(p: subprocess.Popen) -> None:
             pass
 
 
+def _with_foxglove(mcap: Path) -> str:
+    """The Foxglove channels added to a kept recording (recorded raw: the recorder costs a
+    run less that way); what happened, in a few words. On a failure the raw file stays."""
+    from topoexplore.tools.record import RecordError, add_foxglove
+
+    part = mcap.with_name(mcap.name + ".part")
+    try:
+        st = add_foxglove(mcap, part)
+        os.replace(part, mcap)
+    except (RecordError, ExtraMissing, OSError) as exc:
+        part.unlink(missing_ok=True)
+        return f"raw channels only (adding the Foxglove channels failed: {exc})"
+    return f"Foxglove channels added after the run ({sum(st['foxglove'].values())} messages)"
+
+
 def run_one(label: str, world_arg: str, strategy: str, seed: int, out: Path,
             max_sim_time: float, max_wall_time: float, params: str | None = None,
             overrides: Sequence[str] = (), record: str = "none") -> dict:
@@ -851,7 +866,7 @@ def run_one(label: str, world_arg: str, strategy: str, seed: int, out: Path,
         shutil.rmtree(run_dir)  # never read a stale report
     run_dir.mkdir(parents=True)
     cmd = _run_command(label, world_arg, strategy, seed, run_dir, max_sim_time, max_wall_time,
-                       params, overrides) + (["--record"] if record != "none" else [])
+                       params, overrides) + (["--record-raw"] if record != "none" else [])
     # safety net above the runner's own wall limit: startup, shutdown and the final picture
     timeout = max_wall_time + 180.0 if max_wall_time > 0 else None
     code, note = _wait_run(cmd, run_dir / "bench-stderr.txt", timeout)
@@ -863,6 +878,8 @@ def run_one(label: str, world_arg: str, strategy: str, seed: int, out: Path,
     mcap = run_dir / "run.mcap"
     if mcap.is_file() and record == "failed" and run.get("finished"):
         mcap.unlink()  # a finished run's recording is not kept (--record all keeps it)
+    if mcap.is_file():
+        run["recording_note"] = _with_foxglove(mcap)
     run["recording_file"] = f"{rel}/run.mcap" if mcap.is_file() else None
     tl_path = run_dir / "timeline.csv"
     try:
