@@ -227,7 +227,14 @@ def test_a_raw_recording_gets_its_foxglove_channels_afterwards(tmp_path, capsys)
     assert main_record(["--from", str(files["raw"]), "--out", str(out)]) == 0
     assert read_summary(out)["channels"] == live["channels"]
     assert "Foxglove messages" in capsys.readouterr().out
+    with open(files["raw"], "rb") as f:  # a chunk damaged, the summary intact
+        ci = make_reader(f).get_summary().chunk_indexes[0]
+    broken = bytearray(files["raw"].read_bytes())
+    mid = ci.chunk_start_offset + ci.chunk_length // 2
+    broken[mid - 32:mid + 32] = bytes(64)
+    (tmp_path / "broken.mcap").write_bytes(bytes(broken))
     for argv in (["--from", str(files["raw"]), "--out", str(files["raw"])],
+                 ["--from", str(tmp_path / "broken.mcap"), "--out", str(tmp_path / "b.mcap")],
                  ["--from", str(tmp_path / "none.mcap"), "--out", str(out)],
                  ["--from", str(files["raw"]), "--out", str(out), "--keys", "map"],
                  ["--from", str(tmp_path / "nodir" / "x.mcap"), "--out",
@@ -235,6 +242,7 @@ def test_a_raw_recording_gets_its_foxglove_channels_afterwards(tmp_path, capsys)
         assert main_record(argv) == 2, argv
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert not (tmp_path / "b.mcap").exists()  # nothing half written
 
 
 def test_header_of_reads_only_the_header():

@@ -322,11 +322,18 @@ def add_foxglove(src: str | Path, dst: str | Path, params: Params | None = None
     P = recorded_params(meta) or params or Params()
     rec = Recorder(dst, prefix, laser_offset=P.laser.offset,
                    p_reliable=P.reliability.p_reliable, metadata=meta, threaded=False)
+    done = False
     try:
         for key, data, log_ns in raw_messages(src):
             rec.put(key, data, log_ns)
+        done = True
+    except Exception as exc:  # noqa: BLE001 - the mcap reader's errors have no common base
+        raise RecordError(f"{src} cannot be read to its end ({type(exc).__name__}: {exc}); "
+                          f"nothing written") from None
     finally:
         st = rec.close()
+        if not done:
+            Path(dst).unlink(missing_ok=True)
     return st
 
 
