@@ -614,7 +614,8 @@ class Config:
     notes: list[str] = field(default_factory=list)
     params: str | None = None  # --params FILE.toml for every run
     overrides: list[str] = field(default_factory=list)  # --set section.name=value, every run
-    record: str = "failed"  # run --record: keep the MCAP of failed runs | all | none
+    record: str = "failed"  # run --record-raw: keep the MCAP of failed runs | all | none
+    #   (a kept one gets its Foxglove channels after the run)
 
     @property
     def command(self) -> str:
@@ -659,8 +660,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.NAME=VALUE",
                     dest="overrides", help="parameter override for every run (repeatable)")
     ap.add_argument("--record", choices=("failed", "all", "none"), default="failed",
-                    help="record each run's bus (run --record) and keep the MCAP of the runs "
-                    "that did not finish (default), of all, or record nothing")
+                    help="record each run's bus (run --record-raw) and keep the MCAP of the "
+                    "runs that did not finish (default), of all, or record nothing; a kept "
+                    "MCAP gets its Foxglove channels after the run")
     ap.add_argument("--quick", action="store_true",
                     help=f"smoke suite: {','.join(QUICK_WORLDS)} x all strategies x 1 seed")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
