@@ -128,7 +128,7 @@ class Candidates(Sequence):
         self._summary = summary
 
     def _all(self) -> list[Candidate]:
-        if any(isinstance(x, Later) for x in self._items):
+        if not self.settled():
             self._items = [c for c in (x.value() if isinstance(x, Later) else x
                                        for x in self._items) if c is not None]
         return self._items
@@ -155,7 +155,7 @@ class Candidates(Sequence):
         return "" if self._summary is None else self._summary()
 
     def __bool__(self) -> bool:
-        return bool(self.judged()) or bool(self._all())
+        return any(not isinstance(x, Later) for x in self._items) or bool(self._all())
 
     def __len__(self) -> int:
         return len(self._all())

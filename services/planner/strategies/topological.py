@@ -227,7 +227,10 @@ class Topological:
         outcome: dict[int, str] = {}  # end node id -> "unreachable" | "blacklisted"
         items: list[Candidate | Later] = []
 
-        def judged(i: int, c: Candidate | None) -> Candidate | None:
+        def judged(i: int, c: Candidate | Later | None) -> Candidate | None:
+            """c, or None when it is no candidate (the outcome for the done text noted)."""
+            if isinstance(c, Later):
+                c = c.value()
             if c is None:
                 outcome[i] = "unreachable"
             elif s.u.blacklisted(c):
@@ -238,8 +241,8 @@ class Topological:
 
         for i in s.open_ids:
             c = self._candidate(s, i)
-            if isinstance(c, Later):
-                items.append(Later(i, partial(lambda i, c: judged(i, c.value()), i, c)))
+            if isinstance(c, Later):  # judged when the list is read: the outcome then too
+                items.append(Later(i, partial(judged, i, c)))
             elif judged(i, c) is not None:
                 items.append(c)
         if s.entry is None and s.open_ids:
