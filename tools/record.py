@@ -282,23 +282,33 @@ def raw_messages(path: str | Path, topics: set[str] | None = None, start_ns: int
             yield ch.topic, msg.data, msg.log_time
 
 
-def recorded_params(meta: dict[str, str]) -> Params | None:
-    """The parameters a ``run --record`` recording was made with, from its metadata (the
-    --params text and the overrides: :func:`tools.run.recording_metadata`); None for a
-    recording that does not say (``topoexplore record``)."""
-    if "overrides" not in meta and not meta.get("params_toml"):
-        return None
+def recorded_settings(meta: dict[str, str]) -> tuple[str, list[str]]:
+    """(text of the --params file, --set overrides) a ``run --record`` recording was made
+    with, from its metadata (:func:`tools.run.recording_metadata`); overrides that do not
+    read as a list of strings count as none."""
     try:
         overrides = json.loads(meta.get("overrides") or "[]")
-        if not isinstance(overrides, list) or not all(isinstance(o, str) for o in overrides):
-            raise ValueError("not a list of strings")
+    except json.JSONDecodeError:
+        overrides = []
+    if not isinstance(overrides, list) or not all(isinstance(o, str) for o in overrides):
+        overrides = []
+    return meta.get("params_toml") or "", overrides
+
+
+def recorded_params(meta: dict[str, str]) -> Params | None:
+    """The parameters a ``run --record`` recording was made with (:func:`recorded_settings`);
+    None for a recording that does not say (``topoexplore record``)."""
+    if "overrides" not in meta and not meta.get("params_toml"):
+        return None
+    text, overrides = recorded_settings(meta)
+    try:
         with tempfile.TemporaryDirectory() as tmp:
             path = None
-            if meta.get("params_toml"):
+            if text:
                 path = Path(tmp) / "params.toml"
-                path.write_text(meta["params_toml"])
+                path.write_text(text)
             return load_params(path, overrides)
-    except (ValueError, ParamError) as exc:
+    except ParamError as exc:
         raise RecordError(f"the recording's parameters are unreadable: {exc}") from None
 
 
@@ -450,7 +460,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
-def _convert(args: argparse.Namespace, P: Any, out: Path) -> int:
+def _convert(args: argparse.Namespace, P: Params, out: Path) -> int:
     """record --from: a raw recording with the Foxglove channels added."""
     if args.keys or args.duration or args.no_foxglove:
         return fail("--from converts a whole recording: no --keys, --duration or --no-foxglove")

@@ -21,7 +21,6 @@ the rest is the thin shell that runs processes and the bus.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import shutil
 import sys
@@ -50,6 +49,7 @@ from topoexplore.tools.record import (
     layout_error,
     raw_messages,
     read_summary,
+    recorded_settings,
     topic_of,
 )
 
@@ -202,15 +202,11 @@ class Expectation:
 
 
 def _params_for(summary: dict, tmp: Path, extra: list[str]) -> tuple[str | None, list[str]]:
-    meta = summary["metadata"].get("topoexplore", {})
-    try:
-        overrides = json.loads(meta.get("overrides", "[]"))
-    except json.JSONDecodeError:
-        overrides = []
+    text, overrides = recorded_settings(summary["metadata"].get("topoexplore", {}))
     params_file = None
-    if meta.get("params_toml"):
+    if text:
         params_file = str(tmp / "params.toml")
-        Path(params_file).write_text(meta["params_toml"])
+        Path(params_file).write_text(text)
     # a replay keeps no state between its services' starts and never reads the run's
     return params_file, [*overrides, "runtime.lockstep=true", 'runtime.state_dir=""', *extra]
 

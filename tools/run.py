@@ -858,8 +858,9 @@ class StackRun:
         bus.subscribe(keys.reliability, m.Reliability, lambda msg, k: mon.on_rel(msg))
         bus.subscribe(keys.topo, m.TopoGraph, lambda msg, k: mon.on_topo(msg))
         bus.subscribe(keys.map, m.OccupancyGrid, lambda msg, k: mon.on_map(msg))
-        if args.record or getattr(args, "record_raw", False):
-            self._record(bus, foxglove=not getattr(args, "record_raw", False))
+        raw = getattr(args, "record_raw", False)
+        if args.record or raw:
+            self._record(bus, foxglove=not raw)
         if not self.sup.start():
             self.outcome.reason = "stack did not come up (see logs.txt)"
         self.outcome.startup = time.monotonic() - t0
