@@ -696,6 +696,41 @@ def test_build_index_orients_and_anchors_polylines_and_drops_self_loops():
         gr.build_index(topo([node(1, "end", 0.0, 0.0)], [edge(1, 3, [(0, 0), (1, 0)])]), 0.25)
 
 
+def _index_figures(index):
+    """What a TopoIndex holds, as plain values to compare."""
+    edges = [(e.idx, e.a, e.b, e.pts.tolist(), e.cum.tolist(), e.clearance)
+             for e in index.edges + index.narrow]
+    return index.nodes, edges, index.adj, index.narrow_adj
+
+
+def test_polyline_cache_gives_the_index_a_fresh_build_gives():
+    """The polylines kept from the last update (PolylineCache) make the same index as a build
+    from scratch, whatever changed between the two graphs: an edge's points, a node that
+    moved, an edge given the other way round, a new edge, one gone."""
+    clear = lambda p: np.where(np.abs(p[:, 0] - 3.0) < 0.3, 0.1, 0.5)  # noqa: E731
+    n1, n2, n3 = node(1, "end", 0.0, 0.5), node(2, "branch", 6.0, 0.5), node(3, "end", 6.0, 3.0)
+    graphs = [
+        topo([n1, n2, n3], [edge(1, 2, [(0.0, 0.5), (6.0, 0.5)]),
+                            edge(2, 3, [(6.0, 0.5), (6.0, 3.0)])]),
+        topo([n1, n2, n3], [edge(1, 2, [(0.0, 0.5), (6.0, 0.5)]),  # 2-3 bends now
+                            edge(2, 3, [(6.0, 0.5), (6.5, 2.0), (6.0, 3.0)])]),
+        topo([n1, n2, node(3, "end", 6.0, 3.4)],  # node 3 moved: the same points, new anchor
+             [edge(1, 2, [(0.0, 0.5), (6.0, 0.5)]),
+              edge(2, 3, [(6.0, 0.5), (6.5, 2.0), (6.0, 3.0)])]),
+        topo([n1, n2, n3], [edge(2, 1, [(6.0, 0.5), (0.0, 0.5)]),  # the other way round
+                            edge(2, 3, [(6.0, 0.5), (6.0, 3.0)]),
+                            edge(3, 3, [(6.0, 3.0), (7.0, 3.5), (6.0, 3.0)])]),
+        topo([n1, n2], [edge(1, 2, [(0.0, 0.5), (6.0, 0.5)])]),
+        topo([n1, n2], []),
+        topo([n1, n2, n3], [edge(1, 2, [(0.0, 0.5), (6.0, 0.5)]),
+                            edge(2, 3, [(6.0, 0.5), (6.0, 3.0)])]),
+    ]
+    cache = gr.PolylineCache()
+    for g in graphs + graphs[::-1]:
+        kept = gr.build_index(g, 0.25, clear, 0.3, cache)
+        assert _index_figures(kept) == _index_figures(gr.build_index(g, 0.25, clear, 0.3))
+
+
 def test_crosses_an_occupied_cell():
     g, geom = corridor_grid()
     occ = g == 100

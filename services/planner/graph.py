@@ -146,7 +146,8 @@ def densify(P: np.ndarray, o: np.ndarray, step: float) -> tuple[np.ndarray, np.n
 
 def build_index(graph: Graph, min_clearance: float,
                 clearance_at: Callable[[np.ndarray], np.ndarray] | None = None,
-                tip_length: float = 0.0) -> TopoIndex:
+                tip_length: float = 0.0, polylines: PolylineCache | None = None
+                ) -> TopoIndex:
     """Graph -> TopoIndex. Edges with clearance < min_clearance [m] are not traversable.
 
     The clearance is the edge's own ``clearance`` field, or, when ``clearance_at(points)``
@@ -159,14 +160,14 @@ def build_index(graph: Graph, min_clearance: float,
     With ``clearance_at``, a narrow edge is split where it is narrow: its wide ends stay
     traversable up to "cut" nodes (negative ids) and only the stretch between them is narrow.
     Self-loops are dropped (never on a shortest path). Raises GraphInputError if an edge refers
-    to a node that is not in the graph.
+    to a node that is not in the graph. ``polylines``: the edges' polylines kept from the last
+    update (:class:`PolylineCache`; the same index either way).
     """
     nodes = {n.id: (n.kind, float(n.x), float(n.y)) for n in graph.nodes}
-    kept, P, o = _polylines(graph, nodes)
+    kept, P, o, cum_all = (polylines or PolylineCache()).make(graph, nodes)
     b = _IndexBuilder(nodes)
     if not kept:
         return b.index()
-    cum_all = _arc_lengths(P, o)
     if clearance_at is None:
         for k, e in enumerate(kept):
             b.add(e.a, e.b, P[o[k]:o[k + 1]], cum_all[o[k]:o[k + 1]], float(e.clearance),
@@ -183,35 +184,57 @@ def build_index(graph: Graph, min_clearance: float,
     return b.index()
 
 
-def _polylines(graph: Graph, nodes: dict[int, tuple[str, float, float]]
-               ) -> tuple[list, np.ndarray, np.ndarray]:
-    """The edges that join two different nodes, and their polylines (:func:`_edge_polyline`)
-    in one flat (P, 2) array with each edge's start offset (and the end)."""
-    pts = graph.points.tolist()  # one conversion for every edge
-    off = graph.offsets.tolist()
-    kept = []
-    flat: list[list[float]] = []
-    starts = [0]
-    for k, e in enumerate(graph.edges):
-        if e.a not in nodes or e.b not in nodes:
-            raise GraphInputError(f"edge {e.a}-{e.b} refers to a node that is not in the graph")
-        if e.a == e.b:
-            continue
-        flat.extend(_edge_polyline(pts[off[k]:off[k + 1]], nodes[e.a][1:], nodes[e.b][1:]))
-        starts.append(len(flat))
-        kept.append(e)
-    if not kept:
-        return kept, np.asarray(flat, dtype=np.float64), np.asarray(starts)
-    P, o = densify(np.asarray(flat, dtype=np.float64), np.asarray(starts), DENSE_STEP)
-    return kept, P, o
+class PolylineCache:
+    """The dense polylines of a graph's edges (:func:`_edge_polyline`, then :func:`densify`)
+    and their arc lengths, kept from one update to the next: the topology service sends the
+    whole graph on every update, and almost every edge comes back as it was (97 % of them on
+    the 60 x 60 m office), so only the new ones are made. An edge is the same when its end
+    nodes (ids and positions) and its points are; the cache holds the last update's edges
+    only."""
+
+    def __init__(self) -> None:
+        self._made: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+
+    def make(self, graph: Graph, nodes: dict[int, tuple[str, float, float]]
+             ) -> tuple[list, np.ndarray, np.ndarray, np.ndarray]:
+        """(edges kept, P, o, cum): the edges that join two different nodes, their polylines
+        in one flat (P, 2) array [m] with each edge's start offset in o (and the end), and
+        each point's arc length [m] from its own edge's start."""
+        pts, off = graph.points, graph.offsets.tolist()
+        old, made = self._made, {}
+        kept, parts, arcs = [], [], []
+        for k, e in enumerate(graph.edges):
+            if e.a not in nodes or e.b not in nodes:
+                raise GraphInputError(f"edge {e.a}-{e.b} refers to a node that is not in the "
+                                      "graph")
+            if e.a == e.b:
+                continue
+            mine = pts[off[k]:off[k + 1]]
+            key = (e.a, e.b, nodes[e.a][1:], nodes[e.b][1:], mine.tobytes())
+            got = made.get(key) or old.get(key)
+            if got is None:
+                got = _dense_polyline(mine.tolist(), nodes[e.a][1:], nodes[e.b][1:])
+            made[key] = got
+            kept.append(e)
+            parts.append(got[0])
+            arcs.append(got[1])
+        self._made = made
+        if not kept:
+            return kept, np.zeros((0, 2)), np.zeros(1, np.int64), np.zeros(0)
+        o = np.concatenate([[0], np.cumsum([len(a) for a in arcs])])
+        return kept, np.concatenate(parts), o, np.concatenate(arcs)
 
 
-def _arc_lengths(P: np.ndarray, o: np.ndarray) -> np.ndarray:
-    """Arc length [m] of every point of the flat polylines, from its own edge's start."""
-    step = np.hypot(np.diff(P[:, 0]), np.diff(P[:, 1]))
-    step[o[1:-1] - 1] = 0.0  # no step across two edges
-    cum_all = np.concatenate([[0.0], np.cumsum(step)])
-    return cum_all - np.repeat(cum_all[o[:-1]], np.diff(o))
+def _dense_polyline(pts: list[list[float]], pa: tuple[float, float], pb: tuple[float, float]
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """One edge's polyline (:func:`_edge_polyline`) resampled every DENSE_STEP at least
+    (:func:`densify`), and its arc length [m] at each point."""
+    line = np.asarray(_edge_polyline(pts, pa, pb), dtype=np.float64)
+    P, _ = densify(line, np.array([0, len(line)]), DENSE_STEP)
+    P.flags.writeable = False  # shared by every update that keeps the edge
+    cum = polyline_lengths(P)
+    cum.flags.writeable = False
+    return P, cum
 
 
 class _PointClearance:

@@ -104,6 +104,7 @@ class Topological:
         self.completion = Completion(cfg)
         self._rel_updates = 0  # updates that came with a reliability message
         self._looked: list[_Look] = []
+        self._polylines = gr.PolylineCache()  # the edges' polylines, kept between updates
 
     # --- what a subclass says ----------------------------------------------------------------
 
@@ -167,7 +168,8 @@ class Topological:
 
     def _scene(self, u: Update) -> Scene:
         clearance_at = u.view.clearance_at if u.view is not None else None
-        index = gr.build_index(u.graph, self.cfg.need, clearance_at, self.cfg.params.tip_length)
+        index = gr.build_index(u.graph, self.cfg.need, clearance_at, self.cfg.params.tip_length,
+                               self._polylines)
         pmap = {b.id: float(b.p) for b in u.beliefs} if u.beliefs is not None else {}
         return Scene(u, index, pmap, index.end_ids(), clearance_at)
 
