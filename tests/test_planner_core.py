@@ -731,6 +731,45 @@ def test_polyline_cache_gives_the_index_a_fresh_build_gives():
         assert _index_figures(kept) == _index_figures(gr.build_index(g, 0.25, clear, 0.3))
 
 
+def test_clearance_keeper_gives_the_whole_maps_capped_clearance_bit_for_bit():
+    """Update after update (a few cells changed, none, a wall drawn, one erased, the grid
+    grown), the kept clearance is exactly the capped clearance of the whole map made afresh,
+    read-only, and below the cap the same as the uncapped clearance."""
+    rng = np.random.default_rng(3)
+    res, cap = 0.1, 0.7
+    keeper = gs.ClearanceKeeper(cap)
+    occ = rng.random((90, 120)) < 0.01
+    geom = GridGeometry(res, 0.0, 0.0, 120, 90)
+    for k in range(40):
+        occ = occ.copy()
+        if k % 10 == 9:  # the grid grown (new geometry): made afresh
+            occ = np.pad(occ, ((0, 10), (5, 0)))
+            geom = GridGeometry(res, geom.origin_x - 5 * res, 0.0, occ.shape[1], occ.shape[0])
+        elif k % 5 == 2:
+            pass  # nothing changed
+        elif k % 5 == 3:  # a wall drawn, or erased where one stood
+            r, c = rng.integers(0, occ.shape[0] - 12), rng.integers(0, occ.shape[1] - 30)
+            occ[r, c:c + 30] = not occ[r, c]
+        else:  # a few cells round one place (one scan's hits), the last one anywhere
+            r, c = rng.integers(0, occ.shape[0] - 10), rng.integers(0, occ.shape[1] - 10)
+            rows, cols = r + rng.integers(0, 10, 6), c + rng.integers(0, 10, 6)
+            occ[rows, cols] = ~occ[rows, cols]
+            if k == 39:
+                occ[-1, -1] = ~occ[-1, -1]
+        got = keeper.clearance(occ, geom)
+        want = gs.capped_clearance_map(occ, res, 7)
+        assert got.dtype == np.float32 and not got.flags.writeable
+        assert np.array_equal(got, want), k
+        true = gs.clearance_map(occ, res)
+        below = true < cap - 1e-6
+        assert np.allclose(got[below], true[below], rtol=0, atol=1e-6)
+        assert np.all(got[~below] >= cap - 1e-6)
+    assert 0 < keeper.cells and keeper.kept > keeper.cells  # most of it was kept
+    with pytest.raises(ValueError, match="beyond"):  # asked above the cap: an error
+        g, geom = half_known_room()
+        MapView(grid(g, geom), Occupancy(), keeper=keeper).passable(cap + 0.1)
+
+
 def test_crosses_an_occupied_cell():
     g, geom = corridor_grid()
     occ = g == 100
@@ -1094,8 +1133,9 @@ def test_each_derived_grid_is_computed_once_per_update(strategy, monkeypatch):
 
     for name in ("crop_known", "classify", "unknown_mask", "open_unknown"):
         monkeypatch.setattr(mapview, name, counted(name, getattr(mapview, name)))
-    monkeypatch.setattr(mapview.gs, "clearance_map", counted("clearance_map",
-                                                             gs.clearance_map))
+    # the clearance of the map: asked of the planner's keeper (kept between updates)
+    monkeypatch.setattr(mapview.gs.ClearanceKeeper, "clearance",
+                        counted("clearance_map", gs.ClearanceKeeper.clearance))
     searches: list[bool] = []
     grid_search = gs.grid_search
 

@@ -54,6 +54,7 @@ from topoexplore.common.grid import GridGeometry, Occupancy
 from topoexplore.common.params import PlannerParams, ReliabilityParams, RobotParams
 from topoexplore.common.surfaces import Surfaces
 from topoexplore.services.planner import graph as gr
+from topoexplore.services.planner import gridsearch as gs
 from topoexplore.services.planner import strategies
 from topoexplore.services.planner.blockage import RELEASE_LIMIT, WAY_BACK, Blockages
 from topoexplore.services.planner.decision import Action, Blacklist, Decision, Target
@@ -69,6 +70,7 @@ from topoexplore.services.planner.strategies.base import (
     id_list,
 )
 from topoexplore.services.planner.strategies.frontier import (
+    clearance_cap,
     nearest_frontier_evaluation,
     robot_reach,
     robot_search,
@@ -120,6 +122,7 @@ class PlannerCore:
                                 params.examine_angle, 1, name="looked")  # frontier cells
         #   looked into squarely from close: no opening for the completion rules
         self._surfaces = Surfaces(params.surface_views)
+        self._clearance_keeper = gs.ClearanceKeeper(clearance_cap(self._cfg))
         self._last_t: float | None = None
         self._last_eval_t = -math.inf
         self._had_path = False
@@ -150,7 +153,8 @@ class PlannerCore:
         self._view = None if grid is None else MapView(grid, self.occ,
                                                         self._blockages.active(t),
                                                         self._closed,
-                                                        self._looked.mask)
+                                                        self._looked.mask,
+                                                        self._clearance_keeper)
         if self._view is not None:
             self._surfaces.observe(self._view.map_classes, self._view.geom)
             self._examined.observe(x, y, th, self._view.classes, self._view.geom)

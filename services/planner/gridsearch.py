@@ -141,6 +141,80 @@ def clearance_map(occupied: np.ndarray, resolution: float) -> np.ndarray:
     return distance_transform(src) * np.float32(resolution)
 
 
+def capped_clearance_map(occupied: np.ndarray, resolution: float, cap_cells: int
+                         ) -> np.ndarray:
+    """:func:`clearance_map` capped at cap_cells cells, each value the square root of its
+    integer squared distance in cells: a function of the occupied cells within cap_cells of a
+    cell alone, so that a part of it computed on a window of the grid is the same bit for bit
+    (OpenCV's transform differs in the last bit from one array to another: 0.6082763 on the
+    whole map, 0.60827625 on a window of it, at sqrt(37) cells)."""
+    cap2 = float(cap_cells * cap_cells)
+    if not occupied.any():
+        d2 = np.full(occupied.shape, cap2)
+    else:
+        dt = distance_transform(np.where(occupied, 0, 255).astype(np.uint8))
+        d2 = np.minimum(np.rint(np.square(dt, dtype=np.float64)), cap2)
+    return np.sqrt(d2).astype(np.float32) * np.float32(resolution)
+
+
+class ClearanceKeeper:
+    """The clearance of the map [m] (:func:`capped_clearance_map`, capped at cap [m]), kept
+    from one update to the next: only the cells within cap of an occupied cell that changed
+    are computed again (on the 60 x 60 m office a window of 7 % of the map on average, nothing
+    on one update in ten). The result is what :func:`capped_clearance_map` gives on the whole
+    grid, bit for bit. The grid's geometry changing (the mapper growing it) starts afresh.
+
+    Every rule that reads the planner's clearance compares it with a clearance it needs (the
+    robot's radius and margins, the soft penalty's reach), all below cap: there a capped value
+    and the true one say the same."""
+
+    def __init__(self, cap: float):
+        self.cap = float(cap)  # [m]
+        self._key: tuple | None = None  # the geometry of the map below
+        self._occ: np.ndarray | None = None  # its occupied cells ...
+        self._out: np.ndarray | None = None  # ... and their clearance [m]
+        self.cells = 0  # cells computed (a full map or windows) ...
+        self.kept = 0  # ... and cells kept from the update before: what the keeper saved
+
+    def clearance(self, occupied: np.ndarray, geom: GridGeometry) -> np.ndarray:
+        """Read-only float32 clearance [m] of the occupied cells (the grid's shape) on geom."""
+        res = geom.resolution
+        cap_cells = max(1, math.ceil(self.cap / res - 1e-9))
+        key = (res, geom.origin_x, geom.origin_y, occupied.shape, cap_cells)
+        if key != self._key or self._out is None:
+            out = capped_clearance_map(occupied, res, cap_cells)
+            self.cells += out.size
+        else:
+            out = self._update(occupied, res, cap_cells)
+        out.flags.writeable = False
+        self._key, self._occ, self._out = key, occupied, out
+        return out
+
+    def _update(self, occupied: np.ndarray, res: float, cap_cells: int) -> np.ndarray:
+        """The kept clearance with the window round the changed cells made again."""
+        old = self._out
+        changed = occupied != self._occ
+        rows = np.flatnonzero(changed.any(axis=1))
+        if rows.size == 0:
+            self.kept += old.size
+            return old
+        cols = np.flatnonzero(changed.any(axis=0))
+        h, w = occupied.shape
+        k = cap_cells + 1
+        # the cells whose value may change (within cap of a changed cell) ...
+        r0, r1 = max(0, int(rows[0]) - k), min(h, int(rows[-1]) + 1 + k)
+        c0, c1 = max(0, int(cols[0]) - k), min(w, int(cols[-1]) + 1 + k)
+        # ... computed on a window holding every occupied cell within cap of them
+        s0, s1 = max(0, r0 - k), min(h, r1 + k)
+        t0, t1 = max(0, c0 - k), min(w, c1 + k)
+        part = capped_clearance_map(occupied[s0:s1, t0:t1], res, cap_cells)
+        out = old.copy()  # the last update's view may still hold the old array
+        out[r0:r1, c0:c1] = part[r0 - s0:r1 - s0, c0 - t0:c1 - t0]
+        self.cells += part.size
+        self.kept += out.size - (r1 - r0) * (c1 - c0)
+        return out
+
+
 def best_clearance_map(occupied: np.ndarray, resolution: float) -> np.ndarray:
     """Per cell, the largest clearance [m] of a point in it: the distance transform at half
     the resolution (each cell as 2 x 2 sub-cells; occupied sub-cells are those of occupied

@@ -79,8 +79,10 @@ class MapView:
     def __init__(self, grid: GridMap, occ: Occupancy,
                  blocked: Sequence[tuple[float, float, float]] = (),
                  examined: Callable[[GridGeometry], np.ndarray | None] | None = None,
-                 looked: Callable[[GridGeometry], np.ndarray | None] | None = None):
+                 looked: Callable[[GridGeometry], np.ndarray | None] | None = None,
+                 keeper: gs.ClearanceKeeper | None = None):
         self._grid = grid
+        self._keeper = keeper  # the clearance kept from the last update's view, if given
         self.occ = occ
         self.blocked = tuple(blocked)  # (x, y, r) [m]: discs learned to be impassable
         self._examined = examined  # geom -> the examined frontier cells (:mod:`.examined`)
@@ -166,8 +168,19 @@ class MapView:
 
     @_once
     def clearance(self) -> np.ndarray:
-        """float32 distance [m] to the nearest occupied cell (unknown is no obstacle)."""
-        return gs.clearance_map(self.occupied, self.geom.resolution)
+        """float32 distance [m] to the nearest occupied cell (unknown is no obstacle); with a
+        :class:`gridsearch.ClearanceKeeper`, capped at its cap and made from the last
+        update's clearance where the occupied cells did not change (the keeper works on the
+        whole grid, whose geometry changes far less often than the observed part's)."""
+        if self._keeper is None:
+            return gs.clearance_map(self.occupied, self.geom.resolution)
+        full, geom = self._grid.geom, self.geom
+        r0 = round((geom.origin_y - full.origin_y) / geom.resolution)
+        c0 = round((geom.origin_x - full.origin_x) / geom.resolution)
+        win = slice(r0, r0 + geom.height), slice(c0, c0 + geom.width)
+        occ = np.zeros((full.height, full.width), dtype=bool)
+        occ[win] = self.occupied  # outside the observed part: never observed, no obstacle
+        return self._keeper.clearance(occ, full)[win]
 
     @property
     def best_clearance(self) -> np.ndarray:
@@ -282,9 +295,17 @@ class MapView:
             self._fits[fit] = self.free & ok
         return self._fits[fit]
 
+    def _capped(self, *limits: float) -> None:
+        """A clearance asked of the map beyond the keeper's cap would read the cap: an error
+        in the caller, not an answer."""
+        if self._keeper is not None and max(limits) > self._keeper.cap + 1e-9:
+            raise ValueError(f"clearance {max(limits):g} m asked beyond the kept clearance's "
+                             f"cap {self._keeper.cap:g} m")
+
     def passable(self, radius: float) -> np.ndarray:
         """Known free cells at least radius [m] from every occupied cell."""
         if radius not in self._passable:
+            self._capped(radius)
             self._passable[radius] = self.free & (self.clearance + 1e-6 >= radius)
         return self._passable[radius]
 
@@ -350,6 +371,7 @@ class MapView:
         getting to them through cells with clearance >= fit [m] (its body). With
         narrow_penalty, the cells whose best point (:attr:`best_clearance`) has fit count
         too, at that extra cost (:func:`gridsearch.grid_search`)."""
+        self._capped(radius, soft_radius, fit or 0.0)
         narrow = narrow_penalty is not None and fit is not None and fit < radius
         if narrow:  # narrow passages are judged by the best point of each cell; a reach-only
             #   search may need none of its values (:func:`gridsearch.grid_search`)

@@ -254,6 +254,13 @@ def robot_search(cfg: Config, u: Update, narrow: bool = False, reach_only: bool 
                        narrow_penalty=NARROW_PENALTY if narrow else None, reach_only=reach_only)
 
 
+def clearance_cap(cfg: Config) -> float:
+    """[m] the greatest clearance a rule of the planner asks a cell for: the soft penalty's
+    reach in :func:`robot_search`. The clearance the planner keeps between updates
+    (:class:`.gridsearch.ClearanceKeeper`) is capped there."""
+    return SOFT_RADIUS_FACTOR * cfg.need
+
+
 def _look_from_afar(c: Candidate, view: MapView, search: gs.GridSearch,
                     mouth: tuple[int, int], p: PlannerParams) -> None:
     """Candidate c of an opening at cell mouth: its goal becomes the nearest place to look
