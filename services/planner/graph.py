@@ -121,27 +121,20 @@ def _edge_polyline(pts: list[list[float]], pa: tuple[float, float], pb: tuple[fl
     return pts
 
 
-def densify(P: np.ndarray, o: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
-    """Flat polylines (P, with each one's start offset in o and the end) with points inserted
-    so that no two in a row are more than step [m] apart (a topology message may simplify a
-    straight stretch to its two ends); returns the new (P, o)."""
-    n_pts = len(P)
-    if n_pts < 2:
-        return P, o
-    d = P[1:] - P[:-1]
-    last = np.zeros(n_pts, bool)
-    last[o[1:] - 1] = True  # the last point of each polyline starts no segment
-    reps = np.ones(n_pts, np.int64)
-    inner = ~last[:-1]
-    reps[:-1][inner] = np.maximum(1, np.ceil(np.hypot(d[inner, 0], d[inner, 1]) / step)
-                                  ).astype(np.int64)
-    src = np.repeat(np.arange(n_pts), reps)
+def densify(pts: np.ndarray, step: float) -> np.ndarray:
+    """The polyline pts (n, 2) [m] with points inserted so that no two in a row are more than
+    step [m] apart (a topology message may simplify a straight stretch to its two ends)."""
+    n = len(pts)
+    if n < 2:
+        return pts
+    d = pts[1:] - pts[:-1]
+    reps = np.ones(n, np.int64)  # the points each one stands for: itself and those after it
+    reps[:-1] = np.maximum(1, np.ceil(np.hypot(d[:, 0], d[:, 1]) / step)).astype(np.int64)
+    src = np.repeat(np.arange(n), reps)
     first = np.repeat(np.cumsum(reps) - reps, reps)
     frac = (np.arange(len(src)) - first) / np.repeat(reps, reps)
-    seg = np.vstack([d, np.zeros((1, 2))])[src]
-    out = P[src] + frac[:, None] * np.where(last[src][:, None], 0.0, seg)
-    o2 = np.concatenate([[0], np.cumsum(reps)])[o]
-    return out, o2
+    seg = np.vstack([d, np.zeros((1, 2))])[src]  # the last point starts no segment
+    return pts[src] + frac[:, None] * seg
 
 
 def build_index(graph: Graph, min_clearance: float,
@@ -230,7 +223,7 @@ def _dense_polyline(pts: list[list[float]], pa: tuple[float, float], pb: tuple[f
     """One edge's polyline (:func:`_edge_polyline`) resampled every DENSE_STEP at least
     (:func:`densify`), and its arc length [m] at each point."""
     line = np.asarray(_edge_polyline(pts, pa, pb), dtype=np.float64)
-    P, _ = densify(line, np.array([0, len(line)]), DENSE_STEP)
+    P = densify(line, DENSE_STEP)
     P.flags.writeable = False  # shared by every update that keeps the edge
     cum = polyline_lengths(P)
     cum.flags.writeable = False

@@ -133,12 +133,17 @@ def frontier_mask(free: np.ndarray, unknown: np.ndarray) -> np.ndarray:
     return free & adj
 
 
+def _cells_to_occupied(occupied: np.ndarray) -> np.ndarray:
+    """float32 distance [cells] from each cell centre to the nearest occupied cell centre
+    (exact L2; at least one cell must be occupied)."""
+    return distance_transform(np.where(occupied, 0, 255).astype(np.uint8))
+
+
 def clearance_map(occupied: np.ndarray, resolution: float) -> np.ndarray:
     """Distance [m] from each cell centre to the nearest occupied cell centre (exact L2)."""
     if not occupied.any():
         return np.full(occupied.shape, np.float32(1e6), dtype=np.float32)
-    src = np.where(occupied, 0, 255).astype(np.uint8)
-    return distance_transform(src) * np.float32(resolution)
+    return _cells_to_occupied(occupied) * np.float32(resolution)
 
 
 def capped_clearance_map(occupied: np.ndarray, resolution: float, cap_cells: int
@@ -152,8 +157,8 @@ def capped_clearance_map(occupied: np.ndarray, resolution: float, cap_cells: int
     if not occupied.any():
         d2 = np.full(occupied.shape, cap2)
     else:
-        dt = distance_transform(np.where(occupied, 0, 255).astype(np.uint8))
-        d2 = np.minimum(np.rint(np.square(dt, dtype=np.float64)), cap2)
+        d2 = np.minimum(np.rint(np.square(_cells_to_occupied(occupied), dtype=np.float64)),
+                        cap2)
     return np.sqrt(d2).astype(np.float32) * np.float32(resolution)
 
 
