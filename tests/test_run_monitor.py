@@ -86,7 +86,7 @@ def test_a_later_scans_map_that_came_before_the_ending_status_is_not_the_reports
     fresh = Monitor()
     for k in range(0, 80, 2):
         fresh.on_map(grid(k))
-        fresh.on_status(status(k - 7, "exploring"))  # the planner three maps behind
+        fresh.on_status(status(k - 7, "exploring"))  # the planner 3.5 maps behind
     # when map 78 came, the newest status was of scan 69: map 68 and the later ones
     assert sorted(fresh.grid_by_seq) == [68, 70, 72, 74, 76, 78]
     silent = Monitor()  # no status ever: the GRIDS_KEPT latest
