@@ -98,6 +98,10 @@ def test_explores_world_to_the_end(world):
     assert r["planner"]["watchdog_log"] == [] and r["planner"]["blocked_marks"] >= 0
     assert r["planner"]["blocked_released"] == 0
     assert isinstance(r["planner"]["watchdog_approaches"], int)
+    # the reliability core's counters, from its state queryable: resets of belief counted
+    rel = r["reliability"]
+    assert rel["updates"] > 0 and rel["resets"] >= rel["nodes_reset"] >= 0, rel
+    assert rel["dropped"] >= 0, rel
     out = Path(r["_out"])
     for name in ("report.json", "final.png", "map.pgm", "map.yaml", "topology.json"):
         assert (out / name).stat().st_size > 0, name

@@ -361,7 +361,8 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
                 memory: dict | None = None, cpu: dict | None = None,
                 recording: dict | None = None,
                 checkpoints: dict | None = None,
-                localizer: dict | None = None) -> dict[str, Any]:
+                localizer: dict | None = None,
+                reliability: dict | None = None) -> dict[str, Any]:
     """The report.json document. ``coverage``: share of the free cells the robot can map that
     the final map knows; ``coverage_free``: share of every free cell connected to the start."""
     rel = mon.rel
@@ -422,6 +423,11 @@ def make_report(*, world: str, strategy: str, seed: int, finished: bool, stop_re
         # with the localizer: scans matched, kept (no trusted match: the guess stood), with
         # no map yet, and matched with odometry's guess kept along a corridor (degenerate)
         "localizer": localizer,
+        # reliability core over the run: updates, movement resets of belief (an end node's
+        # tip moved beyond move_tolerance: its P starts again at the prior) and the histories
+        # dropped with vanished end nodes; nodes_reset: the end nodes still tracked at the end
+        # that had a reset
+        "reliability": reliability,
     }
 
 
@@ -482,6 +488,26 @@ def _localizer_counts(bus: Bus, keys: Keys) -> dict | None:
     except StateError:
         return None
     return {k: st.get(k, 0) for k in ("matched", "kept", "no_map", "degenerate")}
+
+
+def _reliability_counts(bus: Bus, keys: Keys) -> dict | None:
+    """The reliability core's counters from its state queryable (its snapshot): updates, the
+    movement resets of belief (an end node moved beyond move_tolerance, DESIGN §4), how many
+    of the end nodes tracked at the end had one, and the histories dropped with vanished
+    nodes; None if it does not answer."""
+    from topoexplore.tools.livestate import StateError, fetch_state
+
+    try:
+        snap = fetch_state(bus, keys, "reliability", timeout=1.0).get("nodes")
+    except StateError:
+        return None
+    if not isinstance(snap, dict):
+        return None
+    nodes = snap.get("nodes") if isinstance(snap.get("nodes"), dict) else {}
+    return {"updates": snap.get("updates", 0), "resets": snap.get("resets", 0),
+            "nodes_reset": sum(1 for n in nodes.values()
+                               if isinstance(n, dict) and n.get("resets", 0) > 0),
+            "dropped": snap.get("dropped", 0)}
 
 
 def _checkpoints(bus: Bus, keys: Keys) -> dict:
@@ -768,6 +794,7 @@ class Outcome:
     recording: dict | None = None  # the recorder's counts (tools.record.Recorder.stats)
     checkpoints: dict | None = None  # per service: its checkpoint counters (_checkpoints)
     localizer: dict | None = None  # the localizer's counters (_localizer_counts), when it runs
+    reliability: dict | None = None  # the reliability core's counters (_reliability_counts)
 
 
 class StackRun:
@@ -951,6 +978,7 @@ class StackRun:
         out.checkpoints = _checkpoints(self.bus, self.setup.keys) if out.startup else None
         if out.startup and self.setup.params.localizer.enabled:
             out.localizer = _localizer_counts(self.bus, self.setup.keys)
+        out.reliability = _reliability_counts(self.bus, self.setup.keys) if out.startup else None
 
 
 # --- step 5: the report and the files ------------------------------------------------------
@@ -976,7 +1004,8 @@ def write_results(args: argparse.Namespace, setup: Setup, truth: Truth, mon: Mon
                              planner=outcome.planner, warmup=outcome.warmup,
                              first_motion=outcome.first_motion, memory=outcome.memory,
                              cpu=outcome.cpu, recording=outcome.recording,
-                             checkpoints=outcome.checkpoints, localizer=outcome.localizer)
+                             checkpoints=outcome.checkpoints, localizer=outcome.localizer,
+                             reliability=outcome.reliability)
         title = (f"{args.world} / {args.strategy} / seed {args.seed}: "
                  f"{'finished' if outcome.finished else 'not finished'}, "
                  f"{report['path_length_m']:.1f} m, {report['sim_time_s']:.0f} s, "
