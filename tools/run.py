@@ -126,12 +126,6 @@ class Monitor:
     # src_seq of the scan whose status ended the run: later outputs are ignored, so the
     # report, map and picture describe exactly that scan (deterministic in lockstep)
     end_seq: int | None = None
-    # the newest scan a status came for: the planner reports its scans in order, so the run
-    # ends on this scan or a later one, and what was kept for earlier scans than the newest one
-    # at or before it can go (in lockstep the mapper runs plan_lag map periods ahead, and
-    # further while this monitor is busy: a fixed count of 4 maps once let the ending scan's
-    # map go, same seed, coverage 0.998 and 0.9979 on the bus)
-    status_seq: int = -1
     # coverage over distance: (sim_time, path_length, coverage), sampled on map updates
     timeline: list[tuple[float, float, float]] = field(default_factory=list)
     coverage_fn: Any = None
@@ -148,11 +142,19 @@ class Monitor:
             if self.end_seq is not None:
                 return  # keep the status that ended the run (later scans repeat it)
             self.status = msg
-            self.status_seq = max(self.status_seq, msg.header.src_seq)
             if msg.state in ("done", "failed"):
                 self.end_seq = msg.header.src_seq
         if msg.state in ("done", "failed"):
             self.event.set()
+
+    @property
+    def status_seq(self) -> int:
+        """The scan of the newest status read (-1 before any): the planner reports its scans
+        in order, so the run ends on this scan or a later one, and what was kept for scans
+        before the newest one at or before it can go (in lockstep the mapper runs plan_lag map
+        periods ahead, and further while this monitor is busy: a fixed count of 4 maps once
+        let the ending scan's map go, same seed, coverage 0.998 and 0.9979 on the bus)."""
+        return self.status.header.src_seq if self.status is not None else -1
 
     def on_sim(self, msg: m.SimStatus) -> None:
         with self.lock:
