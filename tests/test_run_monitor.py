@@ -150,3 +150,34 @@ def test_a_later_scans_topology_and_reliability_are_not_the_reports():
     # when those of 38 came, the newest status was of scan 30
     assert sorted(fresh.topo_by_seq) == sorted(fresh.rel_by_seq) == [30, 32, 34, 36, 38]
     assert fresh.seen_end_ids == set(range(0, 40, 2))  # pruning the record keeps the ids
+
+
+def test_the_reports_counters_are_read_from_each_services_state_once_fetched():
+    """The end of a run fetches every service's state once (run.final_states) and reads the
+    report's counters from those states; a service that did not answer is simply absent."""
+    from topoexplore.tools import run
+
+    states = {
+        "mapper": {"bad_messages_total": 2, "lost": {"scan": 3, "odom": 0},
+                   "checkpoint": {"path": "/s/mapper", "written": 5}},
+        "planner": {"bad_messages_total": 1, "lost": {},
+                    "core": {"watchdog": {"counts": {"blacklist": 1}, "log": ["x"],
+                                          "approaches": 4},
+                             "blocked": {"made": 2}, "replans": 7}},
+        "reliability": {"nodes": {"updates": 9, "resets": 3, "dropped": 1,
+                                  "nodes": {"1": {"resets": 2}, "2": {"resets": 0},
+                                            "3": "not a node"}},
+                        "checkpoint": {"path": ""}},
+        "localizer": {"matched": 10, "kept": 2},
+    }
+    assert run.message_counts(states) == (3, {"mapper": {"scan": 3}})
+    assert run.checkpoint_counts(states) == {"mapper": {"path": "/s/mapper", "written": 5}}
+    assert run.reliability_counts(states["reliability"]) == {
+        "updates": 9, "resets": 3, "nodes_reset": 1, "dropped": 1}
+    assert run.reliability_counts({"nodes": None}) is None
+    assert run.localizer_counts(states["localizer"]) == {
+        "matched": 10, "kept": 2, "no_map": 0, "degenerate": 0}
+    p = run.planner_robustness(states["planner"])
+    assert p["watchdog_escalations"] == {"blacklist": 1} and p["watchdog_approaches"] == 4
+    assert p["blocked_marks"] == 2 and p["blocked_forgotten"] == 0 and p["replans"] == 7
+    assert run.message_counts({}) == (0, {}) and run.checkpoint_counts({}) == {}

@@ -458,16 +458,18 @@ def _recording_summary(st: dict | None) -> dict | None:
     return {k: st[k] for k in keep if k in st}
 
 
-def _planner_robustness(bus: Bus, keys: Keys) -> dict | None:
-    """The planner's watchdog escalations (counts and log) and learned obstacles, from its
-    state queryable; None if it does not answer."""
+def final_states(bus: Bus, keys: Keys, names) -> dict[str, dict]:
+    """The state of each service in names, fetched once from its state queryable at the end
+    of a run (one round trip each; a service that does not answer is left out)."""
     from topoexplore.tools.livestate import StateError, fetch_state
 
-    try:
-        st = fetch_state(bus, keys, "planner", timeout=1.0)
-    except StateError:
-        return None
-    return planner_robustness(st)
+    out = {}
+    for s in names:
+        try:
+            out[s] = fetch_state(bus, keys, s, timeout=1.0)
+        except StateError:
+            continue
+    return out
 
 
 def planner_robustness(state: dict) -> dict:
@@ -481,28 +483,17 @@ def planner_robustness(state: dict) -> dict:
             "replans": core.get("replans", 0)}
 
 
-def _localizer_counts(bus: Bus, keys: Keys) -> dict | None:
-    """The localizer's counters from its state queryable; None if it does not answer."""
-    from topoexplore.tools.livestate import StateError, fetch_state
-
-    try:
-        st = fetch_state(bus, keys, "localizer", timeout=1.0)
-    except StateError:
-        return None
-    return {k: st.get(k, 0) for k in ("matched", "kept", "no_map", "degenerate")}
+def localizer_counts(state: dict) -> dict:
+    """The report's ``localizer`` entry: the localizer's counters from its state."""
+    return {k: state.get(k, 0) for k in ("matched", "kept", "no_map", "degenerate")}
 
 
-def _reliability_counts(bus: Bus, keys: Keys) -> dict | None:
-    """The reliability core's counters from its state queryable (its snapshot): updates, the
-    movement resets of belief (an end node moved beyond move_tolerance, DESIGN §4), how many
-    of the end nodes tracked at the end had one, and the histories dropped with vanished
-    nodes; None if it does not answer."""
-    from topoexplore.tools.livestate import StateError, fetch_state
-
-    try:
-        snap = fetch_state(bus, keys, "reliability", timeout=1.0).get("nodes")
-    except StateError:
-        return None
+def reliability_counts(state: dict) -> dict | None:
+    """The report's ``reliability`` entry from the reliability service's state (its core's
+    snapshot): updates, the movement resets of belief (an end node moved beyond
+    move_tolerance, DESIGN §4), how many of the end nodes tracked at the end had one, and the
+    histories dropped with vanished nodes; None without a snapshot."""
+    snap = state.get("nodes")
     if not isinstance(snap, dict):
         return None
     nodes = snap.get("nodes") if isinstance(snap.get("nodes"), dict) else {}
@@ -512,33 +503,21 @@ def _reliability_counts(bus: Bus, keys: Keys) -> dict | None:
             "dropped": snap.get("dropped", 0)}
 
 
-def _checkpoints(bus: Bus, keys: Keys) -> dict:
-    """The checkpoint counters of the services that keep one (their state queryables)."""
-    from topoexplore.tools.livestate import StateError, fetch_state
-
+def checkpoint_counts(states: dict[str, dict]) -> dict:
+    """The checkpoint counters of the services that keep one, from their states."""
     out = {}
     for s in ("sim", "mapper", "topology", "reliability", "planner"):
-        try:
-            ck = fetch_state(bus, keys, s, timeout=1.0).get("checkpoint")
-        except StateError:
-            continue
+        ck = states.get(s, {}).get("checkpoint")
         if isinstance(ck, dict) and ck.get("path"):
             out[s] = ck
     return out
 
 
-def _message_counts(bus: Bus, keys: Keys) -> tuple[int, dict[str, dict[str, int]]]:
+def message_counts(states: dict[str, dict]) -> tuple[int, dict[str, dict[str, int]]]:
     """The services' bad messages (total) and messages lost on the way to each service, by
-    header.seq ({service: {topic: n}}, only where some were lost)."""
-    from topoexplore.common.keys import SERVICES
-    from topoexplore.tools.livestate import StateError, fetch_state
-
+    header.seq ({service: {topic: n}}, only where some were lost), from their states."""
     total, lost = 0, {}
-    for s in SERVICES:
-        try:
-            st = fetch_state(bus, keys, s, timeout=1.0)
-        except StateError:
-            continue
+    for s, st in states.items():
         total += int(st.get("bad_messages_total", 0))
         per = {k: int(v) for k, v in (st.get("lost") or {}).items() if v}
         if per:
@@ -794,9 +773,9 @@ class Outcome:
     memory: dict | None = None  # resident memory per process [MB] (Supervisor.memory)
     cpu: dict | None = None  # CPU seconds per process (Supervisor.cpu)
     recording: dict | None = None  # the recorder's counts (tools.record.Recorder.stats)
-    checkpoints: dict | None = None  # per service: its checkpoint counters (_checkpoints)
-    localizer: dict | None = None  # the localizer's counters (_localizer_counts), when it runs
-    reliability: dict | None = None  # the reliability core's counters (_reliability_counts)
+    checkpoints: dict | None = None  # per service: its checkpoint counters (checkpoint_counts)
+    localizer: dict | None = None  # the localizer's counters (localizer_counts), when it runs
+    reliability: dict | None = None  # the reliability core's counters (reliability_counts)
 
 
 class StackRun:
@@ -975,12 +954,24 @@ class StackRun:
         out.memory = self.sup.memory() or None
         out.cpu = self.sup.cpu() or None
         if out.startup:
-            out.bad, out.lost = _message_counts(self.bus, self.setup.keys)
-        out.planner = _planner_robustness(self.bus, self.setup.keys) if out.startup else None
-        out.checkpoints = _checkpoints(self.bus, self.setup.keys) if out.startup else None
-        if out.startup and self.setup.params.localizer.enabled:
-            out.localizer = _localizer_counts(self.bus, self.setup.keys)
-        out.reliability = _reliability_counts(self.bus, self.setup.keys) if out.startup else None
+            self._final_counts(out)
+
+    def _final_counts(self, out: Outcome) -> None:
+        """The report's counters from the services' states, each fetched once."""
+        from topoexplore.common.keys import SERVICES
+
+        loc = self.setup.params.localizer.enabled
+        states = final_states(self.bus, self.setup.keys,
+                              SERVICES + (("localizer",) if loc else ()))
+        core = {s: st for s, st in states.items() if s in SERVICES}
+        out.bad, out.lost = message_counts(core)
+        out.planner = planner_robustness(states["planner"]) if "planner" in states else None
+        out.checkpoints = checkpoint_counts(states)
+        if loc:
+            out.localizer = localizer_counts(states["localizer"]) \
+                if "localizer" in states else None
+        out.reliability = reliability_counts(states["reliability"]) \
+            if "reliability" in states else None
 
 
 # --- step 5: the report and the files ------------------------------------------------------
