@@ -458,7 +458,7 @@ def _recording_summary(st: dict | None) -> dict | None:
     return {k: st[k] for k in keep if k in st}
 
 
-def final_states(bus: Bus, keys: Keys, names) -> dict[str, dict]:
+def final_states(bus: Bus, keys: Keys, names: tuple[str, ...]) -> dict[str, dict]:
     """The state of each service in names, fetched once from its state queryable at the end
     of a run (one round trip each; a service that does not answer is left out)."""
     from topoexplore.tools.livestate import StateError, fetch_state
