@@ -960,18 +960,17 @@ class StackRun:
         """The report's counters from the services' states, each fetched once."""
         from topoexplore.common.keys import SERVICES
 
-        loc = self.setup.params.localizer.enabled
-        states = final_states(self.bus, self.setup.keys,
-                              SERVICES + (("localizer",) if loc else ()))
-        core = {s: st for s, st in states.items() if s in SERVICES}
-        out.bad, out.lost = message_counts(core)
-        out.planner = planner_robustness(states["planner"]) if "planner" in states else None
+        loc = ("localizer",) if self.setup.params.localizer.enabled else ()
+        states = final_states(self.bus, self.setup.keys, SERVICES + loc)
+
+        def read(name: str, fn):  # None where the service did not answer (or does not run)
+            return fn(states[name]) if name in states else None
+
+        out.bad, out.lost = message_counts({s: states[s] for s in SERVICES if s in states})
+        out.planner = read("planner", planner_robustness)
         out.checkpoints = checkpoint_counts(states)
-        if loc:
-            out.localizer = localizer_counts(states["localizer"]) \
-                if "localizer" in states else None
-        out.reliability = reliability_counts(states["reliability"]) \
-            if "reliability" in states else None
+        out.localizer = read("localizer", localizer_counts)
+        out.reliability = read("reliability", reliability_counts)
 
 
 # --- step 5: the report and the files ------------------------------------------------------
