@@ -8,6 +8,8 @@ import math
 import msgspec
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from topoexplore.common.domain import Belief, ExploreState, Graph, GridMap, Node, Plan
 from topoexplore.common.grid import GridGeometry, Occupancy, classify, unknown_mask
@@ -332,6 +334,62 @@ def test_entry_point_needs_line_of_sight_on_the_grid():
     assert wps(out)[1] == pytest.approx((0.0, -1.5), abs=1e-6)  # joins the visible edge
     out = PlannerCore(params()).update(0.0, (0.0, 0.0, 0.0), tp, rel(pr), None)
     assert wps(out)[1] == pytest.approx((0.0, 1.0), abs=1e-6)  # no grid: nearest point
+
+
+@given(st.lists(st.sampled_from([0.0, 0.5, 1.0, 1.5, 2.0, math.inf, math.nan]), max_size=40),
+       st.integers(1, 45))
+@settings(max_examples=300, deadline=None)
+def test_nearest_first_is_the_head_of_a_stable_argsort(values, k):
+    """find_entry's partial sort: the same indices in the same order as a whole stable sort
+    (ties in index order, NaN last), so the entry chosen does not change."""
+    v = np.array(values, dtype=float)
+    assert gr.nearest_first(v, k).tolist() == np.argsort(v, kind="stable")[:k].tolist()
+
+
+def _entry_by_loops(index, x, y, visible, max_checks=64):
+    """find_entry the long way: every segment of every edge in order, the nearest first
+    (ties: the earlier segment), the first visible among the max_checks nearest."""
+    segs = []
+    for pos, e in enumerate(index.edges):
+        for i in range(len(e.pts) - 1):
+            p0, d = e.pts[i], e.pts[i + 1] - e.pts[i]
+            dd = float(d @ d)
+            t = min(max(float((np.array([x, y]) - p0) @ d) / dd, 0.0), 1.0) if dd > 0 else 0.0
+            nx, ny = p0 + t * d
+            segs.append((math.hypot(nx - x, ny - y), len(segs), pos, i, nx, ny))
+    segs.sort(key=lambda s: (s[0], s[1]))
+    for s in segs[:max_checks]:
+        if visible(x, y, s[4], s[5]):
+            return s, True
+    return segs[0], False
+
+
+@given(st.lists(st.lists(st.tuples(st.integers(-6, 6), st.integers(-6, 6)), min_size=2,
+                         max_size=5), min_size=1, max_size=6),
+       st.floats(-7, 7), st.floats(-7, 7), st.integers(0, 8))
+@settings(max_examples=100, deadline=None)
+def test_find_entry_is_the_nearest_visible_segment(lines, x, y, checks):
+    """find_entry's vectorised search over all edges' segments at once (the joins between
+    one edge's last point and the next edge's first are no segment) picks the segment a
+    plain loop picks: ties to the earlier one, the first visible of the max_checks nearest."""
+    nodes, edges = [], []
+    for k, pts in enumerate(lines):
+        a, b = 2 * k, 2 * k + 1
+        nodes += [node(a, "end", *pts[0]), node(b, "end", *pts[-1])]
+        edges.append((a, b, [list(map(float, p)) for p in pts], 0.0, 1.0))
+    index = gr.build_index(topo(nodes, edges), 0.25)
+
+    def visible(x0, y0, x1, y1):
+        return x1 + y1 > 0.5
+
+    for vis in (None, visible):
+        got = gr.find_entry(index, x, y, vis, checks)
+        want, los = _entry_by_loops(index, x, y, vis or (lambda *a: True), max(checks, 1))
+        if vis is not None and checks == 0:
+            want, los = _entry_by_loops(index, x, y, lambda *a: False)
+        assert (got.edge.idx, got.seg, got.line_of_sight) == (index.edges[want[2]].idx,
+                                                               want[3], los)
+        assert (got.x, got.y, got.dist) == pytest.approx((want[4], want[5], want[0]))
 
 
 def test_astar_matches_single_source_search():

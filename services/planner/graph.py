@@ -375,21 +375,21 @@ def find_entry(index: TopoIndex, x: float, y: float,
         return None
     pts = np.concatenate([e.pts for e in index.edges])
     n = np.array([len(e.pts) for e in index.edges])
-    last = np.cumsum(n) - 1  # each edge's last point ...
-    first = last - n + 1  # ... and first
-    no_last, no_first = np.ones(len(pts), bool), np.ones(len(pts), bool)
-    no_last[last] = no_first[first] = False
-    p0, p1 = pts[no_last], pts[no_first]  # segment k joins p0[k] and p1[k]
-    eid = np.repeat(np.arange(len(n)), n - 1)  # edge idx (= position in index.edges)
-    seg = np.arange(len(p0)) - np.repeat(first - np.arange(len(n)), n - 1)  # segment in edge
+    first = np.cumsum(n) - n  # each edge's first point
+    p0, p1 = pts[:-1], pts[1:]  # segment k joins p0[k] and p1[k] (views, no copies) ...
+    inside = np.ones(len(p0), bool)
+    inside[first[1:] - 1] = False  # ... unless point k is the last of its edge
+    eid = np.repeat(np.arange(len(n)), n)[:-1]  # edge idx (= position in index.edges)
+    seg = np.arange(len(p0)) - first[eid]  # segment in edge
     d = p1 - p0
     dd = np.einsum("ij,ij->i", d, d)
     q = np.array([x, y])
     t = np.where(dd > 0, np.einsum("ij,ij->i", q - p0, d) / np.where(dd > 0, dd, 1.0), 0.0)
     t = np.clip(t, 0.0, 1.0)
     near = p0 + t[:, None] * d
-    dist = np.hypot(near[:, 0] - x, near[:, 1] - y)
-    order = np.argsort(dist, kind="stable")
+    dist = np.where(inside, np.hypot(near[:, 0] - x, near[:, 1] - y), np.inf)
+    order = nearest_first(dist, max(1, max_checks) if visible is not None else 1)
+    order = order[inside[order]]  # (fewer than max_checks segments: no joins of two edges)
 
     def make(k: int, los: bool) -> Entry:
         e = index.edges[int(eid[k])]
@@ -403,6 +403,21 @@ def find_entry(index: TopoIndex, x: float, y: float,
         if visible(x, y, float(near[k, 0]), float(near[k, 1])):
             return make(int(k), True)
     return make(int(order[0]), False)
+
+
+def nearest_first(values: np.ndarray, k: int) -> np.ndarray:
+    """The indices of the k least values, least first, equal values in index order: the first
+    k of ``np.argsort(values, kind="stable")`` without sorting all of them (a partition, then
+    a sort of the values up to the k-th; on large-office's skeleton, 10 700 points, 0.1 ms
+    instead of 0.9)."""
+    v = np.asarray(values)
+    if k >= len(v):
+        return np.argsort(v, kind="stable")
+    kth = np.partition(v, k - 1)[k - 1]
+    if np.isnan(kth):  # NaNs sort last: among the k only when fewer values are numbers
+        return np.argsort(v, kind="stable")[:k]
+    cand = np.flatnonzero(v <= kth)  # all values tied with the k-th too, in index order
+    return cand[np.argsort(v[cand], kind="stable")][:k]
 
 
 # --- search ----------------------------------------------------------------------------------
