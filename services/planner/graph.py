@@ -408,8 +408,8 @@ def find_entry(index: TopoIndex, x: float, y: float,
 def nearest_first(values: np.ndarray, k: int) -> np.ndarray:
     """The indices of the k least values, least first, equal values in index order: the first
     k of ``np.argsort(values, kind="stable")`` without sorting all of them (a partition, then
-    a sort of the values up to the k-th; on large-office's skeleton, 10 700 points, 0.1 ms
-    instead of 0.9)."""
+    a sort of the values up to the k-th: 0.1 ms instead of 0.6-0.9 for 10 700 distances,
+    large-office's skeleton)."""
     v = np.asarray(values)
     if k >= len(v):
         return np.argsort(v, kind="stable")
