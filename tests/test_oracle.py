@@ -135,3 +135,31 @@ def test_bench_oracle_bad_arguments_are_one_line_errors(argv, capsys):
     assert bench_oracle.main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("topoexplore bench oracle:") and "\n" not in err
+
+
+def test_bench_oracle_finds_the_world_file_a_run_was_given(tmp_path, monkeypatch):
+    """bench inproc run with a world file (a generated floor) records the file: bench oracle
+    --from-results takes the tour of that file, with no --corpus, whether the file was given
+    absolute or relative to where the results lie."""
+    import shutil
+    from pathlib import Path
+
+    import topoexplore.sim as sim_pkg
+
+    floor = tmp_path / "floors" / "my-floor.toml"
+    floor.parent.mkdir()
+    shutil.copy(Path(sim_pkg.__file__).parent / "worlds" / "junction.toml", floor)
+    for world in (str(floor), "floors/my-floor.toml"):
+        res = tmp_path / "res.json"
+        res.write_text(json.dumps({"runs": [{
+            "world": world, "strategy": "frontier", "seed": 0, "state": "done",
+            "finished": True, "path_length_m": 16.48, "coverage": 1.0}]}))
+        out = tmp_path / "oracle.json"
+        monkeypatch.chdir("/")  # a relative path is found beside the results, not here
+        assert bench_oracle.main(["--from-results", str(res), "--jobs", "1",
+                                  "--json", str(out)]) == 0
+        got = json.loads(out.read_text())
+        assert [o["world"] for o in got["oracles"]] == ["my-floor"]
+        assert got["oracles"][0]["oracle_m"] == pytest.approx(
+            oracle_tour(load_world("junction")).length_m, rel=1e-6)
+        assert got["analysis"]["strategies"]["frontier"]["n"] == 1

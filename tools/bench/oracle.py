@@ -10,7 +10,8 @@ inproc`` / ``bench explore``) every finished run's path is divided by its world'
 geometric mean per strategy (and per style) is printed beside the tour lengths. Without
 worlds, the worlds of the results are taken, or else the built-in suite.
 
-World names are looked up as ``DIR/NAME.toml`` in ``--corpus``, then as a shared real map
+World names are looked up as ``DIR/NAME.toml`` in ``--corpus``, then as the world file the
+results' run was given (bench inproc / explore run with a file), then as a shared real map
 (``NAME.yaml``), then as a built-in world or a file.
 """
 
@@ -32,10 +33,14 @@ from topoexplore.tools.bench.explore import BenchArgError, default_worlds, resol
 from topoexplore.tools.paths import shared_maps_dir
 
 
-def world_file(name: str, corpus: Path | None) -> str:
-    """The world argument for a result's world name (module docstring)."""
+def world_file(name: str, corpus: Path | None, recorded: str | None = None) -> str:
+    """The world argument for a result's world name (module docstring); ``recorded``: the
+    world file the run itself was given (bench inproc / explore with a file), used when the
+    corpus does not hold the name."""
     if corpus is not None and (corpus / f"{name}.toml").is_file():
         return str(corpus / f"{name}.toml")
+    if recorded is not None:
+        return recorded
     maps = shared_maps_dir()
     if maps is not None and (maps / f"{name}.yaml").is_file():
         return str(maps / f"{name}.yaml")
@@ -97,8 +102,20 @@ def load_runs(sources: Sequence[str]) -> list[dict]:
             if not isinstance(r, dict) or "world" not in r or "strategy" not in r:
                 raise BenchArgError(f"--from-results: {p}: a run without world / strategy")
             name = Path(str(r.get("world_label") or r["world"])).stem
-            runs[(name, r["strategy"], r.get("seed", 0))] = {**r, "world": name}
+            runs[(name, r["strategy"], r.get("seed", 0))] = {
+                **r, "world": name, "world_file": _recorded_file(str(r["world"]), p.parent)}
     return list(runs.values())
+
+
+def _recorded_file(world: str, base: Path) -> str | None:
+    """The world file a run was given (absolute, or relative to where the results are or to
+    the working directory), if it names one that exists; else None (a name)."""
+    if not world.endswith((".toml", ".yaml", ".yml")):
+        return None
+    for p in (Path(world), base / world):
+        if p.is_file():
+            return str(p)
+    return None
 
 
 def _finished(r: dict) -> bool:
@@ -173,8 +190,9 @@ def main(argv: list[str] | None = None) -> int:
             names = sorted({r["world"] for r in runs})
         else:
             names = default_worlds()[0]
+        recorded = {r["world"]: r["world_file"] for r in runs if r.get("world_file")}
         todo = [(Path(n).stem if n.endswith((".toml", ".yaml", ".yml")) else n,
-                 world_file(n, a.corpus)) for n in names]
+                 world_file(n, a.corpus, recorded.get(n))) for n in names]
     except BenchArgError as exc:
         print(f"topoexplore bench oracle: {exc}", file=sys.stderr)
         return 2
