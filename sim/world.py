@@ -144,6 +144,9 @@ def builtin_worlds() -> dict[str, str]:
     return out
 
 
+WORLD_SUFFIXES = (".toml", ".yaml", ".yml")  # a world file (TOML, or a map_server map); else a name
+
+
 def load_world(name_or_path: str) -> World:
     """Load a built-in world by name, a world ``.toml`` file or a map_server ``.yaml`` file.
 
@@ -153,7 +156,7 @@ def load_world(name_or_path: str) -> World:
         raise WorldError(f"world must be a name or a path (got {type(name_or_path).__name__})")
     text = str(name_or_path)
     builtin = WORLDS_DIR / f"{text}.toml"
-    if "/" not in text and not text.endswith((".toml", ".yaml", ".yml")) and builtin.is_file():
+    if "/" not in text and not text.endswith(WORLD_SUFFIXES) and builtin.is_file():
         world = _load_toml(builtin)
         world.source = f"builtin:{text}"
         return world

@@ -683,9 +683,9 @@ def resolve_world(text: str) -> tuple[str, str, str]:
     A relative file path is looked up from the current directory, then from the repository
     root. Raises :class:`BenchArgError` for unknown names and unreadable files.
     """
-    from topoexplore.sim.world import WorldError, load_world
+    from topoexplore.sim.world import WORLD_SUFFIXES, WorldError, load_world
 
-    if "/" not in text and not text.endswith((".toml", ".yaml", ".yml")):
+    if "/" not in text and not text.endswith(WORLD_SUFFIXES):
         try:
             load_world(text)
         except WorldError as exc:

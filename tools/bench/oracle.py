@@ -110,7 +110,9 @@ def load_runs(sources: Sequence[str]) -> list[dict]:
 def _recorded_file(world: str, base: Path) -> str | None:
     """The world file a run was given (absolute, or relative to where the results are or to
     the working directory), if it names one that exists; else None (a name)."""
-    if not world.endswith((".toml", ".yaml", ".yml")):
+    from topoexplore.sim.world import WORLD_SUFFIXES
+
+    if not world.endswith(WORLD_SUFFIXES):
         return None
     for p in (Path(world), base / world):
         if p.is_file():
@@ -171,6 +173,8 @@ def suite_line(o: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from topoexplore.sim.world import WORLD_SUFFIXES
+
     ap = argparse.ArgumentParser(prog="topoexplore bench oracle", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--worlds", default=None, help="world names or files (comma separated)")
@@ -191,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             names = default_worlds()[0]
         recorded = {r["world"]: r["world_file"] for r in runs if r.get("world_file")}
-        todo = [(Path(n).stem if n.endswith((".toml", ".yaml", ".yml")) else n,
+        todo = [(Path(n).stem if n.endswith(WORLD_SUFFIXES) else n,
                  world_file(n, a.corpus, recorded.get(n))) for n in names]
     except BenchArgError as exc:
         print(f"topoexplore bench oracle: {exc}", file=sys.stderr)
