@@ -628,13 +628,12 @@ def _install_signals(node_stop: threading.Event, inbox: Inbox) -> None:
 
 def run_service(service: str, build: Callable[[Node], Callable[[], None]],
                 argv: list[str] | None = None, description: str = "",
-                kernels: Sequence[str] | Callable[[Params], Sequence[str]] = ()) -> int:
+                kernels: Sequence[str] = ()) -> int:
     """Parse the shared command line, open the node, run build(node)() until stopped.
 
     build(node) wires subscriptions/publishers and returns ``step``: one iteration of the
     worker loop (it should wait on the inbox with a short timeout). ``kernels``: modules whose
-    numba kernels the core runs (its ``WARM_MODULES``), or a function of the parameters that
-    gives them (a kernel behind an option that is off is not loaded: LLVM costs a process
+    numba kernels the core runs (its ``WARM_MODULES``; a core that runs none loads no LLVM,
     about 60 MB); they are compiled, or loaded from the on-disk cache, before the node
     declares itself up, so no input waits on a compiler.
     Errors in the command line, parameters or bus -> one line on stderr and exit code 2.
@@ -661,9 +660,8 @@ def run_service(service: str, build: Callable[[Node], Callable[[], None]],
     _install_signals(node.stop, node.inbox)
     try:
         step = build(node)
-        modules = kernels(params) if callable(kernels) else kernels
-        if modules:
-            log.info("%s: %s", service, compile_kernels(modules).line())
+        if kernels:
+            log.info("%s: %s", service, compile_kernels(kernels).line())
         gc.collect()
         gc.freeze()  # start-up objects out of the collector: shorter GC pauses per update
         node.ready()

@@ -123,8 +123,8 @@ def test_explores_world_to_the_end(world):
 
     for svc in ("topology", "planner"):
         assert 0 <= at(svc, f"{svc}: ") < at(svc, f"{svc} ready on"), svc
-    # no kernel runs in the mapper (numpy rays), the simulator, nor in reliability with
-    # frontier_group off: no LLVM
+    # no kernel runs in the mapper (numpy rays), the simulator, nor in reliability (its
+    # frontier groups are joined with scipy): no LLVM
     for svc in ("mapper", "sim", "reliability", "controller"):
         assert at(svc, f"{svc}: ") == -1 and at(svc, f"{svc} ready on") >= 0, svc
     assert re.search(rf"^\[supervisor\] {stamp} mapper is up", logs, re.M)

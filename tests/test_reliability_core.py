@@ -8,6 +8,8 @@ import math
 import msgspec
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from topoexplore.common.domain import Belief, Graph, GridMap, Node, Pose
 from topoexplore.common.grid import GridGeometry, near_frontier, nearest_occupied, open_unknown
@@ -22,6 +24,7 @@ from topoexplore.services.reliability.core import (
     distance_index,
     frontier_cells,
     frontier_owned,
+    group_sizes,
     is_observed,
     leaf_chains,
     leaf_headings,
@@ -471,6 +474,22 @@ def test_frontier_cells_groups_and_grid_edge():
     assert len(frontier_cells(side_opening_grid(0.3), 0.35, 1)) == 3
     # free cells on the border of the grid touch the unknown outside it
     assert len(frontier_cells(free_grid(), 0.35, 4)) == 4 * 200 - 4
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 30), st.integers(1, 30), st.floats(0.05, 0.7), st.integers(0, 2 ** 31))
+def test_group_sizes_are_the_8_connected_components_of_the_listed_cells(h, w, fill, seed):
+    """Against an independent labelling of the whole grid (scipy.ndimage.label, 8-connected):
+    groups never join across the grid's sides (a key one off wraps to the next row)."""
+    from scipy import ndimage
+
+    mask = np.random.default_rng(seed).random((h, w)) < fill
+    cells = np.argwhere(mask).astype(np.int64)
+    lab, _ = ndimage.label(mask, structure=np.ones((3, 3), int))
+    want = np.bincount(lab.ravel())[lab[cells[:, 0], cells[:, 1]]]
+    assert np.array_equal(group_sizes(cells, w), want)
+    shuffled = np.random.default_rng(seed + 1).permutation(len(cells))  # any order of cells
+    assert np.array_equal(group_sizes(cells[shuffled], w), want[shuffled])
 
 
 def test_open_unknown_drops_small_enclosed_pockets_only():

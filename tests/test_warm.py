@@ -161,9 +161,9 @@ def test_warmup_command_reports_every_core():
     r = _cli("warmup", "--profile", "sim", "--jobs", "2")
     assert r.returncode == 0, r.stderr
     lines = r.stdout.splitlines()
-    for name in ("topology", "reliability", "planner"):
+    for name in ("topology", "planner"):
         assert any(ln.startswith(f"[warmup] {name}: ") for ln in lines), r.stdout
-    for name in ("mapper", "controller", "sim"):  # no kernels
+    for name in ("mapper", "controller", "sim", "reliability"):  # no kernels
         assert not any(ln.startswith(f"[warmup] {name}:") for ln in lines), r.stdout
     assert lines[-1].startswith("[warmup] ") and " in " in lines[-1]
 
@@ -209,21 +209,21 @@ def test_the_stamp_holds_while_nothing_changes(tmp_path, monkeypatch):
     assert not stamp.exists()
 
 
-def test_a_service_loads_only_the_kernels_its_parameters_run():
-    from topoexplore.common.params import load_params
-    from topoexplore.services.reliability import service as rel
-
-    assert rel._kernels(load_params(None, [])) == ()
-    on = load_params(None, ["reliability.frontier_group=0.5"])
-    assert rel._kernels(on) == ("topoexplore.services.reliability.groups",)
+def test_a_service_loads_only_the_kernels_its_core_runs():
+    assert warm_modules("topoexplore.services.reliability.core") == ()  # whatever its params
     assert warm_modules("topoexplore.sim.core") == ()  # the truth masks are the tools' job
+    assert warm_modules("topoexplore.services.planner.core") == (
+        "topoexplore.services.planner.gridsearch",)
 
 
 def test_services_that_run_no_kernel_do_not_import_numba():
     """numba alone costs a process about 60 MB resident: the simulator, the controller and
-    reliability (frontier-group test off) do without it."""
+    reliability do without it, reliability also when its frontier-group test runs."""
     code = ("import sys; import topoexplore.sim.service, topoexplore.services.controller.service,"
             " topoexplore.services.reliability.service; "
+            "import numpy as np; from topoexplore.services.reliability.core import frontier_cells;"
+            " g = np.full((40, 40), -1, np.int8); g[5:30, 5:30] = 0;"
+            " assert len(frontier_cells(g, 0.35, 4)) > 0; "
             "print(sorted(m for m in ('numba', 'llvmlite') if m in sys.modules))")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                        timeout=120, cwd=REPO, env=dict(os.environ))

@@ -15,7 +15,6 @@ from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.checkpoint import Checkpointer
 from topoexplore.common.node import Node, OdomBuffer, run_service
-from topoexplore.common.params import Params
 from topoexplore.services.reliability.core import WARM_MODULES, ReliabilityCore
 
 log = logging.getLogger("topoexplore.reliability")
@@ -75,13 +74,7 @@ class ReliabilityService:
 def main(argv: list[str] | None = None) -> int:
     return run_service("reliability", lambda node: ReliabilityService(node).step, argv,
                        "end node position probability (Bayes update, paper eqs. 1-10)",
-                       kernels=_kernels)
-
-
-def _kernels(params: Params) -> tuple[str, ...]:
-    """The core's one kernel runs only in the frontier-group test (reliability.frontier_group
-    > 0, off by default)."""
-    return WARM_MODULES if params.reliability.frontier_group > 0 else ()
+                       kernels=WARM_MODULES)
 
 
 if __name__ == "__main__":
