@@ -314,8 +314,9 @@ class ReliabilityParams(_P):
     # this much of them (in cells: this / resolution) lies within their radius, as the
     # planner's min_frontier_size: a few cells of SLAM speckle or a gap in a ragged wall are
     # no frontier (docs/design.md, "Reliability"); 0: any single cell
-    frontier_group: NonNeg = 0.0  # [m] ... nor of a node whose leaf chain is the nearest
-    # skeleton to a frontier group of at least this length; 0 disables
+    frontier_group: NonNeg = 1.0  # [m] ... nor of a node whose leaf chain is the nearest
+    # skeleton to a frontier group of at least this length; 0 disables (on since
+    # 2026-12-07: shorter on the tuning and the held-back half, docs/design.md rule 3)
     recall_radius: NonNeg = 0.25  # [m] a new or moved end node this close to where a node was
     # reliable starts from that P; 0 disables
     pocket_area: NonNeg = 0.5  # [m^2] enclosed unknown pockets smaller than this are no

@@ -33,7 +33,8 @@ from topoexplore.services.reliability.core import (
     new_viewpoint,
 )
 
-P = ReliabilityParams(examined_radius=0.0)  # the index by the equations (eqs. 1-10) alone
+P = ReliabilityParams(examined_radius=0.0, frontier_group=0.0)  # the index by the equations
+# (eqs. 1-10) and the frontier tests at the node (rules 1-2), not rules 3-4
 LASER = LaserParams()
 GEOM = GridGeometry(resolution=0.1, origin_x=-10.0, origin_y=-10.0, width=200, height=200)
 
@@ -535,7 +536,7 @@ def test_a_chain_between_two_end_nodes_is_split_between_them():
 
 
 def test_observations_of_a_node_owning_a_frontier_do_not_count():
-    """Rule 3 (reliability.frontier_group > 0; off by default, docs/design.md)."""
+    """Rule 3 (reliability.frontier_group > 0; 1 m by default, docs/design.md)."""
     g = side_opening_grid()
     edges = chain_edges()
     core = ReliabilityCore(msgspec.structs.replace(P, frontier_group=0.4))
