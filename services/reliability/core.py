@@ -265,11 +265,12 @@ def frontier_cells(grid: np.ndarray, p_free: float = 0.35, min_cells: int = 1,
 
 def group_sizes(cells: np.ndarray, width: int) -> np.ndarray:
     """Per cell of cells ((n, 2) int (row, col), distinct, on a grid width cells wide): the
-    size of its 8-connected group among them. Only the listed cells are visited: frontier
-    cells are few, so joining each to its listed neighbours (sorted keys, np.searchsorted)
-    and taking connected components of that sparse graph costs about what a flood fill in
-    numba does (1-2 ms at 1000 x 1000 with 2000 cells), where labelling the whole grid
-    (cv2.connectedComponents) costs several times more; and it needs no LLVM."""
+    size of its 8-connected group among them. Only the listed cells are visited: each is
+    joined to its listed neighbours (sorted keys, np.searchsorted), then the connected
+    components of that sparse graph. Measured in :func:`frontier_cells` on 1000 x 1000 grids
+    (2026-12-07): 1.3 ms with 2000 frontier cells against 2.0 ms with the numba flood fill
+    it replaced, 11 ms against 6 ms with 40 000; labelling the crop of the whole grid
+    (cv2.connectedComponentsWithStats) took 5-8 ms. It needs no LLVM."""
     n = len(cells)
     if n == 0:
         return np.zeros(0, np.int64)
