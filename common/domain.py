@@ -213,7 +213,8 @@ class Belief:
     visible: bool  # observed in this update
     n_obs: int = 0  # observations since the history (re)started
     visited: bool = False  # the robot came within the visit radius
-    frontier: int = 0  # frontier cells the node's leaf chain owns (observations don't count)
+    frontier: int = 0  # frontier cells the node's leaf chain owns (observations don't count;
+    # as last worked out: only on updates where an observation could count)
 
 
 class ExploreState(enum.StrEnum):
