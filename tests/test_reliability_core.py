@@ -562,6 +562,27 @@ def test_observations_of_a_node_owning_a_frontier_do_not_count():
     assert {n.id: n.p for n in out}[1] > P.p_init
 
 
+def test_frontier_ownership_is_worked_out_only_when_an_observation_can_count(monkeypatch):
+    """Rule 3's test runs once on an update with a node in sight from a new viewpoint, and
+    not at all on one without (the robot looking away); Beliefs keep the count as last
+    worked out."""
+    import topoexplore.services.reliability.core as rc
+
+    calls = []
+    real = rc.frontier_owned
+    monkeypatch.setattr(rc, "frontier_owned", lambda *a, **k: calls.append(1) or real(*a, **k))
+    g, edges = side_opening_grid(), chain_edges()
+    core = ReliabilityCore(msgspec.structs.replace(P, frontier_group=0.4))
+    ends = [(1, -4.5, 0.0), (4, -0.5, -0.8)]
+    p = {n.id: n for n in upd(core, ends, [], (-2.0, 0.3, math.pi), g, GEOM, edges=edges)}
+    assert len(calls) == 1 and p[1].visible and p[1].frontier == 10
+    p = {n.id: n for n in upd(core, ends, [], (-2.0, 0.3, math.pi / 2), g, GEOM, edges=edges)}
+    assert not p[1].visible and not p[4].visible  # looking away from both
+    assert len(calls) == 1 and p[1].frontier == 10
+    upd(core, ends, [], (-2.0, 0.3, math.pi), g, GEOM, edges=edges)
+    assert len(calls) == 2  # node 1's view did not count (it owned the frontier): still new
+
+
 # --- examined surroundings (docs/design.md, "Reliability") ---------------------------------
 
 P_EXAMINED = msgspec.structs.replace(P, examined_radius=1.0)
