@@ -656,11 +656,12 @@ class ReliabilityCore:
         nodes = {n.id: (n.x, n.y) for n in graph.end_nodes()}
         unknown = self._unknown(g, geom)
         front = self._front(g, geom)
+        rule3 = bool(graph.edges) and pr.frontier_group > 0
         owned: dict[int, int] | None = None
 
         def owns(nid: int) -> bool:
             nonlocal owned
-            if not (graph.edges and pr.frontier_group > 0):
+            if not rule3:
                 return False
             if owned is None:
                 min_cells = max(1, cells_for(pr.frontier_group, geom.resolution))
@@ -675,7 +676,7 @@ class ReliabilityCore:
             tr = tracks[nid] = self._track(nid, *nodes[nid])
             self._observe(tr, pose, g, geom, unknown, lambda nid=nid: owns(nid), heads.get(nid),
                           front)
-        if owned is not None or not (graph.edges and pr.frontier_group > 0):
+        if owned is not None or not rule3:
             self._owned = owned or {}
         out = [Belief(id=nid, x=tr.x, y=tr.y, p=tr.p, d=tr.d, a=tr.a, r_min=tr.r_min,
                       alpha_max=tr.alpha_max, visible=tr.visible, n_obs=tr.n_obs,
