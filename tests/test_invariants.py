@@ -618,6 +618,37 @@ def test_watchdog_in_the_core_goes_to_the_nearest_frontier_then_blacklists_then_
     assert any("watchdog" in r for r in reasons)
 
 
+def test_watchdog_nearest_frontier_search_kept_for_frontier_period(monkeypatch):
+    """In the watchdog's nearest-frontier step the search is kept while its target is
+    followed, as every other frontier search: at most once per frontier_period, not on every
+    update; with frontier_period 0, on every update of the step."""
+    from topoexplore.services.planner import core as planner_core
+
+    def run(period: float) -> tuple[list[float], int, list[str]]:
+        times: list[float] = []
+        real = planner_core.nearest_frontier_evaluation
+
+        def counted(cfg, u):
+            times.append(u.t)
+            return real(cfg, u)
+
+        monkeypatch.setattr(planner_core, "nearest_frontier_evaluation", counted)
+        g, geom = two_rooms(6)
+        core = PlannerCore(params(strategy="frontier", watchdog_time=30.0, stuck_timeout=1e6,
+                                  progress_timeout=1000.0, blocked_time=1e6,
+                                  frontier_period=period))
+        states, reasons = drive_about(core, g, geom, 0.3, 115)  # to t = 57 s: the step only
+        in_step = sum("nearest frontier" in r for r in reasons)
+        return times, in_step, states
+
+    times, in_step, states = run(1.0)
+    assert in_step >= 40 and "failed" not in states
+    assert 0 < len(times) <= in_step // 2 + 1  # updates every 0.5 s, a search per 1 s
+    assert all(b - a >= 1.0 for a, b in zip(times, times[1:], strict=False))
+    every, in_step0, _ = run(0.0)
+    assert len(every) == in_step0 >= 40
+
+
 def test_watchdog_while_driving_gives_up_what_it_tried_again_instead_of_stuck():
     """A robot that drives (>= min_travel per period) but learns nothing is not stuck: after the
     blacklist step comes another blacklist step, with every target tried meanwhile."""

@@ -133,6 +133,8 @@ class PlannerCore:
         self._u: Update | None = None  # ... and the update the strategy evaluated
         self._walled: str | None = None  # walled in by marks after RELEASE_LIMIT releases
         self._narrowed_now = lambda: False  # ... under which the followed path narrowed
+        self._near: tuple[Evaluation | None, float] = (None, -math.inf)  # the watchdog's
+        #   nearest-frontier search and its time [s]
 
     # --- public ------------------------------------------------------------------------------
 
@@ -214,13 +216,25 @@ class PlannerCore:
                 self._target = None
         mode = self._watchdog.mode
         if mode == "nearest_frontier" and u.view is not None:
-            near = nearest_frontier_evaluation(self._cfg, u)
+            near = self._nearest(u)
             if near.cands:
                 return dataclasses.replace(near, end_nodes=ev.end_nodes, reliable=ev.reliable)
         if mode == "stuck":
             why = (f"watchdog: nothing helped ({self._watchdog.log[-1].why})"
                    if self._watchdog.log else "watchdog: nothing helped")
             return dataclasses.replace(ev, cands=[], failed=why)
+        return ev
+
+    def _nearest(self, u: Update) -> Evaluation:
+        """The watchdog's nearest-frontier search: kept while a target is followed, for
+        frontier_period at most and while the map does not change under its path, as every
+        other frontier search (a new escalation step clears the target, and with it the
+        search)."""
+        ev, made = self._near
+        if (ev is None or u.target is None or u.target.id >= 0 or not ev.cands
+                or not u.may_reuse(self.p.frontier_period, made)):
+            ev = nearest_frontier_evaluation(self._cfg, u)
+            self._near = (ev, u.t)
         return ev
 
     def checkpoint(self) -> dict[str, np.ndarray]:
