@@ -348,7 +348,8 @@ def test_nearest_first_is_the_head_of_a_stable_argsort(values, k):
 
 def _entry_by_loops(index, x, y, visible, max_checks=64):
     """find_entry the long way: every segment of every edge in order, the nearest first
-    (ties: the earlier segment), the first visible among the max_checks nearest."""
+    (ties, to gr.TIE_DECIMALS: the earlier segment), the first visible among the max_checks
+    nearest."""
     segs = []
     for pos, e in enumerate(index.edges):
         for i in range(len(e.pts) - 1):
@@ -356,7 +357,8 @@ def _entry_by_loops(index, x, y, visible, max_checks=64):
             dd = float(d @ d)
             t = min(max(float((np.array([x, y]) - p0) @ d) / dd, 0.0), 1.0) if dd > 0 else 0.0
             nx, ny = p0 + t * d
-            segs.append((math.hypot(nx - x, ny - y), len(segs), pos, i, nx, ny))
+            segs.append((round(math.hypot(nx - x, ny - y), gr.TIE_DECIMALS), len(segs), pos, i,
+                         nx, ny))
     segs.sort(key=lambda s: (s[0], s[1]))
     for s in segs[:max_checks]:
         if visible(x, y, s[4], s[5]):

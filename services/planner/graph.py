@@ -363,6 +363,9 @@ def crosses(blocked: np.ndarray, geom: GridGeometry, pts: np.ndarray) -> bool:
 # --- entry point -----------------------------------------------------------------------------
 
 
+TIE_DECIMALS = 9  # [m] distances to the skeleton compared to 1 nm (find_entry)
+
+
 def find_entry(index: TopoIndex, x: float, y: float,
                visible: Callable[[float, float, float, float], bool] | None = None,
                max_checks: int = 64) -> Entry | None:
@@ -388,6 +391,8 @@ def find_entry(index: TopoIndex, x: float, y: float,
     t = np.clip(t, 0.0, 1.0)
     near = p0 + t[:, None] * d
     dist = np.where(inside, np.hypot(near[:, 0] - x, near[:, 1] - y), np.inf)
+    dist = np.round(dist, TIE_DECIMALS)  # a point two segments share is as near on both: a tie
+    #   (to the earlier one), not whichever the rounding of p0 + t d favours
     order = nearest_first(dist, max(1, max_checks) if visible is not None else 1)
     order = order[inside[order]]  # (fewer than max_checks segments: no joins of two edges)
 
