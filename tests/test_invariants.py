@@ -649,6 +649,39 @@ def test_watchdog_nearest_frontier_search_kept_for_frontier_period(monkeypatch):
     assert len(every) == in_step0 >= 40
 
 
+def test_watchdog_nearest_frontier_counts_only_what_done_waits_for():
+    """The watchdog's fallback never adds work: for the topological strategies its nearest
+    frontier groups are the ones the completion rules count (a 0.6 m gap far away is not
+    one, nor is a group beside a small enclosed pocket), for the frontier strategy its own
+    (any group of min_frontier_size)."""
+    from topoexplore.services.planner.strategies.base import Update
+    from topoexplore.services.planner.strategies.frontier import nearest_frontier_evaluation
+
+    g, geom = room(110, 40)
+    g[:, 99] = 100
+    g[1:-1, 100:109] = -1  # unknown behind the right wall, to the grid's side
+    g[17:23, 99] = 0  # a 0.6 m gap in it, about 8 m from the robot
+    view = MapView(GridMap(g, geom), Occupancy())
+
+    def groups(strategy: str, x: float) -> list[tuple[float, float]]:
+        cfg = Config(params(strategy=strategy), ROBOT.radius, 0.9, ROBOT.body_margin)
+        u = Update(0.0, x, 2.0, 0.0, None, None, view, None, lambda c: False)
+        return [(c.x, c.y) for c in nearest_frontier_evaluation(cfg, u).cands]
+
+    assert len(groups("frontier", 1.0)) == 1
+    for strategy in ("reliability", "all-end-nodes"):
+        assert groups(strategy, 1.0) == []  # shorter than completion_min_size, far
+        assert len(groups(strategy, 8.0)) == 1  # ... within completion_near it counts
+    g2 = g.copy()
+    g2[1:-1, 100:109] = 100
+    g2[15:30, 100:102] = -1  # a small enclosed pocket (0.3 m^2, under 1 % of the free
+    #   cells: completion_pocket_share) behind a 1.5 m gap instead
+    g2[15:30, 99] = 0
+    view = MapView(GridMap(g2, geom), Occupancy())
+    assert len(groups("frontier", 1.0)) == 1
+    assert groups("reliability", 1.0) == []
+
+
 def test_watchdog_while_driving_gives_up_what_it_tried_again_instead_of_stuck():
     """A robot that drives (>= min_travel per period) but learns nothing is not stuck: after the
     blacklist step comes another blacklist step, with every target tried meanwhile."""

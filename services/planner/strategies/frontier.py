@@ -73,9 +73,21 @@ def _narrow(cfg: Config, u: Update, min_size: float | None, pocket_area: float, 
 
 
 def nearest_frontier_evaluation(cfg: Config, u: Update) -> Evaluation:
-    """The reachable frontier groups (min_frontier_size or longer, through narrow passages
-    too) with cost = path length: the nearest first (the watchdog's fallback)."""
-    ev = _evaluate(cfg, u, None, 0.0, 0.0, False, True)
+    """The reachable frontier groups (through narrow passages too) with cost = path length:
+    the nearest first (the watchdog's fallback). Only the groups the strategy's own "done"
+    waits for: the frontier strategy's (min_frontier_size or longer), and for the
+    topological strategies the completion rules' (completion_min_size or longer, shorter
+    ones within completion_near, none beside an enclosed pocket under
+    completion_pocket_area; :mod:`.completion`). A fallback that breaks a livelock never
+    adds work that "done" would not wait for: with every group counted, a robot whose
+    watchdog had fired toured 0.5 m specks across an office for 930 s (docs/design.md,
+    "A global watchdog")."""
+    p = cfg.params
+    if p.strategy == "frontier":
+        ev = _evaluate(cfg, u, None, 0.0, 0.0, False, True)
+    else:
+        ev = _evaluate(cfg, u, max(p.min_frontier_size, p.completion_min_size),
+                       p.completion_pocket_area, p.completion_near, False, True)
     for c in ev.cands:
         c.cost, c.scale = c.dist, 1.0
         c.label += " (watchdog: nearest frontier)"
