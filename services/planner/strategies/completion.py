@@ -29,7 +29,7 @@ import math
 import numpy as np
 
 from topoexplore.services.planner.strategies.base import Config, Evaluation, Update
-from topoexplore.services.planner.strategies.frontier import frontier_evaluation
+from topoexplore.services.planner.strategies.frontier import completion_rule, frontier_evaluation
 
 COMPLETION_NOTE = " (completion: no end node left)"
 NEAR_NOTE = " (near the robot: before it is left behind)"
@@ -150,8 +150,8 @@ class Completion:
         """The frontier groups the completion rules count. quick: only the long groups, and
         only whether they are reachable."""
         p = self.cfg.params
-        return frontier_evaluation(self.cfg, u, max(p.min_frontier_size, p.completion_min_size),
-                                   p.completion_pocket_area, 0.0 if quick else p.completion_near,
+        size, pocket, near = completion_rule(p)
+        return frontier_evaluation(self.cfg, u, size, pocket, 0.0 if quick else near,
                                    reach_only=quick,
                                    openings=not quick and p.completion_openings > 0)
 

@@ -82,16 +82,22 @@ def nearest_frontier_evaluation(cfg: Config, u: Update) -> Evaluation:
     adds work that "done" would not wait for: with every group counted, a robot whose
     watchdog had fired toured 0.5 m specks across an office for 930 s (docs/design.md,
     "A global watchdog")."""
-    p = cfg.params
-    if p.strategy == "frontier":
+    if cfg.params.strategy == "frontier":
         ev = _evaluate(cfg, u, None, 0.0, 0.0, False, True)
     else:
-        ev = _evaluate(cfg, u, max(p.min_frontier_size, p.completion_min_size),
-                       p.completion_pocket_area, p.completion_near, False, True)
+        ev = _evaluate(cfg, u, *completion_rule(cfg.params), False, True)
     for c in ev.cands:
         c.cost, c.scale = c.dist, 1.0
         c.label += " (watchdog: nearest frontier)"
     return ev
+
+
+def completion_rule(p: PlannerParams) -> tuple[float, float, float]:
+    """(min_size [m], pocket_area [m^2], near [m]) of :func:`frontier_evaluation` for the
+    groups the completion rules count (:mod:`.completion`; also the watchdog's fallback for
+    the topological strategies)."""
+    return (max(p.min_frontier_size, p.completion_min_size), p.completion_pocket_area,
+            p.completion_near)
 
 
 def _evaluate(cfg: Config, u: Update, min_size: float | None, pocket_area: float, near: float,
