@@ -357,6 +357,10 @@ class PlannerParams(_P):
     path_tolerance: Pos = 0.4  # [m] a remaining waypoint this far off the skeleton -> new path
     frontier_match_radius: Pos = 1.0  # [m] frontier group this close to the goal stays target
     frontier_period: NonNeg = 1.0  # [s] frontier searches at most this often while following
+    keep_period: NonNeg = 1.0  # [s] reliability / all-end-nodes: while the target followed
+    #   stays open where it was and its path stays valid, the last evaluation is kept this long
+    #   at most, unless a rule of the decision machine is due (docs/design.md "A kept
+    #   evaluation"); 0: every update evaluates
     done_confirm: PosInt = 2  # consecutive updates without any candidate before "done"
     watchdog_time: Pos = 120.0  # [s] driving without new map information -> escalate
     watchdog_area: Pos = 0.5  # [m^2] new information: the known area grew this much ...

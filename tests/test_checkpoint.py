@@ -333,7 +333,9 @@ class _Enough(Exception):
 @pytest.fixture(scope="module")
 def updates():
     """The inputs of the first 200 topology / reliability / planner updates of an in-process
-    paper-room exploration: (t, pose, grid)."""
+    paper-room exploration: (t, pose, grid). A frontier run: the planner cores replayed are
+    the default (frontier) one, and its route does not move with the topological strategies'
+    rules (a reliability run's route kept every end node at P 0.5 for 76 s once)."""
     from topoexplore.tools.bench.inproc import run
 
     got = []
@@ -344,7 +346,7 @@ def updates():
             raise _Enough
 
     with pytest.raises(_Enough):
-        run("paper-room", on_update=keep)
+        run("paper-room", "frontier", on_update=keep)
     return got
 
 

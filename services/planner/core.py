@@ -128,6 +128,7 @@ class PlannerCore:
         self._had_path = False
         self._last: Plan | None = None
         self._updates = 0
+        self._kept_n = 0  # updates served by a kept evaluation (:meth:`_kept`)
         self._ncand = 0  # candidates at the last update that judged them all
         self._view: MapView | None = None  # this update's map view
         self._u: Update | None = None  # ... and the update the strategy evaluated
@@ -170,26 +171,54 @@ class PlannerCore:
                    self._blacklist.covers,
                    fresh=self._narrowed_now)
         self._u = u
-        ev = self.strategy.evaluate(u)
+        ev = self._kept(u, tg)
+        kept = ev is not None
+        if kept:
+            self._kept_n += 1
+        else:
+            ev = self.strategy.evaluate(u)
         if ev.waiting is not None:
             self._target = None
             self._no_cand = 0
             return self._emit(ExploreState.EXPLORING, ev.waiting, ev, 0)
         notes: list[str] = []
-        ev = self._watch(u, ev, grid, notes, rem)
+        ev = self._watch(u, ev, grid, notes, rem, kept)
         return self._decide(t, x, y, th, ev, notes)
 
+    def _kept(self, u: Update, tg: Target | None) -> Evaluation | None:
+        """The strategy's last evaluation for this update (:meth:`Strategy.kept`), when the
+        decision can only be to follow the target on: no rule that reads the other
+        candidates or makes a path is due. The replan timer, bounded effort and arrival
+        rules, a target kept through a flicker and the watchdog's modes are judged here; the
+        target moving, its path leaving the map or crossing a wall, and a narrowed path make
+        the strategy or this check say no (a watchdog step on such an update evaluates
+        again: :meth:`_watch`). docs/design.md, "A kept evaluation"."""
+        p, t = self.p, u.t
+        if (tg is None or p.keep_period <= 0 or self._watchdog.mode is not None
+                or tg.unreachable_since is not None
+                or not 0.0 <= t - self._last_eval_t < p.replan_period
+                or t - tg.progress_t >= p.progress_timeout
+                or (tg.arrived_t is not None and t - tg.arrived_t >= p.arrival_timeout)):
+            return None
+        ev = self.strategy.kept(u)
+        if ev is None or not (ev.path_ok(tg.wps[tg.idx + 1:]) and ev.path_clear(tg.wps[tg.idx:])):
+            return None
+        return ev
+
     def _watch(self, u: Update, ev: Evaluation, grid: GridMap | None, notes: list[str],
-               rem: float | None) -> Evaluation:
+               rem: float | None, kept: bool = False) -> Evaluation:
         """The global progress watchdog: act on an escalation step; in the nearest-frontier
         step the candidates are the nearest frontier groups (until new information). rem [m]:
-        the remaining path to the target followed (None without one)."""
+        the remaining path to the target followed (None without one); kept: ev is a kept
+        evaluation (:meth:`_kept`)."""
         area = 0.0
         if grid is not None:
             area = float(np.count_nonzero(grid.data != -1)) * grid.geom.resolution ** 2
         cur = None if self._target is None else self._target.cand
         step = self._watchdog.observe(u.t, area, ev.reliable, cur is not None, (u.x, u.y), cur,
                                       rem)
+        if step is not None and kept:  # a step reads every candidate: evaluate them now
+            ev = self.strategy.evaluate(u)
         if step is not None:
             what = self._watchdog.log[-1].why
             self._replans += 1
@@ -269,6 +298,7 @@ class PlannerCore:
         return {
             "strategy": self.p.strategy,
             "updates": self._updates,
+            "kept_updates": self._kept_n,
             "t": self._last_t,
             "state": st.state.value if st else ExploreState.IDLE.value,
             "reason": st.reason if st else "",

@@ -45,6 +45,9 @@ class AllEndNodes(Topological):
     def is_open(self, i: int, s: Scene) -> bool:
         return not self._visited(*s.index.nodes[i][1:])
 
+    def open_now(self, u: Update, i: int, x: float, y: float) -> bool:
+        return not self._visited(x, y)
+
     def all_done(self, n: int) -> str:
         return (f"all {n} reachable end nodes visited (within "
                 f"{self.cfg.params.visit_radius:g} m)")

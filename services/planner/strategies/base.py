@@ -234,6 +234,11 @@ class Strategy(Protocol):
 
     def evaluate(self, u: Update) -> Evaluation: ...
 
+    def kept(self, u: Update) -> Evaluation | None:
+        """The last evaluation, if it may serve u as well (the core asks only when none of
+        its rules that read other candidates or make a path is due); None: evaluate."""
+        ...
+
     def snapshot(self) -> dict[str, Any]: ...
 
 

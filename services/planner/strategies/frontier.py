@@ -345,6 +345,9 @@ class Frontier:
             self._ev, self._t = ev, u.t
         return self._with_end_nodes(u, ev)
 
+    def kept(self, u: Update) -> Evaluation | None:
+        return None  # evaluate keeps its search itself (frontier_period)
+
     def _with_end_nodes(self, u: Update, ev: Evaluation) -> Evaluation:
         """ev with this update's end node counts for the status (informational only)."""
         if u.graph is None or ev.waiting is not None:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import dataclasses
 
 from topoexplore.services.planner.strategies.base import Evaluation, Update
-from topoexplore.services.planner.strategies.topological import Scene, Topological
+from topoexplore.services.planner.strategies.topological import P_UNSEEN, Scene, Topological
 
 
 class Reliability(Topological):
@@ -30,7 +30,11 @@ class Reliability(Topological):
     def resolved(self, i: int, s: Scene) -> str:
         return f"became reliable (P={s.prob(i):.2f})"
 
-    def evaluate(self, u: Update) -> Evaluation:
+    def open_now(self, u: Update, i: int, x: float, y: float) -> bool:
+        p = next((b.p for b in u.beliefs or () if b.id == i), P_UNSEEN)
+        return float(p) < self.cfg.p_reliable
+
+    def evaluate_all(self, u: Update) -> Evaluation:
         ev = self.evaluate_graph(u)
         if (self.cfg.params.stop_when_mapped and ev.cands and u.view is not None
                 and self.completion.mapped(u)):

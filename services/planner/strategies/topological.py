@@ -105,6 +105,8 @@ class Topological:
         self._rel_updates = 0  # updates that came with a reliability message
         self._looked: list[_Look] = []
         self._polylines = gr.PolylineCache()  # the edges' polylines, kept between updates
+        self._last: Evaluation | None = None  # the last whole evaluation ...
+        self._last_t = -math.inf  # ... and its time [s] (:meth:`kept`)
 
     # --- what a subclass says ----------------------------------------------------------------
 
@@ -120,6 +122,11 @@ class Topological:
     def target_p(self, i: int, s: Scene) -> float:
         return 0.0
 
+    def open_now(self, u: Update, i: int, x: float, y: float) -> bool:
+        """Is end node i at (x, y) [m] still open on update u? (:meth:`kept`'s question, from
+        u alone: no index, no search)"""
+        raise NotImplementedError
+
     def all_done(self, n: int) -> str:
         """Done text for n reachable end nodes, none of them open."""
         raise NotImplementedError
@@ -131,7 +138,40 @@ class Topological:
     # --- evaluation --------------------------------------------------------------------------
 
     def evaluate(self, u: Update) -> Evaluation:
+        """The whole evaluation of update u (kept for :meth:`kept`)."""
+        ev = self.evaluate_all(u)
+        self._last, self._last_t = ev, u.t
+        return ev
+
+    def evaluate_all(self, u: Update) -> Evaluation:
         return self.complete(u, self.evaluate_graph(u))
+
+    def kept(self, u: Update) -> Evaluation | None:
+        """The last whole evaluation again, for an update on which only the target followed
+        matters (the core asks only when none of its rules that read other candidates or
+        make a path is due: docs/design.md, "A kept evaluation"). None, and the core
+        evaluates, unless the evaluation is younger than keep_period, the map has not changed
+        under the path (:meth:`Update.may_reuse`), the target is not one up to a narrow
+        passage, and an end node followed is still an end node, still open, and within
+        target_move of where that evaluation had it. The walls the path is checked against
+        are this update's."""
+        self.observe(u)
+        ev, tg = self._last, u.target
+        if (ev is None or tg is None or tg.partial  # the way up to a narrow passage
+                #   becoming wide is the evaluation's to see (a new path to the node itself)
+                or ev.waiting is not None or ev.failed is not None
+                or u.graph is None or u.view is None
+                or (self.needs_beliefs and u.beliefs is None)
+                or not u.may_reuse(self.cfg.params.keep_period, self._last_t)):
+            return None
+        if tg.id >= 0:
+            node = next((n for n in u.graph.nodes if n.id == tg.id), None)
+            if (node is None or node.kind != "end"
+                    or math.hypot(node.x - tg.x, node.y - tg.y) >= self.cfg.params.target_move
+                    or not self.open_now(u, tg.id, node.x, node.y)):
+                return None
+        view = u.view
+        return replace(ev, path_clear=lambda wps: not gr.crosses(view.occupied, view.geom, wps))
 
     def complete(self, u: Update, ev: Evaluation) -> Evaluation:
         """The completion phase once no end node is left (frontier_completion); while end
