@@ -1400,3 +1400,48 @@ def test_a_node_behind_a_narrow_passage_is_judged_when_asked_as_if_judged_at_onc
     assert [c.id for c in got.cands] == ([1, 2] if beyond else [1])
     assert got.done == at_once.done
     assert ("(ids 2)" in got.done) != beyond
+
+
+def _kept_script(keep_period):
+    """A scripted following of end node 2 along the corridor (updates every 0.2 s): the robot
+    drives, the node moves 0.4 m at t = 0.6 s, the robot stalls from t = 1.4 to 2.6 s (the
+    effort rule, progress_timeout 1 s: a retry), the node becomes reliable at t = 3.8 s.
+    Returns the plans (state, target, plan id, waypoints, reason), the times of the whole
+    evaluations and the number of kept ones."""
+    g, geom = corridor_grid()
+    core = PlannerCore(params(keep_period=keep_period, progress_timeout=1.0, max_attempts=3))
+    calls = []
+    evaluate = core.strategy.evaluate
+    core.strategy.evaluate = lambda u: calls.append(u.t) or evaluate(u)
+    out, x = [], 0.6
+    for k in range(24):
+        t = round(0.2 * k, 1)
+        if not 1.4 <= t < 2.6:
+            x += 0.1
+        nodes, edges = door_parts(wide=True)
+        if t >= 0.6:  # node 2 moved: (5.5, 0.5) -> (5.9, 0.5)
+            nodes[2] = node(2, "end", 5.9, 0.5)
+            edges[1] = edge(0, 2, [(1.0, 0.5), (5.9, 0.5)], clearance=0.2)
+        p2 = 0.95 if t >= 3.8 else 0.5
+        plan = core.update(t, (x, 0.5, 0.0), topo(nodes, edges), rel({1: 0.95, 2: p2}),
+                           grid(g, geom))
+        out.append((plan.state, plan.route.target_id, plan.route.plan_id,
+                    np.round(plan.route.waypoints, 6).tolist(), plan.status.reason))
+    return out, calls, core.snapshot()["kept_updates"]
+
+
+def test_a_kept_evaluation_decides_as_a_whole_one_and_evaluates_less():
+    """keep_period: while the target followed stays open where it was and its path stays
+    valid, the last evaluation serves the update (docs/design.md, "A kept evaluation"). On a
+    script with a moving target, a stall (bounded effort: a retry) and the target becoming
+    reliable, every plan is the one a whole evaluation per update gives, and the updates
+    where the target moved or became reliable were evaluated whole."""
+    whole, calls0, kept0 = _kept_script(0.0)
+    kept, calls1, kept1 = _kept_script(1.0)
+    assert kept0 == 0 and len(calls0) == len(whole) == 24
+    assert [w[:4] for w in kept] == [w[:4] for w in whole]
+    reasons = [w[4] for w in whole]
+    assert "target moved" in reasons[3] and "no progress" in " ".join(reasons[10:15])
+    assert whole[19][0] == "done" and "reliable" in whole[19][4]
+    assert 0.6 in calls1 and 3.8 in calls1  # the move and the resolution: seen at once
+    assert kept1 > 0 and len(calls1) + kept1 == 24 and len(calls1) <= 14
