@@ -1445,3 +1445,21 @@ def test_a_kept_evaluation_decides_as_a_whole_one_and_evaluates_less():
     assert whole[19][0] == "done" and "reliable" in whole[19][4]
     assert 0.6 in calls1 and 3.8 in calls1  # the move and the resolution: seen at once
     assert kept1 > 0 and len(calls1) + kept1 == 24 and len(calls1) <= 14
+
+
+def test_a_target_up_to_a_narrow_passage_is_evaluated_on_every_update():
+    """Whether the way to a target is narrow is judged anew on every update (a way that
+    becomes wide, or narrow again, makes a new path), so a target up to a narrow passage (or
+    around one) is never followed on a kept evaluation."""
+    g, geom = corridor_grid()
+    g[10:17, 30] = 100  # 0.3 m door at x in [2.0, 2.1]
+    g[10:20, 60:71] = -1  # unexplored beyond x = 5 m
+    core = PlannerCore(params(keep_period=1.0))
+    calls = []
+    evaluate = core.strategy.evaluate
+    core.strategy.evaluate = lambda u: calls.append(u.t) or evaluate(u)
+    for k in range(4):
+        out = core.update(0.2 * k, (0.6 + 0.05 * k, 0.5, 0.0), topo(*door_parts()),
+                          rel({1: 0.95, 2: 0.5}), grid(g, geom))
+        assert out.route.target_id == 2 and "narrow passage" in out.status.reason
+    assert len(calls) == 4 and core.snapshot()["kept_updates"] == 0

@@ -169,7 +169,8 @@ class PlannerCore:
         u = Update(t, x, y, th, graph, beliefs, self._view,
                    None if self._target is None else self._target.cand.detached(),
                    self._blacklist.covers,
-                   fresh=self._narrowed_now)
+                   fresh=self._narrowed_now,
+                   planned_at=None if tg is None else (tg.plan_x, tg.plan_y))
         self._u = u
         ev = self._kept(u, tg)
         kept = ev is not None

@@ -222,6 +222,8 @@ class Update:
     blacklisted: Callable[[Candidate], bool]
     fresh: Callable[[], bool] = lambda: False  # the map changed under the followed path: no
     #   cached search (asked only when a search could be reused: it may cost a transform)
+    planned_at: tuple[float, float] | None = None  # [m] where the target was when its path
+    #   was made (the core makes a new path once it has moved target_move from there)
 
     def may_reuse(self, period: float, made_t: float) -> bool:
         """A search made at made_t [s] may serve this update: a target is followed, the search

@@ -152,13 +152,15 @@ class Topological:
         make a path is due: docs/design.md, "A kept evaluation"). None, and the core
         evaluates, unless the evaluation is younger than keep_period, the map has not changed
         under the path (:meth:`Update.may_reuse`), the target is not one up to a narrow
-        passage, and an end node followed is still an end node, still open, and within
-        target_move of where that evaluation had it. The walls the path is checked against
-        are this update's."""
+        passage or around one (whether its way is narrow is judged anew on each update),
+        and an end node followed is still an end node, still open, and within
+        target_move of where its path was made to (``Update.planned_at``: the core's "target
+        moved" rule). The walls the path is checked against are this update's."""
         self.observe(u)
         ev, tg = self._last, u.target
-        if (ev is None or tg is None or tg.partial  # the way up to a narrow passage
-                #   becoming wide is the evaluation's to see (a new path to the node itself)
+        if (ev is None or tg is None or tg.partial or tg.around  # the way up to a narrow
+                #   passage becoming wide, or the way around one narrow again, is the
+                #   evaluation's to see (a new path)
                 or ev.waiting is not None or ev.failed is not None
                 or u.graph is None or u.view is None
                 or (self.needs_beliefs and u.beliefs is None)
@@ -166,8 +168,9 @@ class Topological:
             return None
         if tg.id >= 0:
             node = next((n for n in u.graph.nodes if n.id == tg.id), None)
+            px, py = u.planned_at if u.planned_at is not None else (tg.x, tg.y)
             if (node is None or node.kind != "end"
-                    or math.hypot(node.x - tg.x, node.y - tg.y) >= self.cfg.params.target_move
+                    or math.hypot(node.x - px, node.y - py) >= self.cfg.params.target_move
                     or not self.open_now(u, tg.id, node.x, node.y)):
                 return None
         view = u.view
