@@ -335,7 +335,8 @@ def updates():
     """The inputs of the first 200 topology / reliability / planner updates of an in-process
     paper-room exploration: (t, pose, grid). A frontier run: the planner cores replayed are
     the default (frontier) one, and its route does not move with the topological strategies'
-    rules (a reliability run's route kept every end node at P 0.5 for 76 s once)."""
+    rules (a change to them once gave a reliability route with every end node at P 0.5 for
+    its first 76 s, and this test's premise failed)."""
     from topoexplore.tools.bench.inproc import run
 
     got = []
