@@ -26,7 +26,10 @@ the same for every strategy:
   around, and only stuck_timeout s later the state becomes "failed";
 - the global progress watchdog (:mod:`.watchdog`): no new map information for watchdog_time
   s of driving escalates: nearest frontier -> blacklist what was tried -> stuck (or, if the
-  robot still drives, blacklist again).
+  robot still drives, blacklist again);
+- a kept evaluation (keep_period > 0, off by default): on an update where none of the rules
+  above that read other candidates or make a path is due, the strategy's last evaluation
+  may serve (:meth:`PlannerCore._kept`, docs/design.md "A kept evaluation").
 """
 
 from __future__ import annotations

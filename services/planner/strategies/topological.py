@@ -138,9 +138,11 @@ class Topological:
     # --- evaluation --------------------------------------------------------------------------
 
     def evaluate(self, u: Update) -> Evaluation:
-        """The whole evaluation of update u (kept for :meth:`kept`)."""
+        """The whole evaluation of update u (kept for :meth:`kept` when keep_period > 0: it
+        holds the update's map view, so it is not kept for nothing)."""
         ev = self.evaluate_all(u)
-        self._last, self._last_t = ev, u.t
+        if self.cfg.params.keep_period > 0:
+            self._last, self._last_t = ev, u.t
         return ev
 
     def evaluate_all(self, u: Update) -> Evaluation:
