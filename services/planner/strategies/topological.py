@@ -29,6 +29,7 @@ from scipy.spatial import cKDTree
 from topoexplore.common.grid import GridGeometry, cells_for, near_frontier, open_never_near
 from topoexplore.services.planner import graph as gr
 from topoexplore.services.planner import gridsearch as gs
+from topoexplore.services.planner.mapview import MapView
 from topoexplore.services.planner.strategies.base import (
     Candidate,
     Candidates,
@@ -175,8 +176,7 @@ class Topological:
                     or math.hypot(node.x - px, node.y - py) >= self.cfg.params.target_move
                     or not self.open_now(u, tg.id, node.x, node.y)):
                 return None
-        view = u.view
-        return replace(ev, path_clear=lambda wps: not gr.crosses(view.occupied, view.geom, wps))
+        return replace(ev, path_clear=_clear_of(u.view))
 
     def complete(self, u: Update, ev: Evaluation) -> Evaluation:
         """The completion phase once no end node is left (frontier_completion); while end
@@ -311,8 +311,7 @@ class Topological:
         ev.path_ok = _near_skeleton(s.index, self.cfg.params.path_tolerance,
                                     None if s.entry is None else s.entry.lead)
         if s.u.view is not None:
-            view = s.u.view
-            ev.path_clear = lambda wps: not gr.crosses(view.occupied, view.geom, wps)
+            ev.path_clear = _clear_of(s.u.view)
             if self.cfg.params.grid_paths:
                 self._grid_paths(s, ev)
         return ev
@@ -480,6 +479,11 @@ class Topological:
 
     def snapshot(self) -> dict[str, Any]:
         return {"looked": [{"id": b.id, "x": b.x, "y": b.y, "t": b.t} for b in self._looked]}
+
+
+def _clear_of(view: MapView) -> Callable[[np.ndarray], bool]:
+    """path_clear on the map view: no segment of the waypoints crosses an occupied cell."""
+    return lambda wps: not gr.crosses(view.occupied, view.geom, wps)
 
 
 def _near_skeleton(index: gr.TopoIndex, tolerance: float, lead: np.ndarray | None = None
