@@ -585,45 +585,6 @@ def test_a_passage_flickering_narrow_and_wide_does_not_hold_off_the_effort_rule(
     assert 0.4 * k <= 2 * 4.0 + 2.0, k
 
 
-def test_a_passage_flickering_narrow_gives_no_new_path_while_the_robot_advances():
-    """The way to the only target is judged narrow on every other update (a ragged wall's
-    cell more or less), while the robot drives along its wide path: that path is kept, one
-    plan for the whole approach (small_house had a new path on every update, the robot
-    standing still through them). A robot that stops advancing along it gets a new path, up to the passage, as the
-    target is judged now."""
-    from topoexplore.services.planner.strategies.base import Candidate
-
-    xs = np.linspace(0.0, 4.0, 41)
-    line = np.stack([xs, np.zeros_like(xs)], axis=1)
-
-    def cands(k):
-        return [Candidate(1, 4.0, 0.0, 4.0, 4.0, 1.0, 0.5, lambda: line[:41 if k % 2 else 31],
-                          label="end node 1", partial=k % 2 == 0)]
-
-    core = PlannerCore(params(progress_timeout=4.0))
-    core.strategy = Scripted(cands)
-    plans, reasons = set(), []
-    for k in range(16):  # 0.1 m per update: progress_distance every three or four updates
-        out = core.update(0.4 * k, (0.1 * k, 0.0, 0.0), no_graph(), rel({1: 0.5}), None)
-        plans.add(out.route.plan_id)
-        reasons.append(out.status.reason)
-        assert out.route.target_id == 1 and out.route.target_xy == (4.0, 0.0), reasons[-1]
-    assert len(plans) == 1, [r[-60:] for r in reasons]
-    assert sum("judged narrow" in r for r in reasons) == 8, reasons
-    assert not any("new path" in r for r in reasons), reasons
-
-    # the robot stops advancing: from half of progress_timeout after its last progress, the
-    #   way up to the passage (on the next update that judges it narrow)
-    last = core._target.progress_t
-    for k in range(16, 30):
-        out = core.update(0.4 * k, (1.5, 0.0, 0.0), no_graph(), rel({1: 0.5}), None)
-        reasons.append(out.status.reason)
-        if out.route.plan_id not in plans:
-            break
-    assert "became narrow" in reasons[-1], reasons[-3:]
-    assert 2.0 <= 0.4 * k - last + 1e-9 < 2.0 + 0.8, (k, last)
-
-
 # --- the global progress watchdog -------------------------------------------------------------
 
 

@@ -199,7 +199,7 @@ class PlannerCore:
         again: :meth:`_watch`). docs/design.md, "A kept evaluation"."""
         p, t = self.p, u.t
         if (tg is None or p.keep_period <= 0 or self._watchdog.mode is not None
-                or tg.unreachable_since is not None or tg.narrow_since is not None
+                or tg.unreachable_since is not None
                 or not 0.0 <= t - self._last_eval_t < p.replan_period
                 or t - tg.progress_t >= p.progress_timeout
                 or (tg.arrived_t is not None and t - tg.arrived_t >= p.arrival_timeout)):
@@ -473,17 +473,8 @@ class PlannerCore:
             return cands, False
         else:
             tg.unreachable_since = None
-        narrow = None  # this update's candidate, when the target is kept on its wide path
-        if c is not None and not grace and self._narrow_grace(t, tg, c):
-            narrow, c = c, dataclasses.replace(c, partial=False, around=tg.cand.around,
-                                                 label=tg.cand.label, face=tg.cand.face,
-                                                 path=tg.cand.path)
-            notes.append(f"kept {c.label} on its path: its way is judged narrow on this "
-                         f"update's map (for {t - tg.narrow_since:.1f} s)")
         tg.cand = c
         d = self._step_target(t, x, y, th, tg, c, cands, ev)
-        if narrow is not None and d.action is not Action.KEEP:
-            c = tg.cand = narrow  # a new path is made to the target as it is judged now
         if d.note:
             notes.append(d.note)
         if d.action is Action.KEEP:
@@ -519,24 +510,6 @@ class PlannerCore:
         rest = tg.wps[tg.idx:]
         return (t - tg.unreachable_since < self.p.progress_timeout
                 and ev.path_ok(rest[1:]) and ev.path_clear(rest))
-
-    def _narrow_grace(self, t: float, tg: Target, c: Candidate) -> bool:
-        """Commitment against a flickering width: a target followed on a wide path whose way
-        is judged narrow on this update (c.partial: the skeleton path to it dips under the
-        clearance limit) is kept on that path while the robot advances along it (its last
-        progress less than half of progress_timeout ago). The path is still checked as any
-        path is (:meth:`_step_target`: the map, the walls seen since, a narrowed waypoint),
-        and any new path is made to c. A passage whose width flickers about the limit
-        otherwise gave a new path on every update, between the path up to the passage and
-        the path through it (small_house: 23 of 56 paths; the robot stood still through
-        four of them). A robot that no longer advances gets the path up to the passage, as
-        before, and the effort rule's clock runs on."""
-        if not c.partial or tg.partial or t - tg.progress_t >= 0.5 * self.p.progress_timeout:
-            tg.narrow_since = None
-            return False
-        if tg.narrow_since is None:
-            tg.narrow_since = t
-        return True
 
     def _step_target(self, t: float, x: float, y: float, th: float, tg: Target, c: Candidate,
                      cands: list[Candidate], ev: Evaluation) -> Decision:

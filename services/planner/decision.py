@@ -61,8 +61,6 @@ class Target:
     partial: bool = False  # the path was cut at a narrow passage (Candidate.partial when made)
     crossings: int = 0  # new paths made because the path crossed an obstacle seen since
     unreachable_since: float | None = None  # [s] kept while its reachability flickers
-    narrow_since: float | None = None  # [s] kept on its wide path while its way is judged
-    #   narrow (the passage's width flickers about the limit)
     planned_clearance: np.ndarray | None = None  # (n,) [m] of wps on the map it was made on
 
     def moved(self) -> float:
