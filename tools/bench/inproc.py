@@ -92,7 +92,7 @@ def _converted(obj: Any, to_msg: Callable, from_msg: Callable, _msg_type: type) 
     0.5800000000000002), and every service on the bus reads the converted heading. Encoding
     is exact and left out. Without it a frontier run on a generated warehouse drove 324.8 m in
     process and 305.7 m on the bus (docs/benchmarks.md)."""
-    return from_msg(to_msg(obj, m.header(0, 0.0, "map", 0)))
+    return from_msg(to_msg(obj, m.header(0, 0.0, "odom", 0)))
 
 
 class _Localized:
