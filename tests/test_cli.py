@@ -94,6 +94,8 @@ def test_bad_world_file_one_line(tmp_path, content):
     ["bench", "inproc", "--set", "sim.seed=3"],
     ["bench", "inproc", "--strategies", "random"],
     ["bench", "codec", "--repeats", "0"],
+    ["bench", "posetrace", "/nonexistent.npz"],
+    ["bench", "posetrace", "README.md"],
     ["bench", "codec", "--repeats", "many"],
     ["map", "save", "/tmp/x.yaml", "--connect", "tcp/127.0.0.1:1", "--timeout", "0.5"],
 ])

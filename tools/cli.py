@@ -6,7 +6,7 @@
     topoexplore keys     live keys: list | echo KEY | hz KEY | get SERVICE | pub KEY | set SERVICE
     topoexplore map      save the live map as a ROS map_server PGM + YAML pair
     topoexplore render   make a PNG from a saved run directory or a running stack
-    topoexplore bench    benchmarks: stages | explore | inproc | robust | oracle | record | faults | fuzz | hangs | codec
+    topoexplore bench    benchmarks: stages | explore | inproc | robust | oracle | posetrace | record | faults | fuzz | hangs | codec
     topoexplore router   run a Zenoh router
     topoexplore bridge   ros2: a ROS 2 robot's scan and odom in, our cmd_vel and map out (CDR)
     topoexplore warmup   compile the numba kernels once, before the services start
@@ -259,7 +259,7 @@ FORWARD = {
                "compile the numba kernels once (the supervisor does it too)"),
     "render": ("topoexplore.tools.render", "PNG from a saved run directory or a running stack"),
     "bench": ("topoexplore.tools.bench",
-              "benchmarks: stages | explore | inproc | robust | oracle | record | faults | fuzz | hangs | codec"),
+              "benchmarks: stages | explore | inproc | robust | oracle | posetrace | record | faults | fuzz | hangs | codec"),
     "record": ("topoexplore.tools.record:main_record",
                "record the bus into an MCAP file (raw + Foxglove channels)"),
     "play": ("topoexplore.tools.record:main_play", "publish an MCAP recording back onto the bus"),

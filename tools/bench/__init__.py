@@ -5,6 +5,7 @@
     topoexplore bench inproc [--worlds ...] [--strategies ...] [--seeds N] [--set k=v ...]
     topoexplore bench robust [--half tune|held|real|all] [--strategies ...] [--quick]
     topoexplore bench oracle [--worlds ...] [--corpus DIR] [--from-results SRC ...]
+    topoexplore bench posetrace TRACE.npz [--stretch 5] [--worst 8]
     topoexplore bench record [--world office] [--speed 4] [--sim-time 120] [--repeats 2]
     topoexplore bench faults [--world office] [--speed 4] [--faults kill:mapper,stop:planner,router]
     topoexplore bench fuzz [--per-key 10000] [--rate 2000] [--world paper-room]
@@ -14,7 +15,8 @@
 ``stages`` (:mod:`.stages`, :mod:`.bus`) times every core and the bus; ``explore``
 (:mod:`.explore`) runs the strategy comparison suite with the real processes; ``inproc``
 (:mod:`.inproc`) runs the same cores in one process for parameter sweeps; ``oracle``
-(:mod:`.oracle`) divides their paths by a short tour planned on the true map; ``record``
+(:mod:`.oracle`) divides their paths by a short tour planned on the true map; ``posetrace``
+(:mod:`.posetrace`) finds where a localized run's pose went wrong; ``record``
 (:mod:`.recording`) measures what ``run --record`` costs the services in real time; ``faults``
 (:mod:`.faults`) runs explorations while it kills, freezes and restarts processes; ``fuzz``
 (:mod:`.fuzz`) floods a running stack with malformed messages on every key it subscribes;
@@ -27,14 +29,14 @@ from __future__ import annotations
 
 import sys
 
-_USAGE = ("usage: topoexplore bench {stages,explore,inproc,robust,oracle,record,faults,fuzz,hangs,"
-          "codec} [options]  (-h for help)")
+_USAGE = ("usage: topoexplore bench {stages,explore,inproc,robust,oracle,posetrace,record,faults,"
+          "fuzz,hangs,codec} [options]  (-h for help)")
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] not in ("stages", "explore", "inproc", "robust", "oracle",
-                                   "record", "faults", "fuzz", "hangs", "codec"):
+                                   "posetrace", "record", "faults", "fuzz", "hangs", "codec"):
         print(_USAGE, file=sys.stderr)
         return 2
     if argv[0] == "stages":
@@ -53,6 +55,10 @@ def main(argv: list[str] | None = None) -> int:
         from topoexplore.tools.bench import oracle
 
         return oracle.main(argv[1:])
+    if argv[0] == "posetrace":
+        from topoexplore.tools.bench import posetrace
+
+        return posetrace.main(argv[1:])
     if argv[0] == "record":
         from topoexplore.tools.bench import recording
 

@@ -2,6 +2,7 @@
 
     topoexplore bench inproc [--worlds a,b] [--strategies ...] [--seeds N] [--set k=v ...]
                              [--jobs 2] [--max-sim-time S] [--json OUT] [--wire]
+                             [--pose-trace DIR]
 
 The six cores (sim, mapper, topology, reliability, planner, controller) are called in one
 loop in the order the services run them in lockstep (with ``--set localizer.enabled=true``
@@ -99,17 +100,22 @@ class _Localized:
     """The localizer as its service runs it in lockstep: each scan matched against the map
     published before it, from odometry composed with the correction in force; the pose every
     other core takes is odometry composed with the new correction. Without the localizer the
-    pose is odometry's. ``errors``: [m] the estimate against the truth, once per scan."""
+    pose is odometry's. ``errors``: [m] the estimate against the truth, once per scan;
+    ``headings``: [rad] the same for the heading. With ``trace`` every scan's stamp, odometry,
+    truth, estimate and match is kept for :meth:`trace_arrays` (``bench posetrace``)."""
 
-    def __init__(self, P: Params, hop: Callable):
+    def __init__(self, P: Params, hop: Callable, trace: bool = False):
         self.core = LocalizerCore(P.localizer, P.laser.offset, P.mapper.occupancy) \
             if P.localizer.enabled else None
         self.hop = hop
         self.correction = Pose(0.0, 0.0, 0.0)
         self.grid = None  # the newest map, not yet handed to the matcher
         self.errors: list[float] = []
+        self.headings: list[float] = []
+        self.rows: list[tuple] | None = [] if trace else None
 
-    def pose(self, odom: Pose, scan: Any, truth: Pose) -> Pose:
+    def pose(self, odom: Pose, scan: Any, truth: Pose, t: float = 0.0) -> Pose:
+        match = None
         if self.core is not None:
             if self.grid is not None:
                 self.core.set_map(self.grid)
@@ -123,13 +129,28 @@ class _Localized:
             self.core.observe(scan, compose(self.correction, odom))
         pose = compose(self.correction, odom) if self.core is not None else odom
         self.errors.append(math.hypot(pose.x - truth.x, pose.y - truth.y))
+        self.headings.append(math.remainder(pose.theta - truth.theta, 2 * math.pi))
+        if self.rows is not None:
+            self.rows.append((t, *odom, *truth, *pose,
+                              -1 if match is None else int(match.ok),
+                              math.nan if match is None else match.score,
+                              math.nan if match is None else match.conditioning))
         return pose
 
     def figures(self) -> dict[str, Any]:
-        e = np.asarray(self.errors)
+        e, h = np.asarray(self.errors), np.abs(np.asarray(self.headings))
         return {"pose_rms_m": round(float(np.sqrt(np.mean(e ** 2))), 4) if e.size else None,
                 "pose_median_m": round(float(np.median(e)), 4) if e.size else None,
-                "pose_max_m": round(float(e.max()), 4) if e.size else None}
+                "pose_max_m": round(float(e.max()), 4) if e.size else None,
+                "heading_rms_rad": round(float(np.sqrt(np.mean(h ** 2))), 5) if h.size else None,
+                "heading_max_rad": round(float(h.max()), 5) if h.size else None}
+
+    def trace_arrays(self) -> dict[str, np.ndarray]:
+        """The per-scan trace (:mod:`topoexplore.tools.bench.posetrace` reads it)."""
+        a = np.asarray(self.rows or [], np.float64).reshape(-1, 13)
+        return {"t": a[:, 0], "odom": a[:, 1:4], "truth": a[:, 4:7], "estimate": a[:, 7:10],
+                "matched": a[:, 10].astype(np.int8), "score": a[:, 11],
+                "conditioning": a[:, 12]}
 
 
 class _Stages:
@@ -165,17 +186,18 @@ def _pipeline(P: Params, world: World) -> SimpleNamespace:
 
 def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence[str] = (),
         max_sim_time: float = 1800.0, on_update: Callable[..., Any] | None = None,
-        wire: bool = False) -> dict[str, Any]:
+        wire: bool = False, pose_trace: Path | None = None) -> dict[str, Any]:
     """One exploration, in process. ``sets``: ``section.key=value`` overrides (TOML values).
     ``on_update(t, pose, graph, beliefs, plan, grid)`` is called after every plan; it may raise
     to stop the run. ``wire``: every hop goes through the message round trip (:class:`Wire`).
-    Returns the run's figures."""
+    ``pose_trace``: write every scan's odometry, truth, estimate and match there (.npz, read
+    by ``bench posetrace``). Returns the run's figures."""
     P = load_params(None, [f"sim.world={json.dumps(world)}", f"sim.seed={int(seed)}",
                            *strategy_overrides(strategy), "runtime.lockstep=true", *sets])
     w = load_world(P.sim.world)
     c = _pipeline(P, w)
     hop = Wire() if wire else _direct
-    loc = _Localized(P, hop)
+    loc = _Localized(P, hop, trace=pose_trace is not None)
     steps = max(1, round(P.sim.physics_hz / P.laser.scan_hz))
     plan = grid = None
     lagged: deque = deque()  # (map scan, route) the controller has yet to follow
@@ -189,7 +211,7 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
                                              convert.odom_from_msg, m.Odometry).pose
         scan = hop(st("sim", c.sim.scan), convert.scan_to_msg, convert.scan_from_msg,
                    m.LaserScan)
-        pose = loc.pose(odom, scan, c.sim.truth_pose())
+        pose = loc.pose(odom, scan, c.sim.truth_pose(), t)
         st("mapper", c.mapper.integrate, pose, scan)
         if k % P.mapper.map_every == 0:
             grid = loc.grid = hop(st("mapper", c.mapper.grid, copy=True), convert.grid_to_msg,
@@ -216,6 +238,9 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
             state = "timeout"
             break
     cov, cov_free = _coverages(P, w, grid)
+    if pose_trace is not None:
+        Path(pose_trace).parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(pose_trace, **loc.trace_arrays())
     snap = c.planner.snapshot()
     return {"world": world, "strategy": strategy, "seed": int(seed), "state": str(state),
             "finished": state == "done", "stop_reason": plan.status.reason if plan else "",
@@ -243,9 +268,10 @@ def _coverages(P: Params, w: World, grid: Any) -> tuple[float, float]:
 
 
 def _one(item: tuple) -> dict[str, Any]:
-    label, world, strategy, seed, sets, tmax, wire = item
+    label, world, strategy, seed, sets, tmax, wire, *rest = item
+    trace = Path(rest[0]) / f"{label}-{strategy}-s{seed}.npz" if rest and rest[0] else None
     try:
-        r = run(world, strategy, seed, sets, tmax, wire=wire)
+        r = run(world, strategy, seed, sets, tmax, wire=wire, pose_trace=trace)
     except Exception as exc:  # noqa: BLE001 - one failed run must not end the sweep
         r = {"world": world, "strategy": strategy, "seed": seed, "state": "error",
              "finished": False, "stop_reason": f"{type(exc).__name__}: {exc}",
@@ -284,6 +310,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--json", type=Path, help="write the runs and ratios here")
     ap.add_argument("--wire", action="store_true",
                     help="send every hop through the message round trip (as over the bus)")
+    ap.add_argument("--pose-trace", type=Path, metavar="DIR",
+                    help="write each run's per-scan odometry, truth, estimate and match to "
+                         "DIR/<world>-<strategy>-s<seed>.npz (read it with bench posetrace)")
     return ap
 
 
@@ -300,7 +329,8 @@ def parse(argv: Sequence[str]) -> tuple[list[tuple], argparse.Namespace]:
     if not (math.isfinite(a.max_sim_time) and a.max_sim_time > 0):
         raise BenchArgError("--max-sim-time must be a positive number")
     check_overrides(None, a.set)
-    items = [(label, world, st, seed, tuple(a.set), a.max_sim_time, a.wire)
+    items = [(label, world, st, seed, tuple(a.set), a.max_sim_time, a.wire,
+              None if a.pose_trace is None else str(a.pose_trace))
              for label, world in worlds for st in strategies for seed in range(a.seeds)]
     return items, a
 
@@ -319,7 +349,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         cov_free = "-" if r["coverage_free"] is None else f"{r['coverage_free']:.3f}"
         print(f"{r['world_label']:14s} {r['strategy']:14s} s{r['seed']} {r['state']:8s} "
               f"path {r['path_length_m']} m  sim {r['sim_time_s']} s  coverage {cov} "
-              f"(free {cov_free})  collisions {r['collisions']}  wall {r['wall_s']} s")
+              f"(free {cov_free})  collisions {r['collisions']}  wall {r['wall_s']} s"
+              + (f"  pose RMS {r['pose_rms_m']} m (max {r['pose_max_m']})"
+                 if r.get("pose_max_m") else ""))
     print(stage_line(runs))
     strategies = sorted({r["strategy"] for r in runs}, key=STRATEGY_NAMES.index)
     ratios = {}
