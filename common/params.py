@@ -530,6 +530,14 @@ def params_to_dict(p: Params) -> dict[str, Any]:
     return msgspec.to_builtins(p)
 
 
+def params_from_dict(data: dict[str, Any], overrides: list[str] | None = None) -> Params:
+    """The inverse of :func:`params_to_dict`, then ``section.name=value`` overrides;
+    validated (ParamError)."""
+    if not isinstance(data, dict):
+        raise ParamError(f"parameters must be a table, not {type(data).__name__}")
+    return _convert(apply_overrides(data, overrides or []))
+
+
 def _parse_value(text: str) -> Any:
     """An override value as TOML (numbers, booleans, strings, arrays); bare words are strings."""
     try:

@@ -143,3 +143,18 @@ def test_strategy_variants_are_strategies_with_parameters():
     assert p.reliability.view_distance == 0.1
     with pytest.raises(ParamError, match="unknown strategy 'greedy'"):
         strategy_overrides("greedy")
+
+
+def test_params_to_dict_and_back_is_the_same_parameters():
+    from topoexplore.common.params import ParamError, params_from_dict, params_to_dict
+
+    p = load_params(None, ["laser.model=\"lidar-360\"", "localizer.sigma=0.07",
+                           "planner.strategy=\"frontier\""])
+    d = params_to_dict(p)
+    assert params_from_dict(d) == p
+    again = params_from_dict(d, ["localizer.sigma=0.05"])
+    assert again.localizer.sigma == 0.05 and again.laser == p.laser
+    with pytest.raises(ParamError):
+        params_from_dict(d, ["localizer.sigma=-1"])
+    with pytest.raises(ParamError):
+        params_from_dict([1, 2])

@@ -91,3 +91,36 @@ def test_the_in_process_runner_writes_the_trace_it_reports(tmp_path, capsys):
     assert tr["matched"][0] == -1 and (tr["matched"][1:] >= 0).all()  # no map before scan 0
     assert pt.main([str(f), "--worst", "3"]) == 0
     assert "stretches of 5 m" in capsys.readouterr().out
+    # the replay of the run's own scans with its own parameters is the run, bit for bit
+    tr = pt.load_trace(f, replay=True)
+    again = pt.replay(tr, [])
+    for k in ("estimate", "matched", "odom", "truth"):
+        assert np.array_equal(again[k], tr[k]), k
+    assert np.array_equal(again["score"], tr["score"], equal_nan=True)
+    other = pt.replay(tr, ["localizer.directional=false", "localizer.sigma=0.1"])
+    assert not np.array_equal(other["estimate"], tr["estimate"])
+    assert np.array_equal(other["truth"], tr["truth"])  # the same path
+    assert pt.main([str(f), str(f), "--replay", "--set", "localizer.sigma=0.1"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("replayed RMS") == 2 and "geometric mean over 2 trace(s)" in out
+
+
+def test_a_replay_needs_the_localizer_and_its_scans(tmp_path, capsys):
+    from topoexplore.tools.bench.inproc import run
+
+    f = tmp_path / "off.npz"
+    run("dead-end", "frontier", 0, (), 5.0, pose_trace=f)
+    tr = pt.load_trace(f, replay=True)
+    assert (tr["matched"] == -1).all()
+    with pytest.raises(pt.TraceError, match="localizer is off"):
+        pt.replay(tr, [])
+    assert len(pt.replay(tr, ["localizer.enabled=true"])["t"]) == len(tr["t"])
+    no_scans = tmp_path / "no-scans.npz"
+    np.savez(no_scans, **straight_run(21))
+    assert pt.main([str(no_scans)]) == 0  # enough to read
+    capsys.readouterr()
+    for args in ([str(no_scans), "--replay"], [str(f), "--set", "localizer.sigma=0.1"],
+                 [str(f), "--replay", "--set", "localizer.sigma=-1"], [str(tmp_path / "none")]):
+        assert pt.main(args) == 2, args
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "posetrace" in err, (args, err)

@@ -43,12 +43,13 @@ import numpy as np
 
 from topoexplore.common import convert
 from topoexplore.common import messages as m
-from topoexplore.common.domain import Pose, compose, inverse
+from topoexplore.common.domain import Pose, Scan, compose, inverse
 from topoexplore.common.params import (
     STRATEGIES,
     STRATEGY_NAMES,
     Params,
     load_params,
+    params_to_dict,
     strategy_overrides,
 )
 from topoexplore.services.controller.core import ControllerCore
@@ -113,6 +114,9 @@ class _Localized:
         self.errors: list[float] = []
         self.headings: list[float] = []
         self.rows: list[tuple] | None = [] if trace else None
+        self.ranges: list[np.ndarray] = []  # with trace: each scan's ranges [m]
+        self.scan_geom: tuple[float, ...] = ()  # angle_min, angle_increment, range_min, max
+        self.params = json.dumps(params_to_dict(P)) if trace else ""
 
     def pose(self, odom: Pose, scan: Any, truth: Pose, t: float = 0.0) -> Pose:
         match = None
@@ -131,6 +135,9 @@ class _Localized:
         self.errors.append(math.hypot(pose.x - truth.x, pose.y - truth.y))
         self.headings.append(math.remainder(pose.theta - truth.theta, 2 * math.pi))
         if self.rows is not None:
+            self.ranges.append(np.array(scan.ranges, np.float64))
+            self.scan_geom = (scan.angle_min, scan.angle_increment, scan.range_min,
+                              scan.range_max)
             self.rows.append((t, *odom, *truth, *pose,
                               -1 if match is None else int(match.ok),
                               math.nan if match is None else match.score,
@@ -150,7 +157,30 @@ class _Localized:
         a = np.asarray(self.rows or [], np.float64).reshape(-1, 13)
         return {"t": a[:, 0], "odom": a[:, 1:4], "truth": a[:, 4:7], "estimate": a[:, 7:10],
                 "matched": a[:, 10].astype(np.int8), "score": a[:, 11],
-                "conditioning": a[:, 12]}
+                "conditioning": a[:, 12],
+                # what `bench posetrace --replay` needs to run the localizer again
+                "ranges": np.stack(self.ranges) if self.ranges else np.zeros((0, 0)),
+                "scan": np.asarray(self.scan_geom, np.float64), "params": np.array(self.params)}
+
+
+def replay_localizer(P: Params, t: np.ndarray, odom: np.ndarray, truth: np.ndarray,
+                     ranges: np.ndarray, scan_geom: Sequence[float]) -> dict[str, np.ndarray]:
+    """The localizer and the mapper of :func:`run` again over a run's recorded scans and
+    odometry (``bench posetrace --replay``): each scan matched against the map of the scans
+    before it, then integrated at the estimate. The trajectory is the recorded one, so two
+    localizer settings meet the same scans (a run with other settings would drive elsewhere).
+    With the run's own parameters the estimates are the run's, bit for bit. Returns the new
+    trace (:meth:`_Localized.trace_arrays`)."""
+    loc = _Localized(P, _direct, trace=True)
+    mapper = MapperCore(P.mapper, P.laser.offset)
+    a0, inc, rmin, rmax = (float(v) for v in scan_geom)
+    for k in range(len(t)):
+        scan = Scan(ranges[k], a0, inc, rmin, rmax)
+        pose = loc.pose(Pose(*odom[k]), scan, Pose(*truth[k]), float(t[k]))
+        mapper.integrate(pose, scan)
+        if k % P.mapper.map_every == 0:
+            loc.grid = mapper.grid(copy=True)
+    return loc.trace_arrays()
 
 
 class _Stages:

@@ -1,6 +1,7 @@
 """Where a localized run lost its pose: ``topoexplore bench posetrace``.
 
     topoexplore bench posetrace TRACE.npz [--stretch 5] [--worst 8]
+                                [--replay [--set localizer.KEY=VALUE ...]]
 
 Reads the per-scan trace that ``bench inproc --pose-trace DIR`` writes (stamp, odometry,
 truth, the estimate every core took, and the localizer's match: trusted or not, score,
@@ -14,11 +15,20 @@ while odometry did not is one where the scan matcher, not odometry, made the err
 
 The first line is the run's figures: pose RMS / median / max [m], heading RMS / max [rad],
 the share of scans whose match was trusted.
+
+``--replay`` runs the localizer and the mapper again over the trace's scans and odometry
+(``bench inproc``'s :func:`~topoexplore.tools.bench.inproc.replay_localizer`), with the run's
+parameters and the ``--set`` overrides, and reports the replay as above beside the recorded
+figures. The robot drives the recorded path whatever the localizer does, so two settings are
+compared on the same scans, free of the run-to-run noise a changed path brings (a run's
+pose error depends on where it drove: docs/benchmarks.md). What it cannot show is how a
+setting changes the path.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import zipfile
@@ -28,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 KEYS = ("t", "odom", "truth", "estimate", "matched", "score", "conditioning")
+REPLAY_KEYS = ("ranges", "scan", "params")  # bench inproc writes them too
 MAX_SCANS = 10_000_000  # a trace longer than this is not one of ours
 END = 5  # scans averaged at each end of a stretch for its heading change
 
@@ -41,14 +52,16 @@ def wrap(a: np.ndarray) -> np.ndarray:
     return (np.asarray(a, np.float64) + math.pi) % (2 * math.pi) - math.pi
 
 
-def load_trace(path: Path) -> dict[str, np.ndarray]:
-    """The arrays of a trace file, checked: every key, (n,) or (n, 3) float, finite poses."""
+def load_trace(path: Path, replay: bool = False) -> dict[str, np.ndarray]:
+    """The arrays of a trace file, checked: every key, (n,) or (n, 3) float, finite poses;
+    with ``replay`` also the scans and parameters a replay needs."""
+    keys = KEYS + (REPLAY_KEYS if replay else ())
     try:
         with np.load(path, allow_pickle=False) as z:
-            got = {k: np.asarray(z[k]) for k in KEYS if k in z.files}
+            got = {k: np.asarray(z[k]) for k in keys if k in z.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
         raise TraceError(f"{path}: not a pose trace ({type(exc).__name__}: {exc})") from None
-    missing = [k for k in KEYS if k not in got]
+    missing = [k for k in keys if k not in got]
     if missing:
         raise TraceError(f"{path}: not a pose trace (no {', '.join(missing)})")
     n = len(got["t"])
@@ -62,6 +75,16 @@ def load_trace(path: Path) -> dict[str, np.ndarray]:
     for k in ("t", "odom", "truth", "estimate"):
         if not np.isfinite(got[k]).all():
             raise TraceError(f"{path}: {k} holds a value that is not finite")
+    if replay:
+        r, g = got["ranges"], got["scan"]
+        if r.ndim != 2 or r.shape[0] != n or (n and r.shape[1] < 2) \
+                or not np.issubdtype(r.dtype, np.floating):
+            raise TraceError(f"{path}: ranges has shape {r.shape}, expected ({n}, beams)")
+        if g.shape != (4,) or not np.isfinite(g).all():
+            raise TraceError(f"{path}: scan must hold 4 finite numbers (angle_min, "
+                             "angle_increment, range_min, range_max)")
+        if got["params"].shape != () or not np.issubdtype(got["params"].dtype, np.str_):
+            raise TraceError(f"{path}: params must be the run's parameters as JSON text")
     return got
 
 
@@ -161,20 +184,103 @@ def report(tr: dict[str, np.ndarray], length: float, k: int) -> list[str]:
     return lines
 
 
+def replay(tr: dict[str, np.ndarray], sets: list[str]) -> dict[str, np.ndarray]:
+    """The trace the localizer makes of the recorded scans with the run's parameters and
+    ``sets`` (ParamError, TraceError)."""
+    from topoexplore.common.params import params_from_dict
+    from topoexplore.tools.bench.inproc import replay_localizer
+
+    try:
+        data = json.loads(str(tr["params"]))
+    except json.JSONDecodeError as exc:
+        raise TraceError(f"params is not JSON ({exc})") from None
+    P = params_from_dict(data, sets)
+    if not P.localizer.enabled:
+        raise TraceError("the localizer is off in this run's parameters: add --set "
+                         "localizer.enabled=true")
+    return replay_localizer(P, tr["t"], tr["odom"], tr["truth"], tr["ranges"], tr["scan"])
+
+
+def trace_files(paths: list[Path]) -> list[Path]:
+    """The trace files named, a directory standing for its ``*.npz`` (TraceError: none)."""
+    out: list[Path] = []
+    for p in paths:
+        out += sorted(p.glob("*.npz")) if p.is_dir() else [p]
+    if not out:
+        raise TraceError(f"no .npz trace in {', '.join(map(str, paths))}")
+    return out
+
+
+def figures(item: tuple[Path, bool, tuple[str, ...]]) -> tuple[str, dict, dict | None]:
+    """One trace's summary, and its replay's with ``--set``s when asked (a pool's task)."""
+    path, again, sets = item
+    tr = load_trace(path, replay=again)
+    return path.name, summary(tr), summary(replay(tr, list(sets))) if again else None
+
+
+def _line(s: dict) -> str:
+    if not s["scans"]:
+        return "0 scans"
+    return (f"RMS {s['pose_rms_m']:.3f} m, median {s['pose_median_m']:.3f}, max "
+            f"{s['pose_max_m']:.3f}; heading RMS {s['heading_rms_rad']:.4f} rad")
+
+
+def many(files: list[Path], again: bool, sets: list[str], jobs: int) -> list[str]:
+    """The lines for several traces: each one's figures (recorded, and replayed), then the
+    geometric mean of the pose RMS over them."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(max(1, min(jobs, len(files)))) as pool:
+        got = list(pool.map(figures, [(f, again, tuple(sets)) for f in files]))
+    lines = []
+    for name, rec, new in got:
+        lines.append(f"{name}: recorded {_line(rec)}"
+                     + (f" | replayed {_line(new)}" if new is not None else ""))
+
+    def gmean(col: int) -> str:
+        v = [g[col]["pose_rms_m"] for g in got if g[col] and g[col]["scans"]]
+        return f"{math.exp(np.mean(np.log(np.maximum(v, 1e-6)))):.4f}" if v else "-"
+
+    lines.append(f"pose RMS, geometric mean over {len(got)} trace(s): recorded {gmean(1)}"
+                 + (f", replayed {gmean(2)}" + (f" with {' '.join(sets)}" if sets else "")
+                    if again else ""))
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="topoexplore bench posetrace", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("trace", type=Path, help="a .npz written by bench inproc --pose-trace")
+    ap.add_argument("trace", type=Path, nargs="+",
+                    help="a .npz written by bench inproc --pose-trace, or a directory of them "
+                         "(several: one line each and the geometric mean)")
     ap.add_argument("--stretch", type=float, default=5.0, help="[m] of true travel (default 5)")
     ap.add_argument("--worst", type=int, default=8, help="stretches to list (default 8)")
+    ap.add_argument("--replay", action="store_true",
+                    help="run the localizer again over the recorded scans and odometry")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="with --replay: a parameter override (repeatable)")
+    ap.add_argument("--jobs", type=int, default=2, help="traces replayed at once (default 2)")
     a = ap.parse_args(argv)
-    if not (math.isfinite(a.stretch) and a.stretch > 0) or a.worst < 0:
-        print("topoexplore bench posetrace: --stretch must be > 0 and --worst >= 0",
+    if not (math.isfinite(a.stretch) and a.stretch > 0) or a.worst < 0 or a.jobs < 1:
+        print("topoexplore bench posetrace: --stretch must be > 0, --worst >= 0, --jobs >= 1",
               file=sys.stderr)
         return 2
+    if a.set and not a.replay:
+        print("topoexplore bench posetrace: --set needs --replay", file=sys.stderr)
+        return 2
+    from topoexplore.common.params import ParamError
+
     try:
-        tr = load_trace(a.trace)
-    except TraceError as exc:
+        files = trace_files(a.trace)
+        if len(files) > 1:
+            print("\n".join(many(files, a.replay, a.set, a.jobs)))
+            return 0
+        tr = load_trace(files[0], replay=a.replay)
+        if a.replay:
+            print("recorded: " + report(tr, a.stretch, 0)[0])
+            tr = replay(tr, a.set)
+            print("replayed" + (f" with {' '.join(a.set)}" if a.set else "") + ": ", end="")
+    except (TraceError, ParamError) as exc:
         print(f"topoexplore bench posetrace: {exc}", file=sys.stderr)
         return 2
     print("\n".join(report(tr, a.stretch, a.worst)))
