@@ -488,6 +488,9 @@ class LocalizerParams(_P):
     #   ratio of the point-to-line information, 0: a corridor) keeps odometry's guess along
     #   that direction (core.py, step 5); 0: never. Tuned on the even-seed generated worlds
     #   with drift, 0.10 / 0.15 / 0.25 (docs/benchmarks.md)
+    known_only: bool = False  # match only the end points that fall, at odometry's guess, on
+    #   a cell the map has observed: a point beyond the map's edge scores nothing where it is,
+    #   and a pose that turns it onto a known wall gains, so it pulls (core.py)
 
 
 class Params(_P):

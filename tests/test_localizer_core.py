@@ -316,3 +316,34 @@ def test_the_likelihood_field_is_that_of_the_distance_to_the_faces(res, sigma):
     got = likelihood_field(face, res, sigma)
     assert got.dtype == np.float32 and got.shape == face.shape
     assert np.abs(got - want).max() < 1e-6
+
+
+def test_known_only_matches_the_end_points_on_observed_cells_alone():
+    """``known_only``: a scan matched on a map that ends at x = 3.1 m (the east part never
+    observed) is matched as if the beams ending beyond it had no return: they score nothing
+    at the guess, and a pose that moved them onto a known wall would gain from them."""
+    g = room()
+    data = g.data.copy()
+    data[:, 62:] = -1  # x >= 3.1 m unknown; the wall faces up to x = 3.05 m stay
+    half = GridMap(data, g.geom)
+    x, y, th = 1.2, 2.0, 1.3  # facing north-north-east: the west wall, the north wall and
+    scan = scan_at(x, y, th)  # the box in view, the north wall's east half beyond the map
+    guess = Pose(x + 0.08, y - 0.06, th + 0.03)
+    on = LocalizerCore(msgspec.structs.replace(LocalizerParams(), known_only=True,
+                                               max_points=1000))
+    on.set_map(half)
+    r, a = scan.returns()
+    ex = guess.x + r * np.cos(guess.theta + a)
+    cut = np.where(np.isfinite(scan.ranges), scan.ranges, 0.0)
+    beyond = np.zeros(len(scan.ranges), bool)
+    beyond[np.flatnonzero(np.isfinite(scan.ranges) & (scan.ranges < scan.range_max))] = \
+        ex >= 62 * RES  # past the last known column
+    assert 10 < beyond.sum() < 150
+    kept = Scan(np.where(beyond, np.inf, cut), scan.angle_min, scan.angle_increment,
+                scan.range_min, scan.range_max)
+    off = LocalizerCore(msgspec.structs.replace(LocalizerParams(), max_points=1000))
+    off.set_map(half)
+    a1, a2 = on.match(scan, guess), off.match(kept, guess)
+    assert a1.points == a2.points == int((~beyond & np.isfinite(scan.ranges)).sum())
+    assert a1.pose == a2.pose and a1.ok
+    assert math.hypot(a1.pose.x - x, a1.pose.y - y) < RES

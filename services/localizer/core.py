@@ -196,6 +196,8 @@ class LocalizerCore:
         self._geom = None
         self._hits: np.ndarray | None = None  # uint8 (H, W): the sides each cell was seen from
         self._hits_geom = None
+        self._known: np.ndarray | None = None  # bool (H, W): observed cells (known_only)
+        self._known_geom = None
 
     @property
     def ready(self) -> bool:
@@ -205,6 +207,8 @@ class LocalizerCore:
         """Build the likelihood fields of a map (call when the map changed)."""
         occ = grid.data >= round(100 * self.occ.p_occ)
         g = grid.geom
+        if self.p.known_only:
+            self._known, self._known_geom = grid.data >= 0, g
         if self.p.directional:
             hits = (np.zeros((g.height, g.width), np.uint8) if self._hits is None
                     else reframe(self._hits, self._hits_geom, g))
@@ -279,6 +283,8 @@ class LocalizerCore:
     def match(self, scan: Scan, guess: Pose) -> Match:
         """The best pose within the search window round ``guess`` (module docstring)."""
         pts, ang = self._points(scan)
+        if self.p.known_only and self._known is not None and len(pts):
+            pts, ang = self._on_known(pts, ang, guess)
         if self._field is None or len(pts) < self.p.min_points:
             return Match(guess, 0.0, False, len(pts), 0)
         g, p = self._geom, self.p
@@ -349,6 +355,18 @@ class LocalizerCore:
         pose, ratio = self._hold_weak(pts, ang, pose, guess)
         return Match(Pose(pose.x, pose.y, math.remainder(pose.theta, 2 * math.pi)), score, True,
                      n, evaluated, ratio)
+
+    def _on_known(self, pts: np.ndarray, ang: np.ndarray, guess: Pose
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """The end points that fall on a known cell of the map at ``guess`` (``known_only``)."""
+        g = self._known_geom
+        cs, sn = math.cos(guess.theta), math.sin(guess.theta)
+        wx = guess.x + cs * pts[:, 0] - sn * pts[:, 1]
+        wy = guess.y + sn * pts[:, 0] + cs * pts[:, 1]
+        row, col = g.world_to_cell(wx, wy)
+        ok = g.inside(row, col)
+        ok[ok] = self._known[row[ok], col[ok]]
+        return pts[ok], ang[ok]
 
     def _hold_weak(self, pts: np.ndarray, ang: np.ndarray, pose: Pose, guess: Pose
                    ) -> tuple[Pose, float]:
