@@ -17,6 +17,16 @@ search covers ``search_xy`` [m] and ``search_theta`` [rad] round the guess:
    (docs/benchmarks.md). The core keeps the record itself (:meth:`observe`, each scan at the
    pose it is mapped at) as a bit mask per cell beside the map, so the field is one per
    quadrant of the beam's heading;
+0b. the observed part of the map (``known_only``): the end points that fall, at the guess,
+   on a cell the map has never observed are left out. Such a point scores nothing where it
+   is, and a pose turned a little so that it lands on a known wall gains from it: with 8 m
+   of range a few milliradians move far points by a cell, and in new territory every scan
+   has such points on the same side, so every scan pulled the heading the same way and the
+   map kept it (large-office: 0.06 rad in 13 m while odometry's own heading moved by 0.007;
+   docs/benchmarks.md). It is the turning twin of the corridor pull of step 5. What it
+   costs: a guess a cell off towards a wall whose far side the map never saw puts that
+   wall's end points behind it, and they are left out (counting the never-seen cells
+   beside a wall as known, or a cell round every observed one, measured worse);
 1. angles: steps small enough that the farthest end point moves by less than a cell;
 2. for each angle, every translation on a coarse grid (``coarse`` cells a step) scored on a
    max-pooled field, so a coarse score bounds every fine score of its block from above;
