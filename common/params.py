@@ -492,8 +492,9 @@ class LocalizerParams(_P):
     #   a cell the map has observed: a point beyond the map's edge scores nothing where it is,
     #   and a pose that turns it onto a known wall gains, so in new territory every scan
     #   pulled the heading the same way (core.py, step 0b). With drift, pose RMS geometric
-    #   mean: held-back generated worlds 0.214 -> 0.155 m (8 better, 4 worse of 12), office
-    #   0.079 -> 0.056, large-office 0.243 -> 0.193 (in closed loop; docs/benchmarks.md)
+    #   mean in closed loop: tuning half 0.157 -> 0.152 m (7 better, 9 worse of 16),
+    #   held-back 0.214 -> 0.155 (8 better, 4 worse of 12), office 0.079 -> 0.056,
+    #   large-office 0.243 -> 0.193; single runs go both ways (docs/benchmarks.md)
 
 
 class Params(_P):
