@@ -59,8 +59,10 @@ def load_trace(path: Path, replay: bool = False) -> dict[str, np.ndarray]:
     try:
         with np.load(path, allow_pickle=False) as z:
             got = {k: np.asarray(z[k]) for k in keys if k in z.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise TraceError(f"{path}: not a pose trace ({type(exc).__name__}: {exc})") from None
+    except OSError as exc:  # missing, unreadable
+        raise TraceError(f"{path}: {exc.strerror or exc}") from None
+    except (ValueError, zipfile.BadZipFile, EOFError):  # numpy's words for "not an .npz"
+        raise TraceError(f"{path}: not a pose trace (not an .npz archive of arrays)") from None
     missing = [k for k in keys if k not in got]
     if missing:
         raise TraceError(f"{path}: not a pose trace (no {', '.join(missing)})")
