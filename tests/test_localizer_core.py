@@ -357,3 +357,71 @@ def test_known_only_matches_the_end_points_on_observed_cells_alone():
     assert a1.points == a2.points == int((~beyond & np.isfinite(scan.ranges)).sum())
     assert a1.pose == a2.pose and a1.ok
     assert math.hypot(a1.pose.x - x, a1.pose.y - y) < RES
+
+
+def test_surface_directions_are_those_of_the_straight_stretches():
+    """Walls and a box seen from inside the room: the straight stretches run along x or y
+    (a window round a corner with one point on the other face may pass as straight, a little
+    turned: the histogram's correlation outweighs a few); a scatter of points gives none."""
+    from topoexplore.services.localizer.core import surface_directions
+
+    s = scan_at(2.0, 4.0, 0.3)
+    r, a = s.returns()
+    pts = np.column_stack((r * np.cos(a + 0.3), r * np.sin(a + 0.3)))  # map-frame axes
+    phi = surface_directions(pts)
+    assert len(phi) > 100
+    off = np.abs(((phi + math.pi / 4) % (math.pi / 2)) - math.pi / 4)
+    assert np.mean(off < 1e-6) > 0.95 and np.all(off < 0.03)
+    rng = np.random.default_rng(0)
+    assert len(surface_directions(rng.uniform(0.0, 0.3, (60, 2)))) == 0
+    assert len(surface_directions(pts[:5])) == 0
+
+
+@pytest.mark.parametrize("turn", [0.012, -0.031])
+def test_heading_offset_lines_a_turned_histogram_up_with_the_reference(turn):
+    from topoexplore.services.localizer.core import direction_histogram, heading_offset
+
+    rng = np.random.default_rng(1)
+    walls = np.concatenate((rng.normal(0.2, 0.003, 300), rng.normal(0.2 + math.pi / 2, 0.003, 200)))
+    ref = direction_histogram(walls)
+    seen = direction_histogram(rng.choice(walls, 80) + turn)
+    assert heading_offset(seen, ref, 0.05) == pytest.approx(-turn, abs=0.003)
+    # the best turn beyond the window: no offset; nothing to line up: none
+    assert heading_offset(direction_histogram(walls[:50] + 0.08), ref, 0.05) is None
+    assert heading_offset(np.zeros_like(ref), ref, 0.05) is None
+
+
+def _turned_room(d: float, c: tuple[float, float]) -> GridMap:
+    """The room of :func:`room` turned by ``d`` [rad] round ``c`` (the map a run whose
+    heading walked off by ``d`` draws)."""
+    import cv2
+
+    cs, sn = math.cos(d), math.sin(d)
+    x0, y0, x1, y1 = BOX
+    rings = [[(LO, LO), (HI, LO), (HI, HI), (LO, HI)], [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]]
+    g = np.zeros((N, N), np.uint8)
+    for ring in rings:
+        cells = [((c[0] + cs * (x - c[0]) - sn * (y - c[1])) / RES - 0.5,
+                  (c[1] + sn * (x - c[0]) + cs * (y - c[1])) / RES - 0.5) for x, y in ring]
+        poly = np.round(np.array(cells) * 16).astype(np.int32)
+        cv2.polylines(g, [poly], True, 100, 1, cv2.LINE_8, shift=4)
+    return GridMap(g.astype(np.int8), GridGeometry(RES, 0.0, 0.0, N, N))
+
+
+@pytest.mark.parametrize("gain", [0.0, 0.5, 1.0])
+def test_the_heading_comes_back_to_the_directions_seen_since_the_start(gain):
+    """Step 6: a map drawn while the heading walked off by 0.03 rad agrees with a scan at the
+    turned pose, so steps 1-5 keep the turn; the histogram of the scans before the walk
+    does not, and the match turns back by ``gain`` of it."""
+    d, c = 0.03, (3.0, 3.0)
+    loc = LocalizerCore(msgspec.structs.replace(LocalizerParams(), heading_gain=gain))
+    loc.set_map(room())
+    for x, y, th in [(2.0, 2.0, 0.2), (4.0, 3.0, 1.7), (3.0, 4.5, -2.0), (2.5, 3.0, 3.0)]:
+        loc.observe(scan_at(x, y, th), Pose(x, y, th))  # the run so far, at the true poses
+    loc.set_map(_turned_room(d, c))
+    x, y, th = 2.4, 3.2, 0.4
+    guess = Pose(c[0] + math.cos(d) * (x - c[0]) - math.sin(d) * (y - c[1]),
+                 c[1] + math.sin(d) * (x - c[0]) + math.cos(d) * (y - c[1]), th + d)
+    got = loc.match(scan_at(x, y, th), guess)
+    assert got.ok
+    assert got.pose.theta == pytest.approx(th + (1.0 - gain) * d, abs=0.006)

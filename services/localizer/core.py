@@ -43,7 +43,17 @@ search covers ``search_xy`` [m] and ``search_theta`` [rad] round the guess:
    biased there: the map of the scans before this one ends a little ahead of the robot, the
    end points beyond its edge score nothing, and moving the pose back puts them on mapped
    wall, so every scan pulled the estimate back along the corridor (large-office and the
-   generated warehouses lost metres this way; docs/benchmarks.md).
+   generated warehouses lost metres this way; docs/benchmarks.md);
+6. heading from the run's own surface directions (``heading_gain``; the angle histogram of
+   Weiss, Wetzler & von Puttkamer, "Keeping track of position and orientation of moving
+   indoor systems by correlation of range-finder scans", IROS 1994): the directions of the
+   straight stretches of every scan, at the heading it is mapped at, add up to a histogram
+   (mod 180°) whose peaks are the building's wall directions. Each match's heading moves by
+   ``heading_gain`` of the offset that best lines the scan's directions up with it, within
+   ``heading_window``, and the translation is refined again at that heading. Steps 1-5
+   match against the map, which the scans of the last few metres drew: along a wall in new
+   territory it turns with them, and the heading walked off with odometry's (a generated
+   warehouse, 0.1 rad in 15 m). The histogram holds every scan since the start.
 
 Poses are the robot centre's (map frame); the laser sits ``laser_offset`` [m] ahead.
 """
@@ -56,6 +66,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 from topoexplore.common.domain import GridMap, Pose, Scan
 from topoexplore.common.grid import Occupancy, distance_transform, free_mask, reframe
@@ -130,6 +141,65 @@ def scan_conditioning(pts: np.ndarray, gap: float = 0.25) -> tuple[float, np.nda
     info = np.array([[nx @ nx, nx @ ny], [nx @ ny, ny @ ny]])
     lam, vec = np.linalg.eigh(info)  # ascending
     return float(max(lam[0], 0.0) / lam[1]), vec[:, 0]
+
+
+HEADING_BINS = 720  # the direction histogram (step 6): 180° in bins of 0.25°
+HEADING_SPREAD = 0.004  # [rad] a direction's spread in it: about a 7-point fit's noise
+HEADING_MIN_SCAN = 20  # directions a scan needs for step 6
+HEADING_MIN_REF = 200  # directions the histogram needs before step 6 acts
+
+
+def surface_directions(pts: np.ndarray, half: int = 3, gap: float = 0.25,
+                       straight: float = 0.01, spread: float = 0.05) -> np.ndarray:
+    """Directions [rad] in [0, π) of the straight stretches of a scan (step 6): round each
+    end point (x, y) [m] whose ``half`` neighbours each side, in scan order, follow one
+    another within ``gap`` [m], the principal axis of those 2 half + 1 points, kept when they
+    lie within ``straight`` [m] (rms) of it and spread ``spread`` [m] (rms) along it."""
+    k = 2 * half + 1
+    if len(pts) < k:
+        return np.zeros(0)
+    X = sliding_window_view(np.asarray(pts[:, 0], np.float64), k)
+    Y = sliding_window_view(np.asarray(pts[:, 1], np.float64), k)
+    ok = np.all(np.hypot(np.diff(X, axis=1), np.diff(Y, axis=1)) < gap, axis=1)
+    X, Y = X - X.mean(axis=1, keepdims=True), Y - Y.mean(axis=1, keepdims=True)
+    sxx, syy, sxy = (X * X).mean(axis=1), (Y * Y).mean(axis=1), (X * Y).mean(axis=1)
+    tr, det = sxx + syy, sxx * syy - sxy * sxy
+    across = tr / 2 - np.sqrt(np.maximum(tr * tr / 4 - det, 0.0))  # the smaller variance
+    ok &= (across < straight ** 2) & (tr - across > spread ** 2)
+    return (0.5 * np.arctan2(2 * sxy[ok], (sxx - syy)[ok])) % math.pi
+
+
+def direction_histogram(phi: np.ndarray) -> np.ndarray:
+    """Counts of directions ``phi`` [rad] (mod π) in HEADING_BINS bins."""
+    b = np.floor((np.asarray(phi) % math.pi) / (math.pi / HEADING_BINS)).astype(np.int64)
+    return np.bincount(b % HEADING_BINS, minlength=HEADING_BINS).astype(np.float64)
+
+
+@functools.lru_cache(maxsize=1)
+def _spread_kernel() -> np.ndarray:
+    bw = math.pi / HEADING_BINS
+    half = int(math.ceil(3 * HEADING_SPREAD / bw))
+    return np.exp(-0.5 * (np.arange(-half, half + 1) * bw / HEADING_SPREAD) ** 2)
+
+
+def heading_offset(scan_hist: np.ndarray, ref: np.ndarray, window: float) -> float | None:
+    """The turn [rad] that lines a scan's direction histogram up best with the reference
+    (step 6): the peak of their correlation within ``window`` each way, interpolated between
+    bins. None when nothing correlates, or the peak lies at the window's edge (the best turn
+    may lie beyond it)."""
+    ker = _spread_kernel()
+    h = len(ker) // 2
+    s = np.convolve(np.concatenate((scan_hist[-h:], scan_hist, scan_hist[:h])), ker, "valid")
+    bw = math.pi / HEADING_BINS
+    ks = np.arange(-int(math.ceil(window / bw)), int(math.ceil(window / bw)) + 1)
+    c = np.array([s @ np.roll(ref, -k) for k in ks])
+    j = int(np.argmax(c))
+    if c[j] <= 0.0 or j == 0 or j == len(c) - 1:
+        return None
+    a, b, d = c[j - 1], c[j], c[j + 1]
+    curv = a - 2 * b + d
+    frac = 0.5 * (a - d) / curv if curv < 0 else 0.0
+    return float((ks[j] + frac) * bw)
 
 
 FIELD_FLOOR = 1e-6  # a likelihood below this is 0: the field reaches no farther from a face
@@ -208,6 +278,7 @@ class LocalizerCore:
         self._hits_geom = None
         self._known: np.ndarray | None = None  # bool (H, W): observed cells (known_only)
         self._known_geom = None
+        self._ref = np.zeros(HEADING_BINS)  # the run's direction histogram (step 6)
 
     @property
     def ready(self) -> bool:
@@ -257,7 +328,11 @@ class LocalizerCore:
         """Record the sides from which the cells the end points of ``scan``, placed at
         ``pose`` (the pose it is mapped at), lie in were seen (step 0), in the geometry of the
         last map. Before the first map, and for end points beyond its edge, nothing is
-        recorded: those faces count from every side."""
+        recorded: those faces count from every side. The scan's directions, at that pose,
+        join the histogram of step 6."""
+        if self.p.heading_gain > 0.0:
+            pts, _ = self._points(scan)
+            self._ref += direction_histogram(surface_directions(pts) + pose.theta)
         if not self.p.directional or self._hits is None:
             return
         r, a = scan.returns()
@@ -293,6 +368,7 @@ class LocalizerCore:
     def match(self, scan: Scan, guess: Pose) -> Match:
         """The best pose within the search window round ``guess`` (module docstring)."""
         pts, ang = self._points(scan)
+        every = pts  # step 6 takes the directions of every stretch
         if self.p.known_only and self._known is not None and len(pts):
             pts, ang = self._on_known(pts, ang, guess)
         if self._field is None or len(pts) < self.p.min_points:
@@ -362,7 +438,9 @@ class LocalizerCore:
         pose = Pose(guess.x + (ix - n_xy) * res, guess.y + (iy - n_xy) * res,
                     float(thetas[t]))
         pose = self._refine(pts, ang, pose, max_step=2.0 * res)
-        pose, ratio = self._hold_weak(pts, ang, pose, guess)
+        pose, ratio, weak = self._hold_weak(pts, ang, pose, guess)
+        if p.heading_gain > 0.0:
+            pose = self._hold_heading(every, pts, ang, pose, weak)
         return Match(Pose(pose.x, pose.y, math.remainder(pose.theta, 2 * math.pi)), score, True,
                      n, evaluated, ratio)
 
@@ -379,20 +457,38 @@ class LocalizerCore:
         return pts[ok], ang[ok]
 
     def _hold_weak(self, pts: np.ndarray, ang: np.ndarray, pose: Pose, guess: Pose
-                   ) -> tuple[Pose, float]:
+                   ) -> tuple[Pose, float, tuple[float, float] | None]:
         """Step 5: where the scan's surfaces leave a direction nearly unconstrained (a
         corridor), what pulled the match along it was no surface but the map's edge, so
         odometry's guess stands there; across it and in heading the match is refined with that
-        direction held. Returns the pose and the scan's conditioning."""
+        direction held. Returns the pose, the scan's conditioning and the direction held (map
+        frame; None: none)."""
         ratio, weak = scan_conditioning(pts)
         if ratio >= self.p.degenerate_ratio:
-            return pose, ratio
+            return pose, ratio, None
         cs, sn = math.cos(pose.theta), math.sin(pose.theta)
         ux, uy = cs * weak[0] - sn * weak[1], sn * weak[0] + cs * weak[1]  # map frame
         along = (pose.x - guess.x) * ux + (pose.y - guess.y) * uy
         held = Pose(pose.x - along * ux, pose.y - along * uy, pose.theta)
         return self._refine(pts, ang, held, max_step=2.0 * self._geom.resolution,
-                            frozen=(ux, uy)), ratio
+                            frozen=(ux, uy)), ratio, (ux, uy)
+
+    def _hold_heading(self, every: np.ndarray, pts: np.ndarray, ang: np.ndarray,
+                      pose: Pose, weak: tuple[float, float] | None) -> Pose:
+        """Step 6: turn the match by ``heading_gain`` of the offset between the directions
+        of the scan's stretches (``every`` end point) and the run's histogram of them, then
+        refine the translation at that heading (along ``weak``, step 5's held direction,
+        not at all)."""
+        phi = surface_directions(every)
+        if len(phi) < HEADING_MIN_SCAN or self._ref.sum() < HEADING_MIN_REF:
+            return pose
+        off = heading_offset(direction_histogram(phi + pose.theta), self._ref,
+                             self.p.heading_window)
+        if off is None:
+            return pose
+        turned = Pose(pose.x, pose.y, pose.theta + self.p.heading_gain * off)
+        return self._refine(pts, ang, turned, max_step=2.0 * self._geom.resolution,
+                            frozen=weak, turn=False)
 
     def _bounds(self, base: list[tuple[np.ndarray, ...]], off: np.ndarray) -> np.ndarray:
         """Coarse bounds (angle, block row, block col): each block's score on the max-pooled
@@ -433,10 +529,12 @@ class LocalizerCore:
         return np.where(ok, val, 0.0), np.where(ok, gx, 0.0), np.where(ok, gy, 0.0)
 
     def _refine(self, pts: np.ndarray, ang: np.ndarray, pose: Pose, max_step: float,
-                iters: int = 10, frozen: tuple[float, float] | None = None) -> Pose:
+                iters: int = 10, frozen: tuple[float, float] | None = None,
+                turn: bool = True) -> Pose:
         """Gauss-Newton on the bilinear field from the best pose of the search: the residual
         of each end point is 1 - its likelihood; steps stay within ``max_step`` [m] of where
-        it started, and a step that scores worse ends it."""
+        it started, and a step that scores worse ends it. ``frozen``: a direction (map
+        frame) it does not move along; ``turn`` False: the heading stays."""
         x, y, th = pose
         px, py = pts[:, 0], pts[:, 1]
         b = self._bins(th, ang)  # the bins at the start (a step turns by far less than one)
@@ -452,8 +550,11 @@ class LocalizerCore:
             v, gx, gy, dxt, dyt = parts
             J = np.column_stack((gx, gy, gx * dxt + gy * dyt))
             r = 1.0 - v
-            A = J.T @ J + 1e-6 * np.eye(3)
-            step = np.linalg.solve(A, J.T @ r)
+            if not turn:
+                J = J[:, :2]
+            step = np.linalg.solve(J.T @ J + 1e-6 * np.eye(J.shape[1]), J.T @ r)
+            if not turn:
+                step = np.append(step, 0.0)
             if frozen is not None:  # no step along this direction
                 a = step[0] * frozen[0] + step[1] * frozen[1]
                 step[0] -= a * frozen[0]
