@@ -50,7 +50,7 @@ search covers ``search_xy`` [m] and ``search_theta`` [rad] round the guess:
    straight stretches of every scan, at the heading it is mapped at, add up to a histogram
    (mod 180°) whose peaks are the building's wall directions. Each match's heading moves by
    ``heading_gain`` of the offset that best lines the scan's directions up with it, within
-   ``heading_window``, and the translation is refined again at that heading. Steps 1-5
+   ``heading_window``, turning about the centroid of the points it matched. Steps 1-5
    match against the map, which the scans of the last few metres drew: along a wall in new
    territory it turns with them, and the heading walked off with odometry's (a generated
    warehouse, 0.1 rad in 15 m). The histogram holds every scan since the start.
@@ -438,9 +438,9 @@ class LocalizerCore:
         pose = Pose(guess.x + (ix - n_xy) * res, guess.y + (iy - n_xy) * res,
                     float(thetas[t]))
         pose = self._refine(pts, ang, pose, max_step=2.0 * res)
-        pose, ratio, weak = self._hold_weak(pts, ang, pose, guess)
+        pose, ratio = self._hold_weak(pts, ang, pose, guess)
         if p.heading_gain > 0.0:
-            pose = self._hold_heading(every, pts, ang, pose, weak)
+            pose = self._hold_heading(every, pts, pose)
         return Match(Pose(pose.x, pose.y, math.remainder(pose.theta, 2 * math.pi)), score, True,
                      n, evaluated, ratio)
 
@@ -457,28 +457,26 @@ class LocalizerCore:
         return pts[ok], ang[ok]
 
     def _hold_weak(self, pts: np.ndarray, ang: np.ndarray, pose: Pose, guess: Pose
-                   ) -> tuple[Pose, float, tuple[float, float] | None]:
+                   ) -> tuple[Pose, float]:
         """Step 5: where the scan's surfaces leave a direction nearly unconstrained (a
         corridor), what pulled the match along it was no surface but the map's edge, so
         odometry's guess stands there; across it and in heading the match is refined with that
-        direction held. Returns the pose, the scan's conditioning and the direction held (map
-        frame; None: none)."""
+        direction held. Returns the pose and the scan's conditioning."""
         ratio, weak = scan_conditioning(pts)
         if ratio >= self.p.degenerate_ratio:
-            return pose, ratio, None
+            return pose, ratio
         cs, sn = math.cos(pose.theta), math.sin(pose.theta)
         ux, uy = cs * weak[0] - sn * weak[1], sn * weak[0] + cs * weak[1]  # map frame
         along = (pose.x - guess.x) * ux + (pose.y - guess.y) * uy
         held = Pose(pose.x - along * ux, pose.y - along * uy, pose.theta)
         return self._refine(pts, ang, held, max_step=2.0 * self._geom.resolution,
-                            frozen=(ux, uy)), ratio, (ux, uy)
+                            frozen=(ux, uy)), ratio
 
-    def _hold_heading(self, every: np.ndarray, pts: np.ndarray, ang: np.ndarray,
-                      pose: Pose, weak: tuple[float, float] | None) -> Pose:
+    def _hold_heading(self, every: np.ndarray, pts: np.ndarray, pose: Pose) -> Pose:
         """Step 6: turn the match by ``heading_gain`` of the offset between the directions
-        of the scan's stretches (``every`` end point) and the run's histogram of them, then
-        refine the translation at that heading (along ``weak``, step 5's held direction,
-        not at all)."""
+        of the scan's stretches (``every`` end point) and the run's histogram of them, about
+        the centroid of the end points it matched (``pts``), so that their place on the map,
+        and the translation steps 1-5 found (along a corridor odometry's), stay."""
         phi = surface_directions(every)
         if len(phi) < HEADING_MIN_SCAN or self._ref.sum() < HEADING_MIN_REF:
             return pose
@@ -486,9 +484,12 @@ class LocalizerCore:
                              self.p.heading_window)
         if off is None:
             return pose
-        turned = Pose(pose.x, pose.y, pose.theta + self.p.heading_gain * off)
-        return self._refine(pts, ang, turned, max_step=2.0 * self._geom.resolution,
-                            frozen=weak, turn=False)
+        cx, cy = pts.mean(axis=0)
+        cs, sn = math.cos(pose.theta), math.sin(pose.theta)
+        wx, wy = pose.x + cs * cx - sn * cy, pose.y + sn * cx + cs * cy  # the centroid
+        th = pose.theta + self.p.heading_gain * off
+        cs, sn = math.cos(th), math.sin(th)
+        return Pose(wx - cs * cx + sn * cy, wy - sn * cx - cs * cy, th)
 
     def _bounds(self, base: list[tuple[np.ndarray, ...]], off: np.ndarray) -> np.ndarray:
         """Coarse bounds (angle, block row, block col): each block's score on the max-pooled
@@ -529,12 +530,10 @@ class LocalizerCore:
         return np.where(ok, val, 0.0), np.where(ok, gx, 0.0), np.where(ok, gy, 0.0)
 
     def _refine(self, pts: np.ndarray, ang: np.ndarray, pose: Pose, max_step: float,
-                iters: int = 10, frozen: tuple[float, float] | None = None,
-                turn: bool = True) -> Pose:
+                iters: int = 10, frozen: tuple[float, float] | None = None) -> Pose:
         """Gauss-Newton on the bilinear field from the best pose of the search: the residual
         of each end point is 1 - its likelihood; steps stay within ``max_step`` [m] of where
-        it started, and a step that scores worse ends it. ``frozen``: a direction (map
-        frame) it does not move along; ``turn`` False: the heading stays."""
+        it started, and a step that scores worse ends it."""
         x, y, th = pose
         px, py = pts[:, 0], pts[:, 1]
         b = self._bins(th, ang)  # the bins at the start (a step turns by far less than one)
@@ -550,11 +549,8 @@ class LocalizerCore:
             v, gx, gy, dxt, dyt = parts
             J = np.column_stack((gx, gy, gx * dxt + gy * dyt))
             r = 1.0 - v
-            if not turn:
-                J = J[:, :2]
-            step = np.linalg.solve(J.T @ J + 1e-6 * np.eye(J.shape[1]), J.T @ r)
-            if not turn:
-                step = np.append(step, 0.0)
+            A = J.T @ J + 1e-6 * np.eye(3)
+            step = np.linalg.solve(A, J.T @ r)
             if frozen is not None:  # no step along this direction
                 a = step[0] * frozen[0] + step[1] * frozen[1]
                 step[0] -= a * frozen[0]
