@@ -497,12 +497,12 @@ class LocalizerParams(_P):
     #   large-office 0.243 -> 0.193; single runs go both ways (docs/benchmarks.md)
     heading_gain: Annotated[float, Meta(ge=0.0, le=1.0)] = 0.25  # step 6: this share of
     #   the heading offset between the scan's surface directions and the run's own histogram of
-    #   them is applied to each match (core.py); 0: off. Tuned on the even-seed generated
-    #   worlds with drift, replayed (0.1 / 0.25 / 0.5: pose RMS geometric mean 0.103 / 0.087
-    #   / 0.117 m, 0.147 without); in closed loop tuning half 0.152 -> 0.123 m, held-back
-    #   0.155 -> 0.116 and 0.176 -> 0.141 (simulator seeds 0, 1), large-office 0.193 ->
-    #   0.168, office 0.056 -> 0.100 (its runs' errors are whole cells along corridors, not
-    #   heading; docs/benchmarks.md)
+    #   them turns each match (core.py); 0: off. Tuned on the even-seed generated worlds with
+    #   drift, replayed: pose RMS geometric mean 0.147 m without, 0.106 / 0.106 / 0.126 at
+    #   0.1 / 0.25 / 0.5. In closed loop: tuning half 0.152 -> 0.117, held-back 0.155 ->
+    #   0.123 and 0.176 -> 0.106 (simulator seeds 0, 1), large-office 0.193 -> 0.176; office
+    #   0.056 -> 0.082 and small_house 0.066 -> 0.107 worse (office's paired replays better;
+    #   docs/benchmarks.md)
     heading_window: Annotated[float, Meta(gt=0.0, le=0.3)] = 0.05  # [rad] the offsets step 6
     #   looks at, each way
 
