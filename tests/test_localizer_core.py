@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import msgspec
 import numpy as np
 import pytest
@@ -16,7 +17,10 @@ from topoexplore.services.localizer.core import (
     SOUTH,
     WEST,
     LocalizerCore,
+    direction_histogram,
+    heading_offset,
     scan_conditioning,
+    surface_directions,
     surface_sides,
 )
 
@@ -363,8 +367,6 @@ def test_surface_directions_are_those_of_the_straight_stretches():
     """Walls and a box seen from inside the room: the straight stretches run along x or y
     (a window round a corner with one point on the other face may pass as straight, a little
     turned: the histogram's correlation outweighs a few); a scatter of points gives none."""
-    from topoexplore.services.localizer.core import surface_directions
-
     s = scan_at(2.0, 4.0, 0.3)
     r, a = s.returns()
     pts = np.column_stack((r * np.cos(a + 0.3), r * np.sin(a + 0.3)))  # map-frame axes
@@ -379,8 +381,6 @@ def test_surface_directions_are_those_of_the_straight_stretches():
 
 @pytest.mark.parametrize("turn", [0.012, -0.031])
 def test_heading_offset_lines_a_turned_histogram_up_with_the_reference(turn):
-    from topoexplore.services.localizer.core import direction_histogram, heading_offset
-
     rng = np.random.default_rng(1)
     walls = np.concatenate((rng.normal(0.2, 0.003, 300), rng.normal(0.2 + math.pi / 2, 0.003, 200)))
     ref = direction_histogram(walls)
@@ -394,8 +394,6 @@ def test_heading_offset_lines_a_turned_histogram_up_with_the_reference(turn):
 def _turned_room(d: float, c: tuple[float, float]) -> GridMap:
     """The room of :func:`room` turned by ``d`` [rad] round ``c`` (the map a run whose
     heading walked off by ``d`` draws)."""
-    import cv2
-
     cs, sn = math.cos(d), math.sin(d)
     x0, y0, x1, y1 = BOX
     rings = [[(LO, LO), (HI, LO), (HI, HI), (LO, HI)], [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]]
