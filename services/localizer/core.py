@@ -279,6 +279,7 @@ class LocalizerCore:
         self._known: np.ndarray | None = None  # bool (H, W): observed cells (known_only)
         self._known_geom = None
         self._ref = np.zeros(HEADING_BINS)  # the run's direction histogram (step 6)
+        self._dirs: tuple[Scan, np.ndarray] | None = None  # the last matched scan's directions
 
     @property
     def ready(self) -> bool:
@@ -331,8 +332,8 @@ class LocalizerCore:
         recorded: those faces count from every side. The scan's directions, at that pose,
         join the histogram of step 6."""
         if self.p.heading_gain > 0.0:
-            pts, _ = self._points(scan)
-            self._ref += direction_histogram(surface_directions(pts) + pose.theta)
+            phi = self._directions(scan)
+            self._ref += direction_histogram(phi + pose.theta)
         if not self.p.directional or self._hits is None:
             return
         r, a = scan.returns()
@@ -368,7 +369,6 @@ class LocalizerCore:
     def match(self, scan: Scan, guess: Pose) -> Match:
         """The best pose within the search window round ``guess`` (module docstring)."""
         pts, ang = self._points(scan)
-        every = pts  # step 6 takes the directions of every stretch
         if self.p.known_only and self._known is not None and len(pts):
             pts, ang = self._on_known(pts, ang, guess)
         if self._field is None or len(pts) < self.p.min_points:
@@ -440,7 +440,7 @@ class LocalizerCore:
         pose = self._refine(pts, ang, pose, max_step=2.0 * res)
         pose, ratio = self._hold_weak(pts, ang, pose, guess)
         if p.heading_gain > 0.0:
-            pose = self._hold_heading(every, pts, pose)
+            pose = self._hold_heading(scan, pts, pose)
         return Match(Pose(pose.x, pose.y, math.remainder(pose.theta, 2 * math.pi)), score, True,
                      n, evaluated, ratio)
 
@@ -472,12 +472,19 @@ class LocalizerCore:
         return self._refine(pts, ang, held, max_step=2.0 * self._geom.resolution,
                             frozen=(ux, uy)), ratio
 
-    def _hold_heading(self, every: np.ndarray, pts: np.ndarray, pose: Pose) -> Pose:
+    def _directions(self, scan: Scan) -> np.ndarray:
+        """The directions of the straight stretches of ``scan`` (robot frame; step 6), once
+        per scan: :meth:`match` and then :meth:`observe` ask for them."""
+        if self._dirs is None or self._dirs[0] is not scan:
+            self._dirs = (scan, surface_directions(self._points(scan)[0]))
+        return self._dirs[1]
+
+    def _hold_heading(self, scan: Scan, pts: np.ndarray, pose: Pose) -> Pose:
         """Step 6: turn the match by ``heading_gain`` of the offset between the directions
-        of the scan's stretches (``every`` end point) and the run's histogram of them, about
+        of the scan's stretches (every end point) and the run's histogram of them, about
         the centroid of the end points it matched (``pts``), so that their place on the map,
         and the translation steps 1-5 found (along a corridor odometry's), stay."""
-        phi = surface_directions(every)
+        phi = self._directions(scan)
         if len(phi) < HEADING_MIN_SCAN or self._ref.sum() < HEADING_MIN_REF:
             return pose
         off = heading_offset(direction_histogram(phi + pose.theta), self._ref,
