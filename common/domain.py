@@ -99,6 +99,11 @@ class Scan:
         return np.where(close, self.range_min, r)[ok], a[ok]
 
 
+def wrap_angle(a: float) -> float:
+    """Angle [rad] -> (-pi, pi]."""
+    return math.atan2(math.sin(a), math.cos(a))
+
+
 def compose(a: Pose, b: Pose) -> Pose:
     """a ∘ b: the pose b given in a's frame, in the frame a is given in (e.g. the map ->
     odom correction composed with an odometry pose gives the pose on the map)."""

@@ -28,7 +28,7 @@ import math
 
 import numpy as np
 
-from topoexplore.common.domain import Command, Pose, Route, Scan
+from topoexplore.common.domain import Command, Pose, Route, Scan, wrap_angle
 from topoexplore.common.params import ControllerParams, RobotParams
 
 __all__ = [
@@ -61,11 +61,6 @@ REAR_EVERY = 0.5  # [s] one scan kept per this for the rear check (ControllerCor
 
 class ControllerError(ValueError):
     """Bad input to the controller."""
-
-
-def wrap_angle(a: float) -> float:
-    """Angle [rad] -> (-pi, pi]."""
-    return math.atan2(math.sin(a), math.cos(a))
 
 
 # --- path geometry --------------------------------------------------------------------------

@@ -33,7 +33,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from topoexplore.common.checkpoint import CheckpointError, checked
-from topoexplore.common.domain import Belief, Graph, GridMap, Pose
+from topoexplore.common.domain import Belief, Graph, GridMap, Pose, wrap_angle
 from topoexplore.common.grid import (
     CROSS,
     GridGeometry,
@@ -79,11 +79,6 @@ def _finite(name: str, value: float) -> float:
     if not math.isfinite(v):
         raise ReliabilityError(f"{name} must be finite (got {v})")
     return v
-
-
-def _wrap(a: float) -> float:
-    """Angle [rad] -> (-pi, pi]."""
-    return math.atan2(math.sin(a), math.cos(a))
 
 
 # --- equations ----------------------------------------------------------------------------
@@ -239,7 +234,7 @@ def _in_fov_range(nx: float, ny: float, lx: float, ly: float, theta: float,
         return False
     if dist < 1e-9:  # node at the laser: trivially seen
         return True
-    rel = _wrap(math.atan2(ny - ly, nx - lx) - theta)
+    rel = wrap_angle(math.atan2(ny - ly, nx - lx) - theta)
     return abs(rel) <= 0.5 * laser.fov + 1e-12
 
 
