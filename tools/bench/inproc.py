@@ -365,6 +365,17 @@ def parse(argv: Sequence[str]) -> tuple[list[tuple], argparse.Namespace]:
     return items, a
 
 
+def run_line(r: dict) -> str:
+    """One run's line of the report."""
+    cov = "-" if r["coverage"] is None else f"{r['coverage']:.3f}"
+    cov_free = "-" if r["coverage_free"] is None else f"{r['coverage_free']:.3f}"
+    return (f"{r['world_label']:14s} {r['strategy']:14s} s{r['seed']} {r['state']:8s} "
+            f"path {r['path_length_m']} m  sim {r['sim_time_s']} s  coverage {cov} "
+            f"(free {cov_free})  collisions {r['collisions']}  wall {r['wall_s']} s"
+            + (f"  pose RMS {r['pose_rms_m']} m (max {r['pose_max_m']})"
+               if r.get("pose_max_m") else ""))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         items, a = parse(sys.argv[1:] if argv is None else argv)
@@ -372,16 +383,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"topoexplore bench inproc: {exc}", file=sys.stderr)
         return 2
     t0 = time.monotonic()
+    runs = []
     with ProcessPoolExecutor(min(a.jobs, len(items))) as pool:
-        runs = list(pool.map(_one, items))
-    for r in runs:
-        cov = "-" if r["coverage"] is None else f"{r['coverage']:.3f}"
-        cov_free = "-" if r["coverage_free"] is None else f"{r['coverage_free']:.3f}"
-        print(f"{r['world_label']:14s} {r['strategy']:14s} s{r['seed']} {r['state']:8s} "
-              f"path {r['path_length_m']} m  sim {r['sim_time_s']} s  coverage {cov} "
-              f"(free {cov_free})  collisions {r['collisions']}  wall {r['wall_s']} s"
-              + (f"  pose RMS {r['pose_rms_m']} m (max {r['pose_max_m']})"
-                 if r.get("pose_max_m") else ""))
+        for r in pool.map(_one, items):  # in order, each line as soon as its run is in
+            print(run_line(r), flush=True)
+            runs.append(r)
     print(stage_line(runs))
     strategies = sorted({r["strategy"] for r in runs}, key=STRATEGY_NAMES.index)
     ratios = {}
