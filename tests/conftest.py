@@ -42,6 +42,13 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     items.sort(key=rank)  # stable: a module's tests keep their order
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _own_cache_dir(tmp_path_factory) -> None:
+    """Kept results (``bench oracle``'s tours) go to this session's own directory, not the
+    user's cache; the processes the tests start inherit it."""
+    os.environ["TOPOEXPLORE_CACHE_DIR"] = str(tmp_path_factory.mktemp("cache"))
+
+
 def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))

@@ -163,3 +163,35 @@ def test_bench_oracle_finds_the_world_file_a_run_was_given(tmp_path, monkeypatch
         assert got["oracles"][0]["oracle_m"] == pytest.approx(
             oracle_tour(load_world("junction")).length_m, rel=1e-6)
         assert got["analysis"]["strategies"]["frontier"]["n"] == 1
+
+
+def test_a_tour_is_kept_on_disk_by_world_and_code(tmp_path, monkeypatch):
+    """bench oracle's tours are kept in the cache directory: asked again (another process,
+    another benchmark) the tour is read, not planned; another world has another key; an
+    unwritable cache costs time, never the figure."""
+    import topoexplore.sim.oracle as sim_oracle
+    from topoexplore.tools.bench.explore import resolve_world
+
+    monkeypatch.setenv(bench_oracle.CACHE_ENV, str(tmp_path / "c"))
+    bench_oracle._tour.cache_clear()
+    path = resolve_world("junction")[1]
+    first = bench_oracle.tour_length(path)
+    kept = list((tmp_path / "c" / "oracle").glob("*.json"))
+    assert len(kept) == 1 and json.loads(kept[0].read_text())["oracle_m"] == first
+
+    def boom(*a, **k):
+        raise AssertionError("planned again")
+
+    bench_oracle._tour.cache_clear()
+    monkeypatch.setattr(sim_oracle, "oracle_tour", boom)
+    assert bench_oracle.tour_length(path) == first
+    assert bench_oracle.world_key(load_world("junction")) != bench_oracle.world_key(
+        load_world("dead-end"))
+    monkeypatch.undo()
+
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    monkeypatch.setenv(bench_oracle.CACHE_ENV, str(blocker))  # .../file/oracle: no directory
+    bench_oracle._tour.cache_clear()
+    assert bench_oracle.tour_length(path) == first
+    bench_oracle._tour.cache_clear()

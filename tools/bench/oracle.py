@@ -19,8 +19,10 @@ from __future__ import annotations
 
 import argparse
 import functools
+import hashlib
 import json
 import math
+import os
 import sys
 import time
 from collections import defaultdict
@@ -47,13 +49,68 @@ def world_file(name: str, corpus: Path | None, recorded: str | None = None) -> s
     return resolve_world(name)[1]
 
 
+CACHE_ENV = "TOPOEXPLORE_CACHE_DIR"  # where tours are kept; default ~/.cache/topoexplore
+_SOURCES = ("sim/oracle.py", "sim/rays.py", "sim/world.py")  # the code a tour depends on
+
+
+def cache_dir() -> Path:
+    """The directory of kept oracle tours: ``$TOPOEXPLORE_CACHE_DIR/oracle``, else
+    ``$XDG_CACHE_HOME/topoexplore/oracle`` (``~/.cache`` without it)."""
+    base = os.environ.get(CACHE_ENV)
+    if base:
+        return Path(base) / "oracle"
+    xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(xdg) / "topoexplore" / "oracle"
+
+
+@functools.lru_cache(maxsize=1)
+def _code_digest() -> str:
+    """The oracle's code, so that a changed rule is never answered from the cache."""
+    from topoexplore.tools.paths import PACKAGE_ROOT
+
+    h = hashlib.sha256()
+    for rel in _SOURCES:
+        h.update((PACKAGE_ROOT / rel).read_bytes())
+    return h.hexdigest()
+
+
+def world_key(world) -> str:
+    """The cache key of a loaded world: its geometry (walls, shapes, start, extent, as
+    loaded, so a map_server image is in it) and the oracle's code."""
+    h = hashlib.sha256(_code_digest().encode())
+    h.update(repr((world.size, world.robot_pose, world.segments, world.circles, world.boxes,
+                   world.wall_thickness, world.origin)).encode())
+    return h.hexdigest()[:32]
+
+
 @functools.lru_cache(maxsize=64)
-def _tour(path: str):
-    """The oracle tour of the world file path (cached per process)."""
+def _tour(path: str) -> dict[str, Any]:
+    """The figures of the oracle tour of the world file path: kept on disk by world and
+    code (:func:`world_key`; a tour of a large floor takes minutes, and every benchmark of
+    it asks again), and per process."""
     from topoexplore.sim.oracle import oracle_tour
     from topoexplore.sim.world import load_world
 
-    return oracle_tour(load_world(path))
+    world = load_world(path)
+    f = cache_dir() / f"{world_key(world)}.json"
+    try:
+        return json.loads(f.read_text())
+    except (OSError, ValueError):
+        pass
+    t0 = time.monotonic()
+    o = oracle_tour(world)
+    fig = {"oracle_m": round(o.length_m, 2), "nearest_neighbour_m": round(o.greedy_length_m, 2),
+           "viewpoints": int(len(o.points) - 1), "seen": round(o.seen_fraction, 4),
+           "candidates": o.candidates, "spacing_m": o.spacing_m,
+           "wall_s": round(time.monotonic() - t0, 1)}
+    try:  # written whole, then renamed: two workers of one benchmark may both write it
+        f.parent.mkdir(parents=True, exist_ok=True)
+        tmp = f.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(fig))
+        tmp.replace(f)
+    except OSError:
+        pass  # an unwritable cache costs time, never the figure
+    return fig
 
 
 def tour_length(path: str) -> float | None:
@@ -62,20 +119,15 @@ def tour_length(path: str) -> float | None:
     from topoexplore.sim.world import WorldError
 
     try:
-        return round(_tour(path).length_m, 2)
+        return _tour(path)["oracle_m"]
     except (WorldError, ValueError):
         return None
 
 
 def one(name: str, path: str) -> dict[str, Any]:
-    """The oracle figures of one world."""
-    t0 = time.monotonic()
-    o = _tour(path)
-    return {"world": name, "path": path, "oracle_m": round(o.length_m, 2),
-            "nearest_neighbour_m": round(o.greedy_length_m, 2),
-            "viewpoints": int(len(o.points) - 1), "seen": round(o.seen_fraction, 4),
-            "candidates": o.candidates, "spacing_m": o.spacing_m,
-            "wall_s": round(time.monotonic() - t0, 1)}
+    """The oracle figures of one world (``wall_s``: the time the tour took when it was
+    planned, kept with it)."""
+    return {"world": name, "path": path, **_tour(path)}
 
 
 def load_runs(sources: Sequence[str]) -> list[dict]:
