@@ -10,6 +10,9 @@ inproc`` / ``bench explore``) every finished run's path is divided by its world'
 geometric mean per strategy (and per style) is printed beside the tour lengths. Without
 worlds, the worlds of the results are taken, or else the built-in suite.
 
+A tour is planned once per world geometry and oracle code and then read from
+``$TOPOEXPLORE_CACHE_DIR/oracle`` (else ``~/.cache/topoexplore/oracle``; :func:`world_key`).
+
 World names are looked up as ``DIR/NAME.toml`` in ``--corpus``, then as the world file the
 results' run was given (bench inproc / explore run with a file), then as a shared real map
 (``NAME.yaml``), then as a built-in world or a file.
