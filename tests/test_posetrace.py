@@ -39,7 +39,32 @@ def test_the_stretch_where_the_estimate_turned_is_ranked_first():
     assert s["heading_max_rad"] == pytest.approx(0.05)
     assert s["pose_max_m"] == pytest.approx(float(np.abs(tr["estimate"][:, 1]).max()))
     lines = pt.report(tr, 5.0, 2)
-    assert "trusted matches 100.0 %" in lines[0] and len(lines) == 5
+    # the figures, the weakly pinned scans (none here), the table's two heads, two rows
+    assert "trusted matches 100.0 %" in lines[0] and len(lines) == 6
+    assert "(conditioning < 0.15): 0 %; 0 runs" in lines[1]
+
+
+def test_where_the_scans_pin_no_along_track_position_the_estimate_is_odometry():
+    """Two corridors of 100 scans whose conditioning is below degenerate_ratio. Odometry
+    measures each step 4 % long there (0.2 m over the 5 m); the estimate keeps it in the
+    first and not in the second. A weak run shorter than 20 scans does not count."""
+    tr = straight_run()
+    step = np.zeros(len(tr["t"]))
+    step[101:201] = step[251:351] = 0.002  # [m] added to the steps that end at those scans
+    tr["odom"][:, 0] += np.cumsum(step)
+    tr["estimate"] = tr["truth"].copy()
+    tr["estimate"][:, 0] += np.cumsum(np.where(np.arange(len(step)) < 240, step, 0.0))
+    tr["conditioning"][100:201] = tr["conditioning"][250:351] = 0.05
+    tr["conditioning"][380:390] = 0.05
+    runs = pt.weak_stretches(tr, 0.15)
+    assert [(a, b) for a, b, _, _ in runs] == [(100, 200), (250, 350)]
+    assert runs[0][2] == pytest.approx(0.2) and runs[0][3] == pytest.approx(0.2)
+    assert runs[1][2] == pytest.approx(0.0) and runs[1][3] == pytest.approx(0.2)
+    line = pt.report(tr, 5.0, 1)[1]
+    assert "(conditioning < 0.15): 55 %" not in line and "2 runs of 20" in line
+    assert "RMS 0.141 m (odometry's 0.200 m" in line
+    tr["matched"][:] = -1  # no localizer: no such line
+    assert not any("pinned" in ln for ln in pt.report(tr, 5.0, 1))
 
 
 def test_a_run_without_the_localizer_has_no_match_figures():

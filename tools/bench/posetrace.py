@@ -37,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from topoexplore.common.params import LocalizerParams
+
 KEYS = ("t", "odom", "truth", "estimate", "matched", "score", "conditioning")
 REPLAY_KEYS = ("ranges", "scan", "params")  # bench inproc writes them too
 MAX_SCANS = 10_000_000  # a trace longer than this is not one of ours
@@ -58,7 +60,7 @@ def load_trace(path: Path, replay: bool = False) -> dict[str, np.ndarray]:
     keys = KEYS + (REPLAY_KEYS if replay else ())
     try:
         with np.load(path, allow_pickle=False) as z:
-            got = {k: np.asarray(z[k]) for k in keys if k in z.files}
+            got = {k: np.asarray(z[k]) for k in (*keys, "params") if k in z.files}
     except OSError as exc:  # missing, unreadable
         raise TraceError(f"{path}: {exc.strerror or exc}") from None
     except (ValueError, zipfile.BadZipFile, EOFError):  # numpy's words for "not an .npz"
@@ -156,6 +158,38 @@ def stretches(tr: dict[str, np.ndarray], length: float) -> list[Stretch]:
     return out
 
 
+def along_track(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(n-1,) [m] each step of poses a along a's heading before it, minus the same for
+    poses b: the component of a step that a scan pinning only the cross direction (a
+    corridor) leaves free. Each in its own frame, as odometry measures its increments."""
+    def forward(p: np.ndarray) -> np.ndarray:
+        d = np.diff(p[:, :2], axis=0)
+        return d[:, 0] * np.cos(p[:-1, 2]) + d[:, 1] * np.sin(p[:-1, 2])
+
+    return forward(a) - forward(b)
+
+
+def weak_stretches(tr: dict[str, np.ndarray], ratio: float, min_scans: int = 20
+                   ) -> list[tuple[int, int, float, float]]:
+    """The runs of at least ``min_scans`` consecutive matched scans whose conditioning is
+    below ``ratio`` (localizer.degenerate_ratio: the scan pins the position along one
+    direction this much less than across it), each as (first scan, last scan, along-track
+    error the estimate added over it, the same for odometry) [m]. Where the two agree the
+    estimate is odometry's along the corridor, as step 5 of the localizer makes it."""
+    n = len(tr["t"])
+    if n < 2:
+        return []
+    weak = (tr["matched"] >= 0) & (np.nan_to_num(tr["conditioning"], nan=1.0) < ratio)
+    est = along_track(tr["estimate"], tr["truth"])
+    odo = along_track(tr["odom"], tr["truth"])
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], weak[1:].astype(np.int8), [0]))))
+    out = []
+    for a, b in zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True):
+        if b - a >= min_scans:  # steps a .. b-1 end at scans a+1 .. b
+            out.append((a + 1, b, float(est[a:b].sum()), float(odo[a:b].sum())))
+    return out
+
+
 def worst(parts: list[Stretch], k: int) -> list[Stretch]:
     """The ``k`` stretches whose estimate turned most against the truth, worst first."""
     return sorted(parts, key=lambda s: -abs(s.heading_change))[:k]
@@ -170,7 +204,7 @@ def report(tr: dict[str, np.ndarray], length: float, k: int) -> list[str]:
     lines = [f"{s['scans']} scans: pose error RMS {s['pose_rms_m']:.3f} m, median "
              f"{s['pose_median_m']:.3f} m, max {s['pose_max_m']:.3f} m; heading error RMS "
              f"{s['heading_rms_rad']:.4f} rad, max {s['heading_max_rad']:.4f} rad; trusted "
-             f"matches {trusted}",
+             f"matches {trusted}", *_weak_lines(tr),
              f"stretches of {length:g} m whose estimate turned most against the truth "
              "(heading error change of the estimate and of odometry [rad]):",
              "  scans            from -> to [m]                    error [m]      estimate  "
@@ -184,6 +218,34 @@ def report(tr: dict[str, np.ndarray], length: float, k: int) -> list[str]:
             f"{p.error_end:5.2f}  {p.heading_change:+8.4f}  {p.odom_heading_change:+8.4f}  "
             f"{tm:>7s}  {cd:>5s}")
     return lines
+
+
+def _weak_lines(tr: dict[str, np.ndarray]) -> list[str]:
+    """The report's line on the stretches the laser could not pin along (none without a
+    localizer)."""
+    if not (tr["matched"] >= 0).any():
+        return []
+    ratio = _ratio(tr)
+    w = weak_stretches(tr, ratio)
+    share = float(np.mean(np.nan_to_num(tr["conditioning"], nan=1.0)[tr["matched"] >= 0]
+                          < ratio))
+    head = (f"scans pinned weakly along one direction (conditioning < {ratio:g}): "
+            f"{100 * share:.0f} %; {len(w)} runs of 20 or more such scans")
+    if len(w) < 2:
+        return [head]
+    e = np.array([x[2] for x in w])
+    o = np.array([x[3] for x in w])
+    corr = f"{np.corrcoef(e, o)[0, 1]:.2f}" if e.std() > 0 and o.std() > 0 else "-"
+    return [head + f": along-track error added per run RMS {np.sqrt(np.mean(e ** 2)):.3f} m "
+            f"(odometry's {np.sqrt(np.mean(o ** 2)):.3f} m; correlation {corr})"]
+
+
+def _ratio(tr: dict[str, np.ndarray]) -> float:
+    """The run's localizer.degenerate_ratio (its recorded parameters), else the default."""
+    try:
+        return float(json.loads(str(tr.get("params", "")))["localizer"]["degenerate_ratio"])
+    except (KeyError, ValueError, TypeError):
+        return LocalizerParams().degenerate_ratio
 
 
 def replay(tr: dict[str, np.ndarray], sets: list[str]) -> dict[str, np.ndarray]:
