@@ -187,7 +187,12 @@ def test_a_tour_is_kept_on_disk_by_world_and_code(tmp_path, monkeypatch):
     assert bench_oracle.tour_length(path) == first
     assert bench_oracle.world_key(load_world("junction")) != bench_oracle.world_key(
         load_world("dead-end"))
+    kept[0].write_text('{"oracle_m": "not a length"}')  # damaged: planned again
     monkeypatch.undo()
+    monkeypatch.setenv(bench_oracle.CACHE_ENV, str(tmp_path / "c"))
+    bench_oracle._tour.cache_clear()
+    assert bench_oracle.tour_length(path) == first
+    assert json.loads(kept[0].read_text())["oracle_m"] == first
 
     blocker = tmp_path / "file"
     blocker.write_text("")

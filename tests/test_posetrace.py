@@ -61,7 +61,7 @@ def test_where_the_scans_pin_no_along_track_position_the_estimate_is_odometry():
     assert runs[0][2] == pytest.approx(0.2) and runs[0][3] == pytest.approx(0.2)
     assert runs[1][2] == pytest.approx(0.0) and runs[1][3] == pytest.approx(0.2)
     line = pt.report(tr, 5.0, 1)[1]
-    assert "(conditioning < 0.15): 55 %" not in line and "2 runs of 20" in line
+    assert "(conditioning < 0.15): 53 %; 2 runs of 20" in line  # 212 of 401 scans
     assert "RMS 0.141 m (odometry's 0.200 m" in line
     tr["matched"][:] = -1  # no localizer: no such line
     assert not any("pinned" in ln for ln in pt.report(tr, 5.0, 1))

@@ -97,9 +97,11 @@ def _tour(path: str) -> dict[str, Any]:
     world = load_world(path)
     f = cache_dir() / f"{world_key(world)}.json"
     try:
-        return json.loads(f.read_text())
+        kept = json.loads(f.read_text())
+        if isinstance(kept, dict) and isinstance(kept.get("oracle_m"), (int, float)):
+            return kept
     except (OSError, ValueError):
-        pass
+        pass  # none kept, or a file that is not one: planned (and written) again
     t0 = time.monotonic()
     o = oracle_tour(world)
     fig = {"oracle_m": round(o.length_m, 2), "nearest_neighbour_m": round(o.greedy_length_m, 2),
