@@ -149,3 +149,21 @@ def test_a_replay_needs_the_localizer_and_its_scans(tmp_path, capsys):
         assert pt.main(args) == 2, args
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "posetrace" in err, (args, err)
+
+
+def test_a_reader_that_stops_early_gets_no_traceback(tmp_path):
+    """`topoexplore bench posetrace F | head -1`: the pipe closes under the report, and the
+    command ends quietly (exit 141, as a shell's own broken pipe), not with a traceback."""
+    import subprocess
+    import sys
+
+    f = tmp_path / "t.npz"
+    np.savez(f, **straight_run(4001))  # a report of about 400 kB, more than a pipe holds
+    p = subprocess.Popen([sys.executable, "-m", "topoexplore.tools.cli", "bench", "posetrace",
+                          str(f), "--stretch", "0.01", "--worst", "100000"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert p.stdout.read(100)
+    p.stdout.close()
+    err = p.stderr.read().decode()
+    p.stderr.close()
+    assert p.wait(timeout=60) == 141 and "Traceback" not in err, err

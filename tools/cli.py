@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 import threading
 
@@ -271,6 +272,14 @@ FORWARD = {
 }
 
 
+def _closed_pipe() -> int:
+    """The reader of stdout went away (``| head``): point stdout at /dev/null so the
+    interpreter's last flush cannot raise again, and end as a broken pipe (128 + SIGPIPE)."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    return 141
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -283,6 +292,8 @@ def main(argv: list[str] | None = None) -> int:
             return int(entry(argv[1:]) or 0)
         except KeyboardInterrupt:
             return 130
+        except BrokenPipeError:  # `... | head` closed the pipe: no traceback
+            return _closed_pipe()
     ap = build_parser()
     args = ap.parse_args(argv)
     try:
@@ -298,6 +309,8 @@ def main(argv: list[str] | None = None) -> int:
             return cmd_map_save(args)
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:
+        return _closed_pipe()
     ap.print_help()
     return 2
 
