@@ -62,8 +62,8 @@ def cache_dir() -> Path:
     base = os.environ.get(CACHE_ENV)
     if base:
         return Path(base) / "oracle"
-    xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(xdg) / "topoexplore" / "oracle"
+    xdg = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(xdg) / "topoexplore" / "oracle"  # no home at all: "~/.cache", unwritable
 
 
 @functools.lru_cache(maxsize=1)
