@@ -53,7 +53,7 @@ def world_file(name: str, corpus: Path | None, recorded: str | None = None) -> s
 
 
 CACHE_ENV = "TOPOEXPLORE_CACHE_DIR"  # where tours are kept; default ~/.cache/topoexplore
-_SOURCES = ("sim/oracle.py", "sim/rays.py", "sim/world.py")  # the code a tour depends on
+_SOURCES = ("oracle", "rays", "world")  # the modules of topoexplore.sim a tour depends on
 
 
 def cache_dir() -> Path:
@@ -69,11 +69,11 @@ def cache_dir() -> Path:
 @functools.lru_cache(maxsize=1)
 def _code_digest() -> str:
     """The oracle's code, so that a changed rule is never answered from the cache."""
-    from topoexplore.tools.paths import PACKAGE_ROOT
+    import importlib
 
     h = hashlib.sha256()
-    for rel in _SOURCES:
-        h.update((PACKAGE_ROOT / rel).read_bytes())
+    for name in _SOURCES:
+        h.update(Path(importlib.import_module(f"topoexplore.sim.{name}").__file__).read_bytes())
     return h.hexdigest()
 
 
