@@ -231,3 +231,20 @@ def test_inproc_reports_both_coverages():
     assert inproc.stage_line([{"stage_s": None}]) == "compute per stage: none measured"
     stub = inproc._one(("x", "no-such-world", "frontier", 0, (), 10.0, False))
     assert stub["state"] == "error" and stub["coverage"] is None and stub["coverage_free"] is None
+
+
+def test_inproc_prints_each_run_as_it_finishes(capsys, tmp_path):
+    """`bench inproc` prints a run's line as soon as the run is in (in the order asked), then
+    the summary, and writes the same runs to --json."""
+    from topoexplore.tools.bench import inproc
+
+    out = tmp_path / "r.json"
+    assert inproc.main(["--worlds", "dead-end,corner", "--strategies", "frontier", "--seeds",
+                        "1", "--jobs", "1", "--max-sim-time", "5", "--json", str(out)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("dead-end ") and lines[1].startswith("corner ")
+    assert all(" path " in ln and " wall " in ln for ln in lines[:2])
+    assert lines[2].startswith("compute per stage")
+    runs = json.loads(out.read_text())["runs"]
+    assert [r["world_label"] for r in runs] == ["dead-end", "corner"]
+    assert inproc.run_line(runs[0]) == lines[0]
