@@ -428,7 +428,7 @@ def test_a_divergence_reads_on_for_the_rest_of_its_scan():
                 ("p/odom", m.encode(pose_msg(4, 0.8, 0.0)), 2), ("p/topo", m.encode(topo_msg(4)), 3),
                 ("p/reliability", m.encode(rel_msg(4)), 4)])
     _expect_rest_of_scan(log, "p", ["topo", "reliability"], e, threading.Condition(),
-                         threading.Event())
+                         threading.Event(), 30.0)  # caught up at once: no wait
     assert e.divergence.topic == "topo" and e.divergence.scan == 3
     assert len(e.recorded["topo"]) == 1 and len(e.recorded["reliability"]) == 1
     assert next(log)[0] == "p/reliability"  # stopped at the first output of a later scan
