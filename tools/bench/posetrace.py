@@ -169,7 +169,10 @@ def along_track(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return forward(a) - forward(b)
 
 
-def weak_stretches(tr: dict[str, np.ndarray], ratio: float, min_scans: int = 20
+WEAK_MIN_SCANS = 20  # a run of weakly pinned scans counts from this many on (4 s at 5 Hz)
+
+
+def weak_stretches(tr: dict[str, np.ndarray], ratio: float, min_scans: int = WEAK_MIN_SCANS
                    ) -> list[tuple[int, int, float, float]]:
     """The runs of at least ``min_scans`` consecutive matched scans whose conditioning is
     below ``ratio`` (localizer.degenerate_ratio: the scan pins the position along one
@@ -230,7 +233,7 @@ def _weak_lines(tr: dict[str, np.ndarray]) -> list[str]:
     share = float(np.mean(np.nan_to_num(tr["conditioning"], nan=1.0)[tr["matched"] >= 0]
                           < ratio))
     head = (f"scans pinned weakly along one direction (conditioning < {ratio:g}): "
-            f"{100 * share:.0f} %; {len(w)} runs of 20 or more such scans")
+            f"{100 * share:.0f} %; {len(w)} runs of {WEAK_MIN_SCANS} or more such scans")
     if len(w) < 2:
         return [head]
     e = np.array([x[2] for x in w])
