@@ -229,6 +229,7 @@ def test_bad_arguments_one_line_exit_2_before_anything(argv, tmp_path, capsys):
 
 def test_defaults_and_quick():
     cfg, _ = be.parse_config(["--quick"])
+    assert cfg.inproc and cfg.bus_check == be.DEFAULT_BUS_CHECK and cfg.record == "none"
     assert [w[0] for w in cfg.worlds] == list(be.QUICK_WORLDS) and cfg.seeds == 1
     assert cfg.strategies == list(be.STRATEGIES) and cfg.jobs == be.DEFAULT_JOBS
     cfg, _ = be.parse_config([])
@@ -260,8 +261,8 @@ def test_smoke_suite_files_and_ratio_arithmetic(tmp_path):
     results.json equals the one recomputed from the runs' own report.json files."""
     out = tmp_path / "bench"
     worlds = ["dead-end", "corner"]
-    r = subprocess.run([sys.executable, "-m", "topoexplore.tools.cli", "bench", "explore", "--worlds",
-                        ",".join(worlds), "--seeds", "1", "--max-sim-time", "50",
+    r = subprocess.run([sys.executable, "-m", "topoexplore.tools.cli", "bench", "explore", "--bus",
+                        "--worlds", ",".join(worlds), "--seeds", "1", "--max-sim-time", "50",
                         "--max-wall-time", "12", "--jobs", "2", "--no-progress", "--out", str(out)],
                        cwd=REPO, capture_output=True, text=True, timeout=400,
                        env=dict(os.environ))
@@ -342,8 +343,8 @@ def test_sigterm_stops_the_suite_and_its_running_stacks(tmp_path, jobs):
     import time
 
     out = tmp_path / "b"
-    p = subprocess.Popen([sys.executable, "-m", "topoexplore.tools.cli", "bench", "explore", "--worlds",
-                          "office", "--strategies", "reliability", "--seeds", "1", "--out",
+    p = subprocess.Popen([sys.executable, "-m", "topoexplore.tools.cli", "bench", "explore", "--bus",
+                          "--worlds", "office", "--strategies", "reliability", "--seeds", "1", "--out",
                           str(out), "--no-progress", "--jobs", jobs], cwd=REPO,
                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     tag = f"bench{p.pid}"
@@ -370,3 +371,127 @@ def test_sigterm_stops_the_suite_and_its_running_stacks(tmp_path, jobs):
             p.kill()
         for pid in stack():
             os.kill(int(pid), 9)
+
+
+# -- in process (the default), checked on the bus -----------------------------------------
+
+
+def test_in_process_or_on_the_bus_arguments(capsys):
+    cfg, _ = be.parse_config(["--quick"])
+    assert cfg.inproc and "--bus-check 3" in cfg.command and "--bus " not in cfg.command
+    cfg, _ = be.parse_config(["--quick", "--bus-check", "0"])
+    assert cfg.bus_check == 0 and "--bus-check 0" in cfg.command
+    cfg, _ = be.parse_config(["--quick", "--bus"])
+    assert not cfg.inproc and cfg.bus_check == 0 and "--bus-check" not in cfg.command
+    assert cfg.record == "failed" and "--bus" in cfg.command and "--record" not in cfg.command
+    cfg, _ = be.parse_config(["--quick", "--bus", "--record", "all"])
+    assert cfg.record == "all" and "--bus --record all" in cfg.command
+    for bad in (["--bus", "--bus-check", "2"], ["--bus-check", "-1"], ["--record", "all"],
+                ["--record", "none"]):
+        with pytest.raises(be.BenchArgError):
+            be.parse_config(["--quick", *bad])
+    assert be.main(["--quick", "--record", "failed"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == ("topoexplore bench explore: --record needs --bus: a run in process has no "
+                   "traffic to record")
+
+
+def test_bus_check_picks_every_strategy_on_short_runs_of_different_worlds():
+    from topoexplore.tools.bench.explore_local import pick_bus_runs
+
+    runs = [rep("a", "reliability", 0, 10.0, 50.0), rep("a", "frontier", 0, 9.0, 45.0),
+            rep("a", "all-end-nodes", 0, 12.0, 60.0), rep("b", "reliability", 0, 20.0, 80.0),
+            rep("b", "frontier", 0, 18.0, 70.0), rep("b", "all-end-nodes", 0, 25.0, 90.0),
+            rep("c", "frontier", 0, 2.0, 10.0),  # drove too little to tell anything
+            rep("d", "reliability", 0, 8.0, 20.0, finished=False)]  # not finished
+    got = [(r["world_label"], r["strategy"]) for r in pick_bus_runs(runs, 3)]
+    assert got == [("a", "frontier"), ("b", "reliability"), ("a", "all-end-nodes")]
+    assert len(pick_bus_runs(runs, 6)) == 6 and len(pick_bus_runs(runs, 10)) == 6
+    assert pick_bus_runs(runs, 0) == [] and pick_bus_runs([], 3) == []
+
+
+def test_bus_check_compares_outcome_and_path():
+    from topoexplore.tools.bench.explore_local import check_line, compare
+
+    local = rep("a", "frontier", 0, 10.0, 50.0)
+    c = compare(local, dict(local, path_length_m=10.1))
+    assert c["agree"] and c["path_difference"] == pytest.approx(0.01)
+    assert "DISAGREE" not in check_line(c) and "1.00 % apart" in check_line(c)
+    assert not compare(local, dict(local, path_length_m=10.5))["agree"]  # 5 % apart
+    c = compare(local, dict(local, finished=False))
+    assert not c["agree"] and "DISAGREE" in check_line(c) and "on the bus False" in check_line(c)
+    c = compare(local, dict(local, path_length_m=None))  # the bus run left no report
+    assert not c["agree"] and c["path_difference"] is None
+
+
+@pytest.mark.timeout(300)
+def test_inproc_suite_writes_what_the_bus_suite_writes_and_checks_a_run_on_the_bus(tmp_path):
+    """dead-end x frontier and reliability x 1 seed in process, one of them again on the real
+    processes: the run directories hold what `topoexplore run` writes, the suite's files are
+    there, and the bus run agrees with the in-process one."""
+    out = tmp_path / "bench"
+    r = subprocess.run([sys.executable, "-m", "topoexplore.tools.cli", "bench", "explore",
+                        "--worlds", "dead-end", "--strategies", "reliability,frontier",
+                        "--seeds", "1", "--bus-check", "1", "--no-progress",
+                        "--out", str(out)],
+                       cwd=REPO, capture_output=True, text=True, timeout=280,
+                       env=dict(os.environ))
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "checked on the bus: 1 of 1 agree" in r.stderr
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["config"]["inproc"] and len(doc["runs"]) == 2
+    for run in doc["runs"]:
+        assert run["finished"] and run["pipeline"] == "inproc" and run["collisions"] == 0
+        run_dir = out / run["run_dir"]
+        for name in ("report.json", "timeline.csv", "trail.csv", "map.yaml", "final.png"):
+            assert (run_dir / name).stat().st_size > 0, name
+        report = json.loads((run_dir / "report.json").read_text())
+        assert {k: run[k] for k in report} == report
+        assert run["timeline"][-1][1:] == [run["path_length_m"], run["coverage"]]
+        assert run["d90_m"] is not None and run["end_nodes_seen"] >= 1
+        assert 0.9 < run["map_accuracy"] <= 1.0
+    (check,) = doc["bus_check"]
+    assert check["agree"] and check["bus_finished"] and check["path_difference"] < 0.02
+    bus_report = json.loads((out / "bus" / "runs" / f"dead-end-{check['strategy']}-0"
+                             / "report.json").read_text())
+    assert bus_report["path_length_m"] == check["bus_path_m"]
+    summary = (out / "summary.md").read_text()
+    assert "Each exploration ran in one process" in summary and "1 of 1 agree" in summary
+    assert (out / "curves" / "dead-end.png").stat().st_size > 0
+
+
+@pytest.mark.timeout(120)
+def test_sigterm_stops_the_suite_and_its_worker_processes(tmp_path):
+    """In process with --jobs 2 the runs are in worker processes: SIGTERM ends the suite with
+    exit 130 and partial results, and no worker is left."""
+    import signal
+    import time
+
+    out = tmp_path / "b"
+    p = subprocess.Popen([sys.executable, "-m", "topoexplore.tools.cli", "bench", "explore",
+                          "--worlds", "office", "--strategies", "reliability,frontier",
+                          "--seeds", "1", "--out", str(out), "--no-progress", "--jobs", "2"],
+                         cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+    def workers() -> list[str]:
+        r = subprocess.run(["pgrep", "-P", str(p.pid)], capture_output=True, text=True)
+        return r.stdout.split()
+
+    try:
+        deadline = time.monotonic() + 60
+        while len(workers()) < 2 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        seen = workers()
+        assert len(seen) >= 2, "the workers did not start"
+        time.sleep(2.0)  # the runs are under way
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=60)
+        assert p.returncode == 130, err
+        assert json.loads((out / "results.json").read_text())["interrupted"] is True
+        deadline = time.monotonic() + 10
+        while any(os.path.exists(f"/proc/{w}") for w in seen) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not [w for w in seen if os.path.exists(f"/proc/{w}")]
+    finally:
+        if p.poll() is None:
+            p.kill()

@@ -1,7 +1,7 @@
 """``topoexplore bench``: benchmarks that print figures (not timed tests).
 
     topoexplore bench stages [--sizes 100,300,1000] [--json] [--bus] [--worlds paper-room,office]
-    topoexplore bench explore [--worlds ...] [--strategies ...] [--seeds N] [--out DIR]
+    topoexplore bench explore [--worlds ...] [--strategies ...] [--seeds N] [--out DIR] [--bus]
     topoexplore bench inproc [--worlds ...] [--strategies ...] [--seeds N] [--set k=v ...]
     topoexplore bench robust [--half tune|held|real|all] [--strategies ...] [--quick]
     topoexplore bench oracle [--worlds ...] [--corpus DIR] [--from-results SRC ...]
@@ -13,7 +13,8 @@
     topoexplore bench codec [--repeats 2000] [--json]
 
 ``stages`` (:mod:`.stages`, :mod:`.bus`) times every core and the bus; ``explore``
-(:mod:`.explore`) runs the strategy comparison suite with the real processes; ``inproc``
+(:mod:`.explore`) runs the strategy comparison suite, in process with a sample checked on
+the real processes, or all on them (``--bus``); ``inproc``
 (:mod:`.inproc`) runs the same cores in one process for parameter sweeps; ``oracle``
 (:mod:`.oracle`) divides their paths by a short tour planned on the true map; ``posetrace``
 (:mod:`.posetrace`) finds where a localized run's pose went wrong; ``record``

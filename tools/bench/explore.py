@@ -2,12 +2,17 @@
 
     topoexplore bench explore [--worlds a,b,...] [--strategies reliability,all-end-nodes,frontier]
                               [--seeds N] [--out DIR] [--max-sim-time S] [--max-wall-time S]
-                              [--jobs 1] [--quick] [--no-progress]
+                              [--jobs 2] [--bus-check N | --bus [--record ...]] [--quick]
+                              [--no-progress]
     topoexplore bench explore --from-results DIR [--out DIR2]
 
-Runs ``topoexplore run --lockstep`` (the real multi-process stack) for every world x strategy x
-seed, one after the other by default (each run is 7 processes; this is a 2-core machine), and
-writes to ``--out``:
+Runs every world x strategy x seed in lockstep, two at a time by default (this is a 2-core
+machine), each exploration in one process: the six cores that the services run, called in
+the order they run them (``bench inproc``'s pipeline, :mod:`.explore_local`), at about a
+third of the CPU of the same run on the bus. Then ``--bus-check N`` (default 3) of the runs
+are made again with ``topoexplore run --lockstep``, the real processes on the bus, and
+compared (the same outcome, paths within 2 %). ``--bus`` makes every run that way (each run
+is then 7 processes, and the suite takes about three times as long). Writes to ``--out``:
 
 - ``results.json`` — every run's ``report.json`` plus derived fields (world label, exit code,
   run directory, distance to 90 % / 95 % coverage, the coverage-over-distance timeline), the
@@ -62,6 +67,8 @@ from topoexplore.tools.extras import ExtraMissing, require
 from topoexplore.tools.launch.supervisor import free_port
 from topoexplore.tools.paths import checkout_root, shared_maps_dir
 
+BUS_PATH_TOLERANCE = 0.02  # in process: a bus check agrees when the paths are this close
+
 EXTRA_MAPS = ("lse_arena.yaml",)  # real map_server maps added to the default suite
 QUICK_WORLDS = ("paper-room", "dead-end")
 RATIO_PAIRS = (("reliability", "frontier"), ("reliability", "all-end-nodes"))
@@ -72,6 +79,7 @@ DEFAULT_SEEDS = 2
 DEFAULT_MAX_SIM_TIME = 6000.0  # [s] simulated time per run (large-office needs ~3900)
 DEFAULT_MAX_WALL_TIME = 1800.0  # [s] wall time per run (0: no limit)
 DEFAULT_JOBS = 2  # runs at a time
+DEFAULT_BUS_CHECK = 3  # in process: runs made again on the bus (one per strategy)
 CURVE_POINTS = 400  # points of the common distance grid of the mean curves
 PACKAGES = ("eclipse-zenoh", "numpy", "scipy", "opencv-python-headless", "pymunk", "msgspec",
             "msgpack", "scikit-image", "numba", "tqdm", "matplotlib", "topoexplore")
@@ -412,8 +420,9 @@ def format_summary(doc: dict) -> str:
     """``summary.md`` of a results document: how it was made, the per world tables, the
     ratios, the distances to 90 / 95 % coverage, the curves and the runs."""
     worlds = [w for w in doc["config"]["world_labels"] if w in doc["aggregate"]]
-    lines = (_summary_head(doc) + _summary_worlds(doc, worlds) + _summary_ratios(doc)
-             + _summary_distances(doc, worlds) + _summary_files(doc, worlds))
+    lines = (_summary_head(doc) + _summary_bus_check(doc) + _summary_worlds(doc, worlds)
+             + _summary_ratios(doc) + _summary_distances(doc, worlds)
+             + _summary_files(doc, worlds))
     return "\n".join(lines) + "\n"
 
 
@@ -436,6 +445,27 @@ def _summary_head(doc: dict) -> list[str]:
     L.append("Packages: " + ", ".join(f"{k} {v}" for k, v in mach["packages"].items()) + ".")
     for note in doc.get("notes", []):
         L += ["", f"Note: {note}"]
+    return L
+
+
+def _summary_bus_check(doc: dict) -> list[str]:
+    """How the runs were made (in process or on the bus) and, in process, the bus check."""
+    if not doc["config"].get("inproc"):
+        return ["", "Every run on the real processes (`topoexplore run --lockstep`, `--bus`)."]
+    from topoexplore.tools.bench.explore_local import check_line
+
+    L = ["", "Each exploration ran in one process (the cores of `bench inproc`, in the order "
+         "the services run them in lockstep; no bus; `--bus` runs them all on the real "
+         "processes).", ""]
+    checks = doc.get("bus_check") or []
+    if checks:
+        agree = sum(1 for c in checks if c["agree"])
+        L += [f"The same run on the real processes (`topoexplore run --lockstep`), "
+              f"{agree} of {len(checks)} agree (the same outcome, paths within "
+              f"{100 * BUS_PATH_TOLERANCE:g} %):", ""]
+        L += [f"- {check_line(c)}" for c in checks]
+    else:
+        L.append("No run was checked on the bus.")
     return L
 
 
@@ -616,6 +646,8 @@ class Config:
     overrides: list[str] = field(default_factory=list)  # --set section.name=value, every run
     record: str = "failed"  # run --record-raw: keep the MCAP of failed runs | all | none
     #   (a kept one gets its Foxglove channels after the run)
+    inproc: bool = True  # each exploration in process (explore_local); False: --bus
+    bus_check: int = 0  # in process: this many of the runs again on the bus, compared
 
     @property
     def command(self) -> str:
@@ -628,8 +660,10 @@ class Config:
             args += ["--params", self.params]
         for o in self.overrides:
             args += ["--set", o]
-        if self.record != "failed":
-            args += ["--record", self.record]
+        if self.inproc:
+            args += ["--bus-check", str(self.bus_check)]
+        else:
+            args += ["--bus"] + (["--record", self.record] if self.record != "failed" else [])
         args += ["--out", str(self.out if self.out.is_absolute() or Path.cwd().resolve() == _root()
                              else self.out.resolve())]
         return shlex.join(args)
@@ -653,16 +687,23 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--max-wall-time", type=float, default=DEFAULT_MAX_WALL_TIME,
                     help="per run, wall seconds [s] (0: no limit)")
     ap.add_argument("--jobs", type=int, default=DEFAULT_JOBS,
-                    help=f"runs at a time (each is 7 processes; default {DEFAULT_JOBS}: a "
-                         "lockstep run keeps about 1.4 of 2 cores busy)")
+                    help=f"runs at a time (default {DEFAULT_JOBS}: a run in process keeps one "
+                         "core busy, a run on the bus about 1.4 of 2 cores)")
     ap.add_argument("--params", default=None, metavar="FILE.toml",
                     help="parameter file for every run (as `topoexplore run --params`)")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.NAME=VALUE",
                     dest="overrides", help="parameter override for every run (repeatable)")
-    ap.add_argument("--record", choices=("failed", "all", "none"), default="failed",
-                    help="record each run's bus (run --record-raw) and keep the MCAP of the "
+    ap.add_argument("--record", choices=("failed", "all", "none"), default=None,
+                    help="with --bus: record each run's bus (run --record-raw) and keep the MCAP of the "
                     "runs that did not finish (default), of all, or record nothing; a kept "
                     "MCAP gets its Foxglove channels after the run")
+    ap.add_argument("--bus", action="store_true",
+                    help="every run through `topoexplore run --lockstep`: the real processes "
+                         "on the bus (about 3 x the CPU of the default, each exploration in "
+                         "one process)")
+    ap.add_argument("--bus-check", type=int, default=None, metavar="N",
+                    help=f"without --bus: make N of the runs again on the bus and compare "
+                         f"(default {DEFAULT_BUS_CHECK}; 0: none)")
     ap.add_argument("--quick", action="store_true",
                     help=f"smoke suite: {','.join(QUICK_WORLDS)} x all strategies x 1 seed")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -792,7 +833,19 @@ def parse_config(argv: Sequence[str]) -> tuple[Config | None, argparse.Namespace
         raise BenchArgError(f"--out {out} is not a directory")
     params = None if args.params is None else str(Path(args.params).resolve())
     check_overrides(params, args.overrides)
-    record = args.record
+    record, bus_check = args.record or "failed", 0
+    if args.bus:
+        if args.bus_check is not None:
+            raise BenchArgError("--bus-check is for runs in process: with --bus every run is "
+                                "on the bus")
+    else:
+        bus_check = DEFAULT_BUS_CHECK if args.bus_check is None else args.bus_check
+        if bus_check < 0:
+            raise BenchArgError(f"--bus-check must be >= 0 (got {bus_check})")
+        if args.record is not None:
+            raise BenchArgError("--record needs --bus: a run in process has no traffic to "
+                                "record")
+        record = "none"
     if record != "none":
         try:
             require("mcap", "foxglove", what="recording the runs")
@@ -802,7 +855,8 @@ def parse_config(argv: Sequence[str]) -> tuple[Config | None, argparse.Namespace
     return Config(worlds=worlds, strategies=strategies, seeds=seeds, out=out,
                   max_sim_time=float(args.max_sim_time), max_wall_time=float(args.max_wall_time),
                   jobs=args.jobs, progress=not args.no_progress, notes=notes, params=params,
-                  overrides=list(args.overrides), record=record), args
+                  overrides=list(args.overrides), record=record, inproc=not args.bus,
+                  bus_check=bus_check), args
 
 
 # --------------------------------------------------------------------------------------------
@@ -989,6 +1043,8 @@ def run_suite(cfg: Config, argv: Sequence[str]) -> int:
     old_term = _sigterm_as_interrupt()
     try:
         _run_plan(cfg, plan, suite)
+        if cfg.inproc and cfg.bus_check:
+            _bus_check(cfg, doc, bar)
     except KeyboardInterrupt:
         doc["interrupted"] = True
         _stop_active()
@@ -1014,7 +1070,8 @@ def new_results(cfg: Config, argv: Sequence[str], planned: int) -> dict[str, Any
                    "seeds": cfg.seeds, "max_sim_time": cfg.max_sim_time,
                    "max_wall_time": cfg.max_wall_time, "jobs": cfg.jobs,
                    "params": cfg.params, "overrides": cfg.overrides,
-                   "planned_runs": planned},
+                   "planned_runs": planned, "inproc": cfg.inproc,
+                   "bus_check": cfg.bus_check},
         "notes": list(cfg.notes),
         "interrupted": False,
         "runs": [],
@@ -1036,6 +1093,11 @@ class _SuiteRuns:
         cfg = self.cfg
         if cfg.jobs == 1:
             self.bar.set_postfix_str(f"now {label}/{st}/{seed} | last {self.last}")
+        if cfg.inproc:
+            from topoexplore.tools.bench.explore_local import run_local
+
+            return run_local(label, arg, st, seed, cfg.out, cfg.max_sim_time,
+                             cfg.max_wall_time, cfg.params, cfg.overrides)
         return run_one(label, arg, st, seed, cfg.out, cfg.max_sim_time, cfg.max_wall_time,
                        cfg.params, cfg.overrides, cfg.record)
 
@@ -1070,10 +1132,15 @@ def _run_plan(cfg: Config, plan: list, suite: _SuiteRuns) -> None:
         for item in plan:
             suite.done(suite.one(item))
         return
+    area = {w[0]: _world_area(w[1]) for w in cfg.worlds}
+    plan = sorted(plan, key=lambda it: -area[it[0][0]])
+    if cfg.inproc:
+        from topoexplore.tools.bench.explore_local import run_plan
+
+        run_plan(plan, cfg, suite.done)
+        return
     with ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
-        area = {w[0]: _world_area(w[1]) for w in cfg.worlds}
-        futs = [pool.submit(suite.one, item) for item in
-                sorted(plan, key=lambda it: -area[it[0][0]])]
+        futs = [pool.submit(suite.one, item) for item in plan]
         try:
             for f in as_completed(futs):
                 suite.done(f.result())
@@ -1082,6 +1149,27 @@ def _run_plan(cfg: Config, plan: list, suite: _SuiteRuns) -> None:
                 f.cancel()
             _stop_active()
             raise
+
+
+def _bus_check(cfg: Config, doc: dict, bar: Any) -> None:
+    """``cfg.bus_check`` of the in-process runs again through ``topoexplore run --lockstep``
+    (into ``out/bus/``), compared with them (``doc["bus_check"]``, results.json rewritten)."""
+    from topoexplore.tools.bench.explore_local import check_line, compare, pick_bus_runs
+
+    args = {w[0]: w[1] for w in cfg.worlds}
+    picked = pick_bus_runs(doc["runs"], cfg.bus_check)
+    doc["bus_check"] = []
+    bar.reset(total=len(picked))
+    bar.set_description("bench explore: bus check")
+    for local in picked:
+        label = local["world_label"]
+        bus = run_one(label, args[label], local["strategy"], local["seed"], cfg.out / "bus",
+                      cfg.max_sim_time, cfg.max_wall_time, cfg.params, cfg.overrides, "none")
+        bus["run_dir"] = f"bus/{bus['run_dir']}"
+        doc["bus_check"].append(compare(local, bus))
+        _write_json(cfg.out / "results.json", doc)
+        bar.set_postfix_str(check_line(doc["bus_check"][-1]), refresh=False)
+        bar.update(1)
 
 
 def _print_totals(doc: dict, planned: int, out: Path) -> None:
@@ -1098,6 +1186,14 @@ def _print_totals(doc: dict, planned: int, out: Path) -> None:
         from topoexplore.tools.bench.oracle import suite_line
 
         print(f"  {suite_line(doc['oracle'])}", file=sys.stderr)
+    if doc.get("bus_check"):
+        from topoexplore.tools.bench.explore_local import check_line
+
+        agree = sum(1 for c in doc["bus_check"] if c["agree"])
+        print(f"  in process, checked on the bus: {agree} of {len(doc['bus_check'])} agree",
+              file=sys.stderr)
+        for c in doc["bus_check"]:
+            print(f"    {check_line(c)}", file=sys.stderr)
 
 
 def from_results(src: Path, out: Path | None) -> int:

@@ -18,11 +18,11 @@ the same message conversions and codec as on the bus (``common.convert``). Each 
 reports ``stage_s``, the compute seconds of each core (the sim's scans and physics steps,
 the mapper, topology, reliability, planner, controller), summed in one line over the runs.
 No bus and no processes, so a parameter sweep over the suite costs the compute alone (about
-1/3 of the wall time of ``bench explore``). A run gives the same path, sim time and coverage
+1/3 of the CPU of the same runs on the bus). A run gives the same path, sim time and coverage
 as the bus run of the same world, strategy, seed and parameters (``tests/test_explore_e2e.py``
 checks it on dead-end, office and paper-room; a 60 x 60 m world to 1800 s was checked by
-hand: docs/benchmarks.md); the figures to publish still come from ``bench explore``, which
-runs the real processes.
+hand: docs/benchmarks.md). ``bench explore`` runs its suite through :func:`run` and checks a
+sample of its runs on the real processes (:mod:`.explore_local`).
 """
 
 from __future__ import annotations
@@ -216,13 +216,15 @@ def _pipeline(P: Params, world: World) -> SimpleNamespace:
 
 def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence[str] = (),
         max_sim_time: float = 1800.0, on_update: Callable[..., Any] | None = None,
-        wire: bool = False, pose_trace: Path | None = None) -> dict[str, Any]:
-    """One exploration, in process. ``sets``: ``section.key=value`` overrides (TOML values).
-    ``on_update(t, pose, graph, beliefs, plan, grid)`` is called after every plan; it may raise
-    to stop the run. ``wire``: every hop goes through the message round trip (:class:`Wire`).
+        wire: bool = False, pose_trace: Path | None = None, params: str | None = None,
+        on_sim: Callable[[SimCore], Any] | None = None) -> dict[str, Any]:
+    """One exploration, in process. ``sets``: ``section.key=value`` overrides (TOML values),
+    over the parameter file ``params`` if given. ``on_update(t, pose, graph, beliefs, plan,
+    grid)`` is called after every plan, then ``on_sim(sim)`` with the simulator core (its
+    truth, path length and clock; to read, not to change); either may raise to stop the run. ``wire``: every hop goes through the message round trip (:class:`Wire`).
     ``pose_trace``: write every scan's odometry, truth, estimate and match there (.npz, read
     by ``bench posetrace``). Returns the run's figures."""
-    P = load_params(None, [f"sim.world={json.dumps(world)}", f"sim.seed={int(seed)}",
+    P = load_params(params, [f"sim.world={json.dumps(world)}", f"sim.seed={int(seed)}",
                            *strategy_overrides(strategy), "runtime.lockstep=true", *sets])
     w = load_world(P.sim.world)
     c = _pipeline(P, w)
@@ -254,6 +256,8 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
             state = plan.status.state
             if on_update is not None:
                 on_update(t, pose, graph, beliefs, plan, grid)
+            if on_sim is not None:
+                on_sim(c.sim)
             if plan.status.finished:
                 break
             lagged.append((k, plan.route))
@@ -274,7 +278,7 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
     snap = c.planner.snapshot()
     return {"world": world, "strategy": strategy, "seed": int(seed), "state": str(state),
             "finished": state == "done", "stop_reason": plan.status.reason if plan else "",
-            "path_length_m": round(c.sim.path_length, 2), "sim_time_s": round(c.sim.time, 1),
+            "path_length_m": round(c.sim.path_length, 3), "sim_time_s": round(c.sim.time, 1),
             "coverage": round(cov, 4), "coverage_free": round(cov_free, 4),
             "collisions": int(c.sim.collisions), "wall_s": round(time.monotonic() - t0, 1),
             "escalations": snap["watchdog"]["counts"],
