@@ -495,3 +495,14 @@ def test_sigterm_stops_the_suite_and_its_worker_processes(tmp_path):
     finally:
         if p.poll() is None:
             p.kill()
+
+
+def test_a_run_in_process_stops_at_its_wall_time_limit_with_a_report(tmp_path):
+    from topoexplore.tools.bench.explore_local import run_local
+
+    run = run_local("paper-room", "paper-room", "frontier", 0, tmp_path, 600.0,
+                    max_wall_time=1e-6)
+    assert not run["finished"] and run["path_length_m"] is None
+    assert run["stop_reason"] == "WallLimit: stopped after 1e-06 wall s"
+    report = json.loads((tmp_path / run["run_dir"] / "report.json").read_text())
+    assert report["stop_reason"] == run["stop_reason"] and report["pipeline"] == "inproc"

@@ -170,13 +170,13 @@ def _figures(r: dict, follow: RunFollower, acc_fn: Any, p_reliable: float,
 def _write(run_dir: Path, report: dict, follow: RunFollower | None, P: Any,
            label: str) -> None:
     """report.json, timeline.csv, trail.csv, map.yaml and final.png, as ``topoexplore run``
-    writes them (only the report when the run never started)."""
+    writes them (only the report when the run broke off: an error or the wall-time limit)."""
     from topoexplore.common.mapio import write_map_server, write_png
     from topoexplore.tools.draw import Overlays, Style, render
 
     (run_dir / "report.json").write_text(json.dumps(report, indent=2) + "\n")
-    if follow is None or follow.last is None:
-        return
+    if follow is None or follow.last is None or report.get("path_length_m") is None:
+        return  # the run did not end on its own: no figures to draw
     with (run_dir / "timeline.csv").open("w") as f:
         f.write("sim_time_s,path_length_m,coverage\n")
         for t, d, c in follow.timeline:
