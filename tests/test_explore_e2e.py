@@ -200,22 +200,29 @@ def test_clients_through_the_router_and_no_plan_lag_run_too():
 
 @pytest.mark.parametrize("world", ["dead-end", "office"])
 @needs(lambda world: [run_of(world)])
-def test_in_process_pipeline_reproduces_the_bus_run(world):
-    """`topoexplore bench inproc` (the tuning tool) calls the cores in the order the services
-    run them in lockstep: the same path, sim time and coverage as the real processes. Office
-    took 133.0 m in process against 126.0 m on the bus until the pipeline took its clock as
-    the stamps carry it (to the nanosecond): the bus planner re-planned at scan 324 ("shorter
-    path to the target", a re-plan its replan period gates: t - last >= period), the one in
-    process a map later."""
-    from topoexplore.tools.bench import inproc
+def test_in_process_pipeline_reproduces_the_bus_run(world, tmp_path):
+    """`topoexplore bench inproc` (the tuning tool, and `bench explore`'s runs) calls the cores
+    in the order the services run them in lockstep: the same path, sim time and coverage as
+    the real processes. Office took 133.0 m in process against 126.0 m on the bus until the
+    pipeline took its clock as the stamps carry it (to the nanosecond): the bus planner
+    re-planned at scan 324 ("shorter path to the target", a re-plan its replan period gates:
+    t - last >= period), the one in process a map later. `bench explore`'s follower of a run
+    in process reports what the bus run's monitor does, down to the coverage timeline (the
+    monitor pairs each map with the sim status of the map's own scan)."""
+    from topoexplore.tools.bench.explore import read_timeline
+    from topoexplore.tools.bench.explore_local import run_local
 
     bus = explore(world)
-    local = inproc.run(world, "reliability", 0, (), 1500.0)
+    local = run_local(world, world, "reliability", 0, tmp_path, 1500.0)
     assert local["finished"] and bus["finished"]
-    assert local["path_length_m"] == pytest.approx(bus["path_length_m"], abs=0.01)
+    assert local["path_length_m"] == pytest.approx(bus["path_length_m"], abs=0.001)
     assert local["sim_time_s"] == pytest.approx(bus["sim_time_s"], abs=0.01)
-    assert local["coverage"] == pytest.approx(bus["coverage"], abs=1e-3)
+    assert local["coverage"] == pytest.approx(bus["coverage"], abs=1e-4)
     assert local["stop_reason"] in bus["stop_reason"]
+    for k in ("end_nodes_seen", "end_nodes_visited", "end_nodes_accepted_remote", "targets",
+              "map_accuracy", "collisions"):
+        assert local[k] == bus[k], k
+    assert local["timeline"] == read_timeline(Path(bus["_out"]) / "timeline.csv")
 
 
 def test_in_process_poses_are_the_ones_read_off_the_wire():

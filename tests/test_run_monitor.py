@@ -181,3 +181,25 @@ def test_the_reports_counters_are_read_from_each_services_state_once_fetched():
     assert p["watchdog_escalations"] == {"blacklist": 1} and p["watchdog_approaches"] == 4
     assert p["blocked_marks"] == 2 and p["blocked_forgotten"] == 0 and p["replans"] == 7
     assert run.message_counts({}) == (0, {}) and run.checkpoint_counts({}) == {}
+
+
+def test_the_timeline_pairs_each_map_with_its_own_scans_travel():
+    """A map is sampled with the sim status of its own scan, whichever came first: the newest
+    status read may be a scan or more off (the bus delivers the two from different
+    processes). A run in process pairs them the same way (tests/test_explore_e2e.py)."""
+    mon = Monitor()
+    mon.coverage_fn = lambda msg: float(msg.header.src_seq)  # which map was sampled
+    mon.sample_every = 0.0  # every map
+    mon.on_sim(sim_status(1))
+    mon.on_sim(sim_status(2))
+    mon.on_map(grid(1))  # its status came first, and a later one after it
+    mon.on_map(grid(3))  # before its status
+    mon.on_map(grid(5))  # both wait
+    assert len(mon.timeline) == 1 and sorted(mon.sample_waiting) == [3, 5]
+    mon.on_sim(sim_status(3))
+    mon.on_sim(sim_status(4))
+    mon.on_sim(sim_status(5))
+    assert mon.sample_waiting == {}
+    assert mon.timeline == [(0.2 * k, 0.1 * k, float(k)) for k in (1, 3, 5)]
+    mon.on_map(grid(4))  # an older map than the last sample's: not sampled
+    assert len(mon.timeline) == 3

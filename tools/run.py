@@ -129,6 +129,8 @@ class Monitor:
     # coverage over distance: (sim_time, path_length, coverage), sampled on map updates
     timeline: list[tuple[float, float, float]] = field(default_factory=list)
     coverage_fn: Any = None
+    # maps read before the sim status of their own scan, by scan: sampled when it comes
+    sample_waiting: dict[int, m.OccupancyGrid] = field(default_factory=dict)
     sample_every: float = 0.25  # [m] of travel (and at least every 5 s of sim time)
     first_motion: float | None = None  # [monotonic s] when the sim first reported travel
     # the robot's own estimate of its pose (odometry, corrected when the localizer runs),
@@ -165,6 +167,10 @@ class Monitor:
             if len(self.sim_by_seq) > 200:
                 for k in sorted(self.sim_by_seq)[:-100]:
                     del self.sim_by_seq[k]
+            due = sorted(k for k in self.sample_waiting if k <= msg.header.src_seq)
+            ready = [(self.sample_waiting.pop(k), self.sim_by_seq.get(k, msg)) for k in due]
+        for grid, at in ready:
+            self._sample(grid, at)
 
     def ending_grid(self, seq: int) -> m.OccupancyGrid | None:
         """The map of scan ``seq``, else the latest of an earlier scan, else the latest (call
@@ -269,15 +275,33 @@ class Monitor:
                 return
             self.grid = msg
             _keep(self.grid_by_seq, msg.header.src_seq, msg, self.status_seq)
-            sim = self.sim
-            last = self.timeline[-1] if self.timeline else None
-        if self.coverage_fn is None or sim is None:
+            # the timeline pairs the map with the travel up to its own scan (the newest
+            # status read may be a scan or more off it), as a run in process does
+            sim = self.sim_by_seq.get(msg.header.src_seq)
+            if sim is None:  # its status is still on its way (on_sim takes it then)
+                self.sample_waiting[msg.header.src_seq] = msg
+                for k in sorted(self.sample_waiting)[:-WAITING_MAPS]:
+                    del self.sample_waiting[k]
+                return
+        self._sample(msg, sim)
+
+    def _sample(self, msg: m.OccupancyGrid, sim: m.SimStatus) -> None:
+        """A timeline point for map ``msg`` at ``sim`` (its scan's status), if due: every
+        ``sample_every`` of travel, at least every 5 s of sim time."""
+        if self.coverage_fn is None:
             return
+        with self.lock:
+            last = self.timeline[-1] if self.timeline else None
+        if last is not None and sim.sim_time < last[0]:
+            return  # an older map than the last sample's
         if last is None or sim.path_length - last[1] >= self.sample_every \
                 or sim.sim_time - last[0] >= 5.0:
             cov = self.coverage_fn(msg)
             with self.lock:
                 self.timeline.append((sim.sim_time, sim.path_length, cov))
+
+
+WAITING_MAPS = 8  # maps kept for the timeline while their scans' sim status is on its way
 
 
 def _keep(by_seq: dict[int, Any], seq: int, value: Any, status_seq: int) -> None:
@@ -983,7 +1007,8 @@ def write_results(args: argparse.Namespace, setup: Setup, truth: Truth, mon: Mon
     with mon.lock:
         coverage = truth.coverage(mon.grid, params)
         coverage_free = truth.coverage_free(mon.grid, params)
-        if sim is not None:
+        if sim is not None:  # the maps of scans after the ending one are not the run's
+            mon.timeline[:] = [p for p in mon.timeline if p[0] < sim.sim_time]
             mon.timeline.append((sim.sim_time, sim.path_length, coverage))
         accuracy = truth.accuracy(mon.grid, params)
         report = make_report(world=args.world, strategy=args.strategy, seed=args.seed,

@@ -110,7 +110,7 @@ def run_local(label: str, world_arg: str, strategy: str, seed: int, out: Path,
 
     from topoexplore.common.params import load_params, strategy_overrides
     from topoexplore.tools.bench import inproc
-    from topoexplore.tools.bench.explore import derive
+    from topoexplore.tools.bench.explore import derive, read_timeline
 
     rel = f"runs/{label}-{strategy}-{seed}"
     run_dir = out / rel
@@ -137,9 +137,10 @@ def run_local(label: str, world_arg: str, strategy: str, seed: int, out: Path,
         report.update(_figures(r, follow, acc_fn, P.reliability.p_reliable, max_sim_time))
     report["wall_time_s"] = round(time.monotonic() - t0, 3)
     _write(run_dir, report, follow, P if follow is not None else None, label)
+    tl = run_dir / "timeline.csv"  # read back as a bus run's is: the same rounding
     run = dict(report, world_label=label, exit_code=0 if report["finished"] else 1,
                run_dir=rel, recording_file=None,
-               timeline=[list(x) for x in follow.timeline] if follow else [])
+               timeline=read_timeline(tl) if tl.is_file() else [])
     return derive(run)
 
 
@@ -149,6 +150,7 @@ def _figures(r: dict, follow: RunFollower, acc_fn: Any, p_reliable: float,
     grid = follow.last[4] if follow.last else None
     beliefs = follow.last[2] if follow.last else ()
     timeout = r["state"] == "timeout"
+    follow.timeline[:] = [p for p in follow.timeline if p[0] < r["sim_time_s"]]  # as on the bus
     follow.timeline.append((r["sim_time_s"], r["path_length_m"], r["coverage"]))
     return {
         "finished": bool(r["finished"]),
