@@ -430,12 +430,13 @@ class Node:
         return m.header(seq, stamp, frame, src_seq)
 
     def take(self, topic: str, ready: Callable[[Any], bool] | None = None,
-             poll: float = 0.2) -> tuple[Any, bool] | None:
+             poll: float = 0.2, share: float = 1.0) -> tuple[Any, bool] | None:
         """Next message of a queued topic, once ready(msg) holds (secondary inputs caught up).
 
         Returns None when nothing arrived within ``poll`` seconds, else (msg, ready_ok): ready_ok
         is False when the secondaries did not catch up within the wait limit (lockstep:
-        ``sim.lockstep_timeout``; real-time: 0.5 s) — the caller decides whether to skip.
+        ``sim.lockstep_timeout``; real-time: 0.5 s; times ``share``, for a service whose
+        output another waits for under the same limit) — the caller decides whether to skip.
         """
         inbox = self.inbox
         if not inbox.wait(lambda: self.stop.is_set() or inbox.pending(topic) > 0, poll):
@@ -445,7 +446,7 @@ class Node:
             return None
         if ready is None:
             return msg, True
-        limit = self.params.runtime.lockstep_timeout if self.lockstep else 0.5
+        limit = share * (self.params.runtime.lockstep_timeout if self.lockstep else 0.5)
         ok = inbox.wait(lambda: self.stop.is_set() or ready(msg), limit)
         return msg, ok and not self.stop.is_set()
 

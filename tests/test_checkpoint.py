@@ -218,14 +218,20 @@ def _reap(run: subprocess.Popen) -> None:
             run.wait(timeout=10)
 
 
-def _start(out: Path, endpoint: str, namespace: str) -> subprocess.Popen:
+# the localizer runs (and is killed) on drifting odometry, which it corrects
+LOCALIZED = ("sim.odom_drift=0.03", "sim.odom_drift_heading=0.02", "localizer.enabled=true")
+
+
+def _start(out: Path, endpoint: str, namespace: str, sets: tuple[str, ...] = ()
+           ) -> subprocess.Popen:
     """A lockstep run of KILL_WORLD whose sim steps on STALL_S after a scan whose command
     will never come: a service killed with it in hand lost it."""
     return subprocess.Popen([sys.executable, "-m", "topoexplore.tools.cli", "run", "--world",
                              KILL_WORLD, "--lockstep", "--quiet", "--out", str(out),
                              "--connect", endpoint, "--namespace", namespace,
                              "--max-sim-time", "2000", "--set",
-                             f"runtime.lockstep_timeout={STALL_S}"],
+                             f"runtime.lockstep_timeout={STALL_S}",
+                             *(a for kv in sets for a in ("--set", kv))],
                             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True, start_new_session=True)
 
@@ -235,7 +241,7 @@ def _killed_mid_run(tmp_path: Path, endpoint: str, namespace: str, service: str)
     mapper have written checkpoints; what was known then, and the run's report."""
     out = tmp_path / "run"
     keys = Keys(namespace, "robot1")
-    run = _start(out, endpoint, namespace)
+    run = _start(out, endpoint, namespace, LOCALIZED if service == "localizer" else ())
     try:
         with Bus.client(endpoint, wait_for_router=True) as bus:
             deadline, st, mp = time.monotonic() + 120, None, None
@@ -254,8 +260,9 @@ def _killed_mid_run(tmp_path: Path, endpoint: str, namespace: str, service: str)
     finally:
         _reap(run)
     report = json.loads(Path(out / "report.json").read_text())
+    logs = out / "logs.txt"
     return {"report": report, "stdout": stdout, "st": st, "known_at_kill": known_at_kill,
-            "peers_known": held}
+            "peers_known": held, "logs": logs.read_text() if logs.is_file() else ""}
 
 
 def _peers_known(bus: Bus, keys: Keys) -> list[int]:
@@ -284,12 +291,13 @@ def kill_runs(request, tmp_path_factory):
         yield started
 
 
-@pytest.mark.parametrize("service", ["mapper", "sim"])
+@pytest.mark.parametrize("service", ["mapper", "sim", "localizer"])
 @needs(lambda service: [("mid-run", service)])
 def test_a_service_killed_mid_run_resumes(kill_runs, service):
-    """SIGKILL the mapper or the simulator of a lockstep run once they have written
-    checkpoints: the supervisor restarts it, it resumes (the map; the robot, its clock and
-    its path), and the run finishes as it would have."""
+    """SIGKILL the mapper, the simulator or the localizer (on drifting odometry) of a lockstep
+    run once they have written checkpoints: the supervisor restarts it, it resumes (the map;
+    the robot, its clock and its path; the correction of odometry), and the run finishes as
+    it would have."""
     run = kill_runs[("mid-run", service)].result()
     report, st = run["report"], run["st"]
     assert report["finished"] and report["restarts"] >= 1, run["stdout"][-2000:]
@@ -306,10 +314,17 @@ def test_a_service_killed_mid_run_resumes(kill_runs, service):
         assert run["peers_known"], why
         assert ck["resumed_cells"] >= max(run["peers_known"]), why
         assert ck["resumed_cells"] >= run["known_at_kill"], why
-    else:
+    elif service == "sim":
         # one clock and one path: at most checkpoint_every (1 s of sim time) of motion lost
         assert report["path_length_m"] >= st["path_length"] - 0.3, (report, st)
         assert report["sim_time_s"] > st["sim_time"]
+    else:
+        # it went on from the correction it had, not from raw odometry: the map holds
+        # together and the robot knew where it was
+        assert st["matched"] > 0 and any(st["correction"].values()), st
+        assert report["map_accuracy"] >= 0.95, report
+        assert report["pose_error_m"]["rms"] <= 0.25, report["pose_error_m"]
+        assert "resumed the correction" in run["logs"], run["logs"][-3000:]
 
 
 def test_bench_faults_parses_chaos_faults():

@@ -423,3 +423,50 @@ def test_the_heading_comes_back_to_the_directions_seen_since_the_start(gain):
     got = loc.match(scan_at(x, y, th), guess)
     assert got.ok
     assert got.pose.theta == pytest.approx(th + (1.0 - gain) * d, abs=0.006)
+
+
+def test_a_checkpoint_gives_a_new_core_what_the_scans_taught_this_one():
+    """Step 0's sides per cell (with their grid's placement) and step 6's histogram come back
+    in a fresh core; the likelihood fields it makes from the next map are then the same."""
+    from topoexplore.common.checkpoint import decode_checkpoint, encode_checkpoint
+
+    old = core()
+    for x, y, th in ((1.5, 1.2, 0.3), (4.0, 2.4, -2.0), (2.5, 2.0, 1.6)):
+        old.observe(scan_at(x, y, th), Pose(x, y, th))
+    old.set_map(room())
+    arrays, _ = decode_checkpoint(encode_checkpoint(old.checkpoint(), 0.0))  # through a file
+    new = LocalizerCore(LocalizerParams())
+    new.restore(arrays)
+    new.set_map(room())
+    assert new._ref.sum() > 0 and np.array_equal(new._ref, old._ref)
+    assert new._hits.any() and np.array_equal(new._hits, old._hits)
+    assert new._hits_geom == old._hits_geom
+    assert np.array_equal(new._field, old._field)
+    scan, guess = scan_at(3.0, 1.5, 0.5), Pose(3.1, 1.45, 0.55)
+    assert new.match(scan, guess) == old.match(scan, guess)
+    fresh = LocalizerCore(LocalizerParams())  # before any map: the histogram alone
+    fresh.restore(LocalizerCore(LocalizerParams()).checkpoint())
+    assert fresh._hits is None and not fresh._ref.any()
+
+
+@pytest.mark.parametrize("change", [
+    lambda a: a.pop("ref"), lambda a: a.update(ref=np.full(720, np.nan)),
+    lambda a: a.update(ref=-a["ref"] - 1.0), lambda a: a.update(ref=np.zeros(10)),
+    lambda a: a.update(hits=a["hits"] * 0 + 16), lambda a: a.pop("hits_geom"),
+    lambda a: a.update(hits_geom=np.array([0.0, 0.0, 0.0])),
+    lambda a: a.update(hits_geom=np.array([0.05, np.inf, 0.0])),
+    lambda a: a.update(hits=np.zeros((0, 5), np.uint8)),
+])
+def test_a_localizer_checkpoint_it_cannot_use_is_refused_and_nothing_taken(change):
+    from topoexplore.common.checkpoint import CheckpointError
+
+    old = core()
+    old.observe(scan_at(2.0, 1.5, 0.0), Pose(2.0, 1.5, 0.0))
+    arrays = old.checkpoint()
+    change(arrays)
+    new = core()
+    before = new.checkpoint()
+    with pytest.raises(CheckpointError):
+        new.restore(arrays)
+    after = new.checkpoint()
+    assert all(np.array_equal(after[k], before[k]) for k in before)

@@ -530,7 +530,7 @@ def reliability_counts(state: dict) -> dict | None:
 def checkpoint_counts(states: dict[str, dict]) -> dict:
     """The checkpoint counters of the services that keep one, from their states."""
     out = {}
-    for s in ("sim", "mapper", "topology", "reliability", "planner"):
+    for s in ("sim", "mapper", "topology", "reliability", "planner", "localizer"):
         ck = states.get(s, {}).get("checkpoint")
         if isinstance(ck, dict) and ck.get("path"):
             out[s] = ck

@@ -68,8 +68,15 @@ import cv2
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from topoexplore.common.checkpoint import CheckpointError, checked
 from topoexplore.common.domain import GridMap, Pose, Scan
-from topoexplore.common.grid import Occupancy, distance_transform, free_mask, reframe
+from topoexplore.common.grid import (
+    GridGeometry,
+    Occupancy,
+    distance_transform,
+    free_mask,
+    reframe,
+)
 from topoexplore.common.params import LocalizerParams
 
 # the sides a wall cell has been seen from, by the normal of the face seen (bits)
@@ -143,6 +150,7 @@ def scan_conditioning(pts: np.ndarray, gap: float = 0.25) -> tuple[float, np.nda
     return float(max(lam[0], 0.0) / lam[1]), vec[:, 0]
 
 
+MAX_CELLS = 100_000_000  # a checkpoint's grid of sides may not be larger (a 500 m square at 5 cm)
 HEADING_BINS = 720  # the direction histogram (step 6): 180° in bins of 0.25°
 HEADING_SPREAD = 0.004  # [rad] a direction's spread in it: about a 7-point fit's noise
 HEADING_MIN_SCAN = 20  # directions a scan needs for step 6
@@ -347,6 +355,39 @@ class LocalizerCore:
         row, col = g.world_to_cell(wx, wy)
         ok = g.inside(row, col) & (side != 0)
         np.bitwise_or.at(self._hits, (row[ok], col[ok]), side[ok])
+
+    # -- checkpoints (a restarted localizer keeps what it learned of the run) ---------------
+
+    def checkpoint(self) -> dict[str, np.ndarray]:
+        """What the scans taught that the map does not hold: step 6's direction histogram and
+        step 0's sides each cell was seen from, with their grid's placement (the likelihood
+        fields are made again from the next map)."""
+        out = {"ref": self._ref.copy()}
+        if self._hits is not None:
+            g = self._hits_geom
+            out["hits"] = self._hits.copy()
+            out["hits_geom"] = np.array([g.resolution, g.origin_x, g.origin_y], np.float64)
+        return out
+
+    def restore(self, arrays: dict[str, np.ndarray]) -> None:
+        """Take back what :meth:`checkpoint` wrote; CheckpointError (nothing taken) if the
+        arrays are not such a checkpoint."""
+        ref = checked(arrays, "ref", "f", (HEADING_BINS,)).astype(np.float64)
+        if not np.isfinite(ref).all() or (ref < 0.0).any():
+            raise CheckpointError("localizer checkpoint: direction histogram out of range")
+        hits = geom = None
+        if "hits" in arrays:
+            hits = checked(arrays, "hits", "i", (None, None))
+            place = checked(arrays, "hits_geom", "f", (3,)).astype(np.float64)
+            h, w = hits.shape
+            if not np.isfinite(place).all() or place[0] <= 0.0 or not 0 < h * w <= MAX_CELLS \
+                    or hits.min() < 0 or hits.max() > (NORTH | SOUTH | EAST | WEST):
+                raise CheckpointError("localizer checkpoint: surface sides out of range")
+            hits = hits.astype(np.uint8)
+            geom = GridGeometry(float(place[0]), float(place[1]), float(place[2]), w, h)
+        self._ref = ref
+        if hits is not None:
+            self._hits, self._hits_geom = hits, geom
 
     def _bins(self, theta: float, ang: np.ndarray) -> np.ndarray:
         """Which field each end point scores on with the robot at heading ``theta`` (its
