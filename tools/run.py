@@ -23,6 +23,7 @@ import os
 import sys
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -549,6 +550,22 @@ def message_counts(states: dict[str, dict]) -> tuple[int, dict[str, dict[str, in
     return total, lost
 
 
+def write_timeline(path: Path, rows: Sequence[tuple[float, float, float]]) -> None:
+    """``timeline.csv``: (sim time [s], path length [m], coverage) per sample."""
+    with path.open("w") as f:
+        f.write("sim_time_s,path_length_m,coverage\n")
+        for t, d, c in rows:
+            f.write(f"{t:.2f},{d:.3f},{c:.4f}\n")
+
+
+def write_trail(path: Path, rows: Sequence[tuple[float, float, int]]) -> None:
+    """``trail.csv``: the robot's true positions [m] and the target segment of each."""
+    with path.open("w") as f:
+        f.write("x,y,segment\n")
+        for x, y, s in rows:
+            f.write(f"{x:.3f},{y:.3f},{s}\n")
+
+
 def write_outputs(out: Path, report: dict, mon: Monitor, truth: Truth, p: Params,
                   title: str) -> None:
     from topoexplore.common.mapio import write_map_server, write_png
@@ -556,14 +573,8 @@ def write_outputs(out: Path, report: dict, mon: Monitor, truth: Truth, p: Params
 
     out.mkdir(parents=True, exist_ok=True)
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
-    with (out / "timeline.csv").open("w") as f:
-        f.write("sim_time_s,path_length_m,coverage\n")
-        for t, d, c in mon.timeline:
-            f.write(f"{t:.2f},{d:.3f},{c:.4f}\n")
-    with (out / "trail.csv").open("w") as f:
-        f.write("x,y,segment\n")
-        for x, y, s in mon.trail:
-            f.write(f"{x:.3f},{y:.3f},{s}\n")
+    write_timeline(out / "timeline.csv", mon.timeline)
+    write_trail(out / "trail.csv", mon.trail)
     topo_doc = {
         "topo": msgspec.to_builtins(mon.topo) if mon.topo else None,
         "reliability": msgspec.to_builtins(mon.rel) if mon.rel else None,

@@ -175,18 +175,13 @@ def _write(run_dir: Path, report: dict, follow: RunFollower | None, P: Any,
     writes them (only the report when the run broke off: an error or the wall-time limit)."""
     from topoexplore.common.mapio import write_map_server, write_png
     from topoexplore.tools.draw import Overlays, Style, render
+    from topoexplore.tools.run import write_timeline, write_trail
 
     (run_dir / "report.json").write_text(json.dumps(report, indent=2) + "\n")
     if follow is None or follow.last is None or report.get("path_length_m") is None:
         return  # the run did not end on its own: no figures to draw
-    with (run_dir / "timeline.csv").open("w") as f:
-        f.write("sim_time_s,path_length_m,coverage\n")
-        for t, d, c in follow.timeline:
-            f.write(f"{t:.2f},{d:.3f},{c:.4f}\n")
-    with (run_dir / "trail.csv").open("w") as f:
-        f.write("x,y,segment\n")
-        for x, y, s in follow.trail:
-            f.write(f"{x:.3f},{y:.3f},{s}\n")
+    write_timeline(run_dir / "timeline.csv", follow.timeline)
+    write_trail(run_dir / "trail.csv", follow.trail)
     pose, graph, beliefs, plan, grid = follow.last
     write_map_server(run_dir / "map.yaml", grid.data, grid.geom, P.mapper.p_free,
                      P.mapper.p_occ)

@@ -221,7 +221,8 @@ def run(world: str, strategy: str = "reliability", seed: int = 0, sets: Sequence
     """One exploration, in process. ``sets``: ``section.key=value`` overrides (TOML values),
     over the parameter file ``params`` if given. ``on_update(t, pose, graph, beliefs, plan,
     grid)`` is called after every plan, then ``on_sim(sim)`` with the simulator core (its
-    truth, path length and clock; to read, not to change); either may raise to stop the run. ``wire``: every hop goes through the message round trip (:class:`Wire`).
+    truth, path length and clock; to read, not to change); either may raise to stop the run.
+    ``wire``: every hop goes through the message round trip (:class:`Wire`).
     ``pose_trace``: write every scan's odometry, truth, estimate and match there (.npz, read
     by ``bench posetrace``). Returns the run's figures."""
     P = load_params(params, [f"sim.world={json.dumps(world)}", f"sim.seed={int(seed)}",
