@@ -194,8 +194,8 @@ def test_the_timeline_pairs_each_map_with_its_own_scans_travel():
     mon.on_sim(sim_status(2))
     mon.on_map(grid(1))  # its status came first, and a later one after it
     mon.on_map(grid(3))  # before its status
-    mon.on_map(grid(5))  # both wait
-    assert len(mon.timeline) == 1 and sorted(mon.sample_waiting) == [3, 5]
+    mon.on_map(grid(5))  # both wait (their coverage taken now, the point made later)
+    assert len(mon.timeline) == 1 and mon.sample_waiting == {3: 3.0, 5: 5.0}
     mon.on_sim(sim_status(3))
     mon.on_sim(sim_status(4))
     mon.on_sim(sim_status(5))

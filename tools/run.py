@@ -130,8 +130,9 @@ class Monitor:
     # coverage over distance: (sim_time, path_length, coverage), sampled on map updates
     timeline: list[tuple[float, float, float]] = field(default_factory=list)
     coverage_fn: Any = None
-    # maps read before the sim status of their own scan, by scan: sampled when it comes
-    sample_waiting: dict[int, m.OccupancyGrid] = field(default_factory=dict)
+    # the coverage of maps read before the sim status of their own scan, by scan: a timeline
+    # point when that status comes
+    sample_waiting: dict[int, float] = field(default_factory=dict)
     sample_every: float = 0.25  # [m] of travel (and at least every 5 s of sim time)
     first_motion: float | None = None  # [monotonic s] when the sim first reported travel
     # the robot's own estimate of its pose (odometry, corrected when the localizer runs),
@@ -168,10 +169,8 @@ class Monitor:
             if len(self.sim_by_seq) > 200:
                 for k in sorted(self.sim_by_seq)[:-100]:
                     del self.sim_by_seq[k]
-            due = sorted(k for k in self.sample_waiting if k <= msg.header.src_seq)
-            ready = [(self.sample_waiting.pop(k), self.sim_by_seq.get(k, msg)) for k in due]
-        for grid, at in ready:
-            self._sample(grid, at)
+            for k in sorted(k for k in self.sample_waiting if k <= msg.header.src_seq):
+                self._add_point(self.sim_by_seq.get(k, msg), self.sample_waiting.pop(k))
 
     def ending_grid(self, seq: int) -> m.OccupancyGrid | None:
         """The map of scan ``seq``, else the latest of an earlier scan, else the latest (call
@@ -278,31 +277,37 @@ class Monitor:
             _keep(self.grid_by_seq, msg.header.src_seq, msg, self.status_seq)
             # the timeline pairs the map with the travel up to its own scan (the newest
             # status read may be a scan or more off it), as a run in process does
-            sim = self.sim_by_seq.get(msg.header.src_seq)
-            if sim is None:  # its status is still on its way (on_sim takes it then)
-                self.sample_waiting[msg.header.src_seq] = msg
-                for k in sorted(self.sample_waiting)[:-WAITING_MAPS]:
-                    del self.sample_waiting[k]
+            seq = msg.header.src_seq
+            sim = self.sim_by_seq.get(seq)
+            if self.coverage_fn is None or sim is not None and not self._due(sim):
                 return
-        self._sample(msg, sim)
-
-    def _sample(self, msg: m.OccupancyGrid, sim: m.SimStatus) -> None:
-        """A timeline point for map ``msg`` at ``sim`` (its scan's status), if due: every
-        ``sample_every`` of travel, at least every 5 s of sim time."""
-        if self.coverage_fn is None:
-            return
+        cov = self.coverage_fn(msg)  # outside the lock: the other inputs go on meanwhile
         with self.lock:
-            last = self.timeline[-1] if self.timeline else None
-        if last is not None and sim.sim_time < last[0]:
-            return  # an older map than the last sample's
-        if last is None or sim.path_length - last[1] >= self.sample_every \
-                or sim.sim_time - last[0] >= 5.0:
-            cov = self.coverage_fn(msg)
-            with self.lock:
-                self.timeline.append((sim.sim_time, sim.path_length, cov))
+            sim = self.sim_by_seq.get(seq)
+            if sim is not None:
+                self._add_point(sim, cov)
+                return
+            # its status is still on its way: on_sim makes the point when it comes (only a
+            # number is kept, so a monitor that falls behind keeps every map's point)
+            self.sample_waiting[seq] = cov
+            for k in sorted(self.sample_waiting)[:-WAITING_POINTS]:
+                del self.sample_waiting[k]
+
+    def _due(self, sim: m.SimStatus) -> bool:
+        """A timeline point is due at ``sim``: ``sample_every`` of travel or 5 s of sim time
+        after the last, and not before it (call with the lock held)."""
+        last = self.timeline[-1] if self.timeline else None
+        return last is None or sim.sim_time >= last[0] and (
+            sim.path_length - last[1] >= self.sample_every or sim.sim_time - last[0] >= 5.0)
+
+    def _add_point(self, sim: m.SimStatus, cov: float) -> None:
+        """The timeline point of a map at ``sim`` (its scan's status), if due (call with the
+        lock held)."""
+        if self._due(sim):
+            self.timeline.append((sim.sim_time, sim.path_length, cov))
 
 
-WAITING_MAPS = 8  # maps kept for the timeline while their scans' sim status is on its way
+WAITING_POINTS = 10_000  # map coverages kept while their scans' sim status is on its way
 
 
 def _keep(by_seq: dict[int, Any], seq: int, value: Any, status_seq: int) -> None:
