@@ -440,6 +440,10 @@ def test_inproc_suite_writes_what_the_bus_suite_writes_and_checks_a_run_on_the_b
     assert "checked on the bus: 1 of 1 agree" in r.stderr
     doc = json.loads((out / "results.json").read_text())
     assert doc["config"]["inproc"] and len(doc["runs"]) == 2
+    # the suite's own wall time and CPU, the workers' and the bus run's included
+    assert 0 < doc["suite_wall_s"] and doc["suite_cpu_s"] > sum(
+        r["wall_time_s"] for r in doc["runs"]) * 0.5, (doc["suite_wall_s"], doc["suite_cpu_s"])
+    assert "suite: " in r.stderr and "The suite took" in (out / "summary.md").read_text()
     for run in doc["runs"]:
         assert run["finished"] and run["pipeline"] == "inproc" and run["collisions"] == 0
         run_dir = out / run["run_dir"]

@@ -54,6 +54,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -435,7 +436,9 @@ def _summary_head(doc: dict) -> list[str]:
     L.append(f"Made {doc['created']}. {len(doc['runs'])} of {cfg['planned_runs']} planned runs "
              f"({_n(len(cfg['world_labels']), 'world')} x {_n(len(strategies), 'strategy')} x "
              f"{_n(cfg['seeds'], 'seed')}), lockstep, max sim time {cfg['max_sim_time']:g} s, "
-             f"max wall time {cfg['max_wall_time']:g} s per run, {cfg['jobs']} at a time.")
+             f"max wall time {cfg['max_wall_time']:g} s per run, {cfg['jobs']} at a time."
+             + (f" The suite took {doc['suite_wall_s'] / 60:.1f} min of wall time and "
+                f"{doc['suite_cpu_s']:.0f} s of CPU." if doc.get("suite_wall_s") else ""))
     if doc.get("interrupted"):
         L.append("")
         L.append("**Interrupted: the suite is incomplete.**")
@@ -1041,6 +1044,7 @@ def run_suite(cfg: Config, argv: Sequence[str]) -> int:
                dynamic_ncols=True, disable=not cfg.progress)
     suite = _SuiteRuns(cfg, doc, bar, plan)
     old_term = _sigterm_as_interrupt()
+    t0, cpu0 = time.monotonic(), _cpu_s()
     try:
         _run_plan(cfg, plan, suite)
         if cfg.inproc and cfg.bus_check:
@@ -1052,9 +1056,19 @@ def run_suite(cfg: Config, argv: Sequence[str]) -> int:
         if old_term is not None:
             signal.signal(signal.SIGTERM, old_term)
         bar.close()
+    # [s] the suite's wall time and the CPU of this process and its finished children (the
+    # workers, the bus runs' processes), issue 17's measure of it
+    doc["suite_wall_s"] = round(time.monotonic() - t0, 1)
+    doc["suite_cpu_s"] = round(_cpu_s() - cpu0, 1)
     write_all(out, doc)
     _print_totals(doc, len(plan), out)
     return 130 if doc["interrupted"] else 0
+
+
+def _cpu_s() -> float:
+    """[s] user + system CPU of this process and of its children that were waited for."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
 
 
 def new_results(cfg: Config, argv: Sequence[str], planned: int) -> dict[str, Any]:
@@ -1177,6 +1191,9 @@ def _print_totals(doc: dict, planned: int, out: Path) -> None:
     n_fin = sum(1 for r in doc["runs"] if r.get("finished"))
     print(f"bench explore: {len(doc['runs'])}/{planned} runs, {n_fin} finished -> "
           f"{out}/summary.md, results.json, results.csv, curves/", file=sys.stderr)
+    if doc.get("suite_wall_s") is not None:
+        print(f"  suite: {doc['suite_wall_s'] / 60:.1f} min wall, {doc['suite_cpu_s']:.0f} s "
+              "CPU", file=sys.stderr)
     for key, rr in doc["ratios"].items():
         if key.startswith("path_length_m"):
             print(f"  path {rr['numerator']}/{rr['denominator']}: geometric mean "
