@@ -396,7 +396,7 @@ def test_in_process_or_on_the_bus_arguments(capsys):
                    "traffic to record")
 
 
-def test_bus_check_picks_every_strategy_on_short_runs_of_different_worlds():
+def test_bus_check_picks_every_strategy_on_short_runs_of_different_worlds_and_a_median_one():
     from topoexplore.tools.bench.explore_local import pick_bus_runs
 
     runs = [rep("a", "reliability", 0, 10.0, 50.0), rep("a", "frontier", 0, 9.0, 45.0),
@@ -408,6 +408,14 @@ def test_bus_check_picks_every_strategy_on_short_runs_of_different_worlds():
     assert got == [("a", "frontier"), ("b", "reliability"), ("a", "all-end-nodes")]
     assert len(pick_bus_runs(runs, 6)) == 6 and len(pick_bus_runs(runs, 10)) == 6
     assert pick_bus_runs(runs, 0) == [] and pick_bus_runs([], 3) == []
+    # the last pick is the run of median sim time among its strategy's (fresh worlds first)
+    runs = [rep("p", "frontier", 0, 9.0, 30.0)] + [
+        rep(w, "reliability", 0, 10.0, t) for w, t in (("q", 40.0), ("r", 100.0),
+                                                       ("s", 200.0), ("t", 300.0),
+                                                       ("u", 400.0))]
+    got = [(r["world_label"], r["strategy"]) for r in pick_bus_runs(runs, 2)]
+    assert got == [("p", "frontier"), ("s", "reliability")]
+    assert [r["world_label"] for r in pick_bus_runs(runs, 1)] == ["p"]
 
 
 def test_bus_check_compares_outcome_and_path():

@@ -204,8 +204,10 @@ def _write(run_dir: Path, report: dict, follow: RunFollower | None, P: Any,
 
 def pick_bus_runs(runs: Sequence[dict], n: int) -> list[dict]:
     """n of the in-process runs to run again on the bus: finished runs that drove at least
-    BUS_MIN_PATH_M, the shortest in sim time first, taking the strategies in turn and a world
-    not yet taken where there is one (so a small n still sees every strategy)."""
+    BUS_MIN_PATH_M, taking the strategies in turn and a world not yet taken where there is
+    one (so a small n still sees every strategy). The shortest in sim time first, for speed;
+    the last pick (of two or more) is the run nearest the median sim time of its candidates
+    instead, so the check also sees a map of the size the suite's runs have."""
     pool = sorted((r for r in runs if r.get("finished")
                    and (r.get("path_length_m") or 0.0) >= BUS_MIN_PATH_M),
                   key=lambda r: (r["sim_time_s"], str(r.get("world_label")), r["strategy"],
@@ -220,8 +222,9 @@ def pick_bus_runs(runs: Sequence[dict], n: int) -> list[dict]:
             if not left:
                 continue
             worlds = {c.get("world_label") for c in chosen}
-            fresh = [r for r in left if r.get("world_label") not in worlds]
-            chosen.append((fresh or left)[0])
+            left = [r for r in left if r.get("world_label") not in worlds] or left
+            mid = left[(len(left) - 1) // 2] if n >= 2 and len(chosen) == n - 1 else left[0]
+            chosen.append(mid)
     return chosen
 
 
