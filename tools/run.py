@@ -95,6 +95,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_param_args(p)
 
 
+SAMPLE_EVERY_M = 0.25  # [m] of travel between two points of the coverage timeline ...
+SAMPLE_EVERY_S = 5.0  # [s] ... and of sim time at most
+TRAIL_STEP_M = 0.02  # [m] a trail point when the robot moved further than this
+
+
+def timeline_due(last: tuple[float, float, float] | None, sim_time: float, path_length: float,
+                 every: float = SAMPLE_EVERY_M) -> bool:
+    """A coverage-timeline point is due at (sim_time [s], path_length [m]): ``every`` of
+    travel or SAMPLE_EVERY_S of sim time after the ``last`` point (None: the first), and not
+    before it. A bus run's monitor and a run in process (``bench explore``) sample alike."""
+    return last is None or sim_time >= last[0] and (
+        path_length - last[1] >= every or sim_time - last[0] >= SAMPLE_EVERY_S)
+
+
 @dataclass
 class Monitor:
     """Collects what the report needs from the bus (callbacks on zenoh threads)."""
@@ -133,7 +147,7 @@ class Monitor:
     # the coverage of maps read before the sim status of their own scan, by scan: a timeline
     # point when that status comes
     sample_waiting: dict[int, float] = field(default_factory=dict)
-    sample_every: float = 0.25  # [m] of travel (and at least every 5 s of sim time)
+    sample_every: float = SAMPLE_EVERY_M  # [m] of travel (and every SAMPLE_EVERY_S)
     first_motion: float | None = None  # [monotonic s] when the sim first reported travel
     # the robot's own estimate of its pose (odometry, corrected when the localizer runs),
     # compared with the truth at each truth stamp it covers: [m] sum of squares, max, count
@@ -226,7 +240,7 @@ class Monitor:
             if self.est is not None and len(self.pending) < 1000:
                 self.pending.append((msg.header.time, p.x, p.y))
             last = self.trail[-1] if self.trail else None
-            if last is None or math.hypot(p.x - last[0], p.y - last[1]) > 0.02:
+            if last is None or math.hypot(p.x - last[0], p.y - last[1]) > TRAIL_STEP_M:
                 self.trail.append((p.x, p.y, self.segment))
 
     def on_plan(self, msg: m.Path) -> None:
@@ -294,11 +308,9 @@ class Monitor:
                 del self.sample_waiting[k]
 
     def _due(self, sim: m.SimStatus) -> bool:
-        """A timeline point is due at ``sim``: ``sample_every`` of travel or 5 s of sim time
-        after the last, and not before it (call with the lock held)."""
-        last = self.timeline[-1] if self.timeline else None
-        return last is None or sim.sim_time >= last[0] and (
-            sim.path_length - last[1] >= self.sample_every or sim.sim_time - last[0] >= 5.0)
+        """A timeline point is due at ``sim`` (call with the lock held)."""
+        return timeline_due(self.timeline[-1] if self.timeline else None, sim.sim_time,
+                            sim.path_length, self.sample_every)
 
     def _add_point(self, sim: m.SimStatus, cov: float) -> None:
         """The timeline point of a map at ``sim`` (its scan's status), if due (call with the

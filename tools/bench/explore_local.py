@@ -24,9 +24,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-SAMPLE_EVERY_M = 0.25  # [m] of travel between timeline samples (as topoexplore run's monitor)
-SAMPLE_EVERY_S = 5.0  # [s] of sim time: a sample at least this often
-TRAIL_STEP_M = 0.02  # [m] a trail point when the robot moved this far (as the monitor)
+from topoexplore.tools.run import TRAIL_STEP_M, timeline_due
+
 BUS_MIN_PATH_M = 5.0  # [m] a bus check needs a run that drove at least this far
 
 
@@ -72,9 +71,8 @@ class RunFollower:
         if not self.trail or math.hypot(x - self.trail[-1][0], y - self.trail[-1][1]) > \
                 TRAIL_STEP_M:
             self.trail.append((x, y, self.segment))
-        last = self.timeline[-1] if self.timeline else None
-        if last is None or sim.path_length - last[1] >= SAMPLE_EVERY_M \
-                or sim.time - last[0] >= SAMPLE_EVERY_S:
+        if timeline_due(self.timeline[-1] if self.timeline else None, sim.time,
+                        sim.path_length):
             self.timeline.append((sim.time, sim.path_length, self.coverage_fn(self.last[4])))
         if self.wall_limit > 0 and time.monotonic() - self.t0 > self.wall_limit:
             raise WallLimit(f"stopped after {self.wall_limit:g} wall s")
@@ -230,10 +228,10 @@ def pick_bus_runs(runs: Sequence[dict], n: int) -> list[dict]:
 
 def compare(local: dict, bus: dict) -> dict[str, Any]:
     """One bus check: the same outcome (finished or not) and how far apart the paths are."""
-    pl, pb = local.get("path_length_m"), bus.get("path_length_m")
-    diff = abs(pb - pl) / pl if pl and pb is not None else None
     from topoexplore.tools.bench.explore import BUS_PATH_TOLERANCE
 
+    pl, pb = local.get("path_length_m"), bus.get("path_length_m")
+    diff = abs(pb - pl) / pl if pl and pb is not None else None
     same = bool(local.get("finished")) == bool(bus.get("finished"))
     agree = same and diff is not None and diff <= BUS_PATH_TOLERANCE
     return {"world_label": local.get("world_label"), "strategy": local["strategy"],
