@@ -34,6 +34,7 @@ from topoexplore.common import convert
 from topoexplore.common import messages as m
 from topoexplore.common.bus import CREDENTIALS_ENV, Bus, BusError, check_config_file
 from topoexplore.common.checkpoint import clear_state_dir
+from topoexplore.common.domain import GridMap
 from topoexplore.common.keys import DEFAULT_ENDPOINT, Keys
 from topoexplore.common.node import (
     LOG_LEVELS,
@@ -342,7 +343,9 @@ def _at_scan(by_seq: dict[int, Any], seq: int, latest: Any) -> Any:
 class Truth:
     """Ground-truth rasters of the world for coverage / accuracy: the solid cells, the free cells
     the robot can map (``target``, for ``coverage``) and every free cell connected to the start
-    (``free``, for ``coverage_free``), at the map resolution (docs/design.md "Measuring a run")."""
+    (``free``, for ``coverage_free``), at the map resolution (docs/design.md "Measuring a run").
+    A map is given as the wire's OccupancyGrid (the monitor) or as a GridMap (a run in
+    process, ``bench explore``)."""
 
     def __init__(self, world_name: str, p: Params):
         from topoexplore.sim.world import (
@@ -361,32 +364,36 @@ class Truth:
         self.origin = (ox, oy)
         self.free_origin = (fx, fy)  # of both free and target
 
-    def coverage(self, grid: m.OccupancyGrid | None, p: Params) -> float:
+    def coverage(self, grid: m.OccupancyGrid | GridMap | None, p: Params) -> float:
         """Share of the free cells the robot can map that the map knows (``coverage``)."""
         return self._share(grid, p, self.target)
 
-    def coverage_free(self, grid: m.OccupancyGrid | None, p: Params) -> float:
+    def coverage_free(self, grid: m.OccupancyGrid | GridMap | None, p: Params) -> float:
         """Share of every free cell connected to the start that the map knows (the older
         figure, ``coverage_free``)."""
         return self._share(grid, p, self.free)
 
-    def _share(self, grid: m.OccupancyGrid | None, p: Params, truth) -> float:
+    def _share(self, grid: m.OccupancyGrid | GridMap | None, p: Params, truth) -> float:
         from topoexplore.tools.metrics import coverage
 
         if grid is None:
             return 0.0
-        g = convert.grid_from_msg(grid)
+        g = _domain(grid)
         return float(coverage(g.data, g.geom, truth, self.free_origin, self.resolution,
                               p.mapper.p_free, p.mapper.p_occ))
 
-    def accuracy(self, grid: m.OccupancyGrid | None, p: Params) -> float:
+    def accuracy(self, grid: m.OccupancyGrid | GridMap | None, p: Params) -> float:
         from topoexplore.tools.metrics import map_accuracy
 
         if grid is None:
             return 0.0
-        g = convert.grid_from_msg(grid)
+        g = _domain(grid)
         return float(map_accuracy(g.data, g.geom, self.occ, self.origin, self.resolution,
                                   p.mapper.p_free, p.mapper.p_occ))
+
+
+def _domain(grid: m.OccupancyGrid | GridMap) -> GridMap:
+    return grid if isinstance(grid, GridMap) else convert.grid_from_msg(grid)
 
 
 def _pose_error(mon: Monitor) -> dict[str, float | int]:

@@ -24,7 +24,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from topoexplore.tools.run import TRAIL_STEP_M, timeline_due
+from topoexplore.tools.run import TRAIL_STEP_M, Truth, timeline_due
 
 BUS_MIN_PATH_M = 5.0  # [m] a bus check needs a run that drove at least this far
 
@@ -78,26 +78,6 @@ class RunFollower:
             raise WallLimit(f"stopped after {self.wall_limit:g} wall s")
 
 
-def _truth(world_arg: str, P: Any) -> tuple[Any, Any]:
-    """(coverage_fn, accuracy_fn) of GridMaps against the world's truth rasters."""
-    from topoexplore.sim.world import load_world, rasterize, truth_free_reachable, truth_mappable
-    from topoexplore.tools.metrics import coverage, map_accuracy
-
-    w, res = load_world(world_arg), P.mapper.resolution
-    solid, sx, sy = rasterize(w, res)
-    _free, fx, fy = truth_free_reachable(w, res)
-    target, _, _ = truth_mappable(w, res, P.robot.radius, P.laser.range_max)
-    pf, po = P.mapper.p_free, P.mapper.p_occ
-
-    def cov(g: Any) -> float:
-        return float(coverage(g.data, g.geom, target, (fx, fy), res, pf, po))
-
-    def acc(g: Any) -> float:
-        return float(map_accuracy(g.data, g.geom, solid, (sx, sy), res, pf, po))
-
-    return cov, acc
-
-
 def run_local(label: str, world_arg: str, strategy: str, seed: int, out: Path,
               max_sim_time: float, max_wall_time: float = 0.0, params: str | None = None,
               overrides: Sequence[str] = ()) -> dict:
@@ -122,8 +102,8 @@ def run_local(label: str, world_arg: str, strategy: str, seed: int, out: Path,
     try:
         P = load_params(params, [f"sim.world={json.dumps(world_arg)}", f"sim.seed={int(seed)}",
                                  *strategy_overrides(strategy), *overrides])
-        cov_fn, acc_fn = _truth(world_arg, P)
-        follow = RunFollower(cov_fn, max_wall_time)
+        truth = Truth(world_arg, P)
+        follow = RunFollower(lambda g: truth.coverage(g, P), max_wall_time)
         r = inproc.run(world_arg, strategy, seed, tuple(overrides), max_sim_time, follow,
                        params=params, on_sim=follow.on_sim)
     except Exception as exc:  # noqa: BLE001 - one broken run must not end the suite
@@ -132,7 +112,8 @@ def run_local(label: str, world_arg: str, strategy: str, seed: int, out: Path,
                   "collisions", "end_nodes_visited", "end_nodes_accepted_remote"):
             report[k] = None
     else:
-        report.update(_figures(r, follow, acc_fn, P.reliability.p_reliable, max_sim_time))
+        report.update(_figures(r, follow, lambda g: truth.accuracy(g, P),
+                               P.reliability.p_reliable, max_sim_time))
     report["wall_time_s"] = round(time.monotonic() - t0, 3)
     _write(run_dir, report, follow, P if follow is not None else None, label)
     tl = run_dir / "timeline.csv"  # read back as a bus run's is: the same rounding
