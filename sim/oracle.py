@@ -65,6 +65,8 @@ SPACINGS = (0.1, 0.2, 0.3, 0.5)  # [m] lattices of candidate viewpoints tried (t
 FRACTION = 0.99  # of the coverage set the tour sees
 MAX_CANDIDATES = 4000  # the lattice is made coarser beyond this many candidate viewpoints
 SEQUENTIAL_OVERHEADS = (5.0, 20.0, 100.0)  # [cells] the sequential choices tried (_Plan)
+DIST_CHUNK = 32  # sources per shortest path search of _Plan.dist (each a row of the grid)
+PRED_KEPT = 64  # shortest path trees _Plan.seg keeps (each an int32 per reachable cell)
 _POP = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)  # bits per byte
 
 
@@ -110,13 +112,67 @@ def _bits(a: np.ndarray) -> int:
 
 
 def _row_bits(rows: np.ndarray, unseen: np.ndarray | None = None) -> np.ndarray:
-    """int64 set bits per packed row (of rows & unseen with unseen), 256 rows at a time (the
-    byte-count temporaries of a whole large lattice would take gigabytes)."""
-    out = []
-    for i in range(0, len(rows), 256):
-        chunk = rows[i:i + 256] if unseen is None else rows[i:i + 256] & unseen
-        out.append(_POP[chunk].sum(axis=1, dtype=np.int64))
-    return np.concatenate(out) if out else np.zeros(0, dtype=np.int64)
+    """int64 set bits per packed row (of rows & unseen with unseen), without temporaries: a
+    large lattice's rows are hundreds of MB, and :meth:`_Plan.sequential` counts them on
+    every step."""
+    if len(rows) == 0:
+        return np.zeros(0, dtype=np.int64)
+    if unseen is None:
+        unseen = np.full(rows.shape[1], 255, dtype=np.uint8)
+    return _and_popcount(rows, unseen, _POP)
+
+
+@njit(cache=True, nogil=True)
+def _and_popcount(rows, mask, pop):  # pragma: no cover - compiled
+    """Set bits of rows[i] & mask per row i (pop: the set bits of each byte value)."""
+    out = np.zeros(rows.shape[0], dtype=np.int64)
+    for i in range(rows.shape[0]):
+        n = 0
+        for j in range(rows.shape[1]):
+            n += pop[rows[i, j] & mask[j]]
+        out[i] = n
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _and_popcount_at(rows, mask, at, pop):  # pragma: no cover - compiled
+    """_and_popcount over the bytes at (the only nonzero bytes of mask)."""
+    out = np.zeros(rows.shape[0], dtype=np.int64)
+    for i in range(rows.shape[0]):
+        n = 0
+        for j in at:
+            n += pop[rows[i, j] & mask[j]]
+        out[i] = n
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _covers(rows, mask, at):  # pragma: no cover - compiled
+    """Per row: does it hold every bit of mask (whose nonzero bytes are at)?"""
+    out = np.ones(rows.shape[0], dtype=np.bool_)
+    for i in range(rows.shape[0]):
+        for j in at:
+            if rows[i, j] & mask[j] != mask[j]:
+                out[i] = False
+                break
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _walk(pred, source, target):  # pragma: no cover - compiled
+    """The nodes of the shortest path from source to target (without source) in order, from a
+    predecessor array (negative: none)."""
+    n = 0
+    v = target
+    while v != source and v >= 0:
+        n += 1
+        v = pred[v]
+    out = np.empty(n, dtype=np.int64)
+    v = target
+    for k in range(n - 1, -1, -1):
+        out[k] = v
+        v = pred[v]
+    return out
 
 
 def greedy_cover(views: np.ndarray, total: int, fraction: float) -> tuple[list[int], int]:
@@ -171,13 +227,24 @@ def _length(d: np.ndarray, order: list[int]) -> float:
 
 
 def _two_opt(d: np.ndarray, order: list[int]) -> bool:
-    """Reverse order[i..j] where that shortens the open tour (order[0] stays first)."""
-    n, any_ = len(order), False
+    """Reverse order[i..j] where that shortens the open tour (order[0] stays first); True if
+    any move was made (order is changed in place)."""
+    a = np.asarray(order, dtype=np.int64)
+    any_ = bool(_two_opt_kernel(np.ascontiguousarray(d, dtype=np.float64), a))
+    order[:] = a.tolist()
+    return any_
+
+
+@njit(cache=True, nogil=True)
+def _two_opt_kernel(d, order):  # pragma: no cover - compiled
+    n = order.shape[0]
+    any_ = False
     improved = True
     while improved:
         improved = False
         for i in range(1, n - 1):
-            a, b = order[i - 1], order[i]
+            a = order[i - 1]
+            b = order[i]
             for j in range(i + 1, n):
                 c = order[j]
                 delta = d[a, c] - d[a, b]
@@ -185,37 +252,70 @@ def _two_opt(d: np.ndarray, order: list[int]) -> bool:
                     e = order[j + 1]
                     delta += d[b, e] - d[c, e]
                 if delta < -1e-9:
-                    order[i:j + 1] = order[i:j + 1][::-1]
-                    improved = any_ = True
-                    a, b = order[i - 1], order[i]
+                    order[i:j + 1] = order[i:j + 1][::-1].copy()
+                    improved = True
+                    any_ = True
+                    a = order[i - 1]
+                    b = order[i]
     return any_
 
 
 def _or_opt(d: np.ndarray, order: list[int]) -> bool:
     """Move a segment of 1 to 3 nodes (either way round) to where it shortens the open tour
-    (order[0] stays first); True if any move was made."""
+    (order[0] stays first); True if any move was made (order is changed in place)."""
+    a = np.asarray(order, dtype=np.int64)
+    any_ = bool(_or_opt_kernel(np.ascontiguousarray(d, dtype=np.float64), a))
+    order[:] = a.tolist()
+    return any_
+
+
+@njit(cache=True, nogil=True)
+def _or_opt_kernel(d, order):  # pragma: no cover - compiled
+    n = order.shape[0]
     any_ = False
-    for seg in (1, 2, 3):
+    rest = np.empty(n, dtype=np.int64)
+    for seg in range(1, 4):
         i = 1
-        while i + seg <= len(order):
-            p, s0, s1 = order[i - 1], order[i], order[i + seg - 1]
-            q = order[i + seg] if i + seg < len(order) else None
-            gain = d[p, s0] - (0.0 if q is None else d[p, q] - d[s1, q])
-            rest = order[:i] + order[i + seg:]
-            best, where = 1e-9, None
-            for j in range(1, len(rest) + 1):
+        while i + seg <= n:
+            p = order[i - 1]
+            s0 = order[i]
+            s1 = order[i + seg - 1]
+            gain = d[p, s0]
+            if i + seg < n:
+                q = order[i + seg]
+                gain = d[p, s0] - (d[p, q] - d[s1, q])
+            m = 0  # rest = order without the segment
+            for k in range(n):
+                if k < i or k >= i + seg:
+                    rest[m] = order[k]
+                    m += 1
+            best = 1e-9
+            where = -1
+            rev = False
+            for j in range(1, m + 1):
                 if j == i:
                     continue
                 a = rest[j - 1]
-                b = rest[j] if j < len(rest) else None
-                for first, last, rev in ((s0, s1, False), (s1, s0, True)):
-                    add = d[a, first] + (0.0 if b is None else d[last, b] - d[a, b])
+                for way in range(2):
+                    first = s0 if way == 0 else s1
+                    last = s1 if way == 0 else s0
+                    add = d[a, first]
+                    if j < m:
+                        b = rest[j]
+                        add = d[a, first] + (d[last, b] - d[a, b])
                     if gain - add > best:
-                        best, where = gain - add, (j, rev)
-            if where is not None:
-                j, rev = where
-                piece = order[i:i + seg][::-1] if rev else order[i:i + seg]
-                order[:] = rest[:j] + piece + rest[j:]
+                        best = gain - add
+                        where = j
+                        rev = way == 1
+            if where >= 0:
+                piece = order[i:i + seg].copy()
+                if rev:
+                    piece = piece[::-1].copy()
+                out = np.empty(n, dtype=np.int64)
+                out[:where] = rest[:where]
+                out[where:where + seg] = piece
+                out[where + seg:] = rest[where:m]
+                order[:] = out
                 any_ = True
             else:
                 i += 1
@@ -224,7 +324,9 @@ def _or_opt(d: np.ndarray, order: list[int]) -> bool:
 
 def _grid_graph(pos: np.ndarray) -> tuple[csr_matrix, np.ndarray]:
     """The 8-connected graph of the True cells of pos (edge lengths 1 and sqrt 2 [cells]) and
-    the node number of each cell (-1 off pos)."""
+    the node number of each cell (-1 off pos). Every edge is in it both ways, so it is
+    searched as a directed graph: the same paths, without scipy building its transpose on
+    every search."""
     h, w = pos.shape
     node = np.full((h, w), -1, dtype=np.int64)
     rr, cc = np.nonzero(pos)
@@ -356,12 +458,25 @@ class _Plan:
         self.rows, self.cols = cells
         self.see, self.want, self.step = see, want, step
         self._segs: dict[tuple[int, int], np.ndarray] = {}
+        self._dist: dict[int, np.ndarray] = {}  # candidate -> path lengths to every candidate
+        self._pred: dict[int, np.ndarray] = {}  # candidate -> shortest path tree (PRED_KEPT)
+        self._gain0: np.ndarray | None = None  # unseen bits per candidate after the start's
+
+    def dist(self, cands: list[int]) -> np.ndarray:
+        """(len(cands), candidates) path lengths [cells] from each of cands to every
+        candidate: each row is searched once (DIST_CHUNK sources at a time) and kept, since
+        the tour is made again and again over mostly the same viewpoints."""
+        missing = [c for c in dict.fromkeys(cands) if c not in self._dist]
+        for i in range(0, len(missing), DIST_CHUNK):
+            part = missing[i:i + DIST_CHUNK]
+            d = dijkstra(self.graph, directed=True, indices=self.cand_node[part])
+            for c, row in zip(part, d[:, self.cand_node], strict=True):
+                self._dist[c] = row
+        return np.stack([self._dist[c] for c in cands])
 
     def tour(self, cands: list[int]) -> tuple[list[int], float, float]:
         """open_tour over cands (cands[0] the start): (order, length, greedy length)."""
-        idx = self.cand_node[cands]
-        d = dijkstra(self.graph, directed=False, indices=idx)[:, idx]
-        order, length, greedy = open_tour(d)
+        order, length, greedy = open_tour(self.dist(cands)[:, cands])
         return [cands[o] for o in order], length, greedy
 
     def seg(self, a: int, b: int) -> np.ndarray:
@@ -369,14 +484,22 @@ class _Plan:
         key = (min(a, b), max(a, b))
         if key not in self._segs:
             na, nb = int(self.cand_node[key[0]]), int(self.cand_node[key[1]])
-            _, pred = dijkstra(self.graph, directed=False, indices=na, return_predecessors=True)
-            cells, v = [], nb
-            while v != na and v >= 0:
-                cells.append(v)
-                v = int(pred[v])
-            cells = cells[::-1][self.step - 1::self.step]
+            pred = self._pred.get(key[0])
+            row = self._dist.get(key[0])
+            if pred is None and row is not None:  # the search stops at b's path length: the
+                #   tree up to there is the whole search's (it settles nodes in the same order)
+                _, pred = dijkstra(self.graph, directed=True, indices=na,
+                                   return_predecessors=True,
+                                   limit=float(row[key[1]]) * (1.0 + 1e-9) + 1e-9)
+            elif pred is None:
+                _, pred = dijkstra(self.graph, directed=True, indices=na,
+                                   return_predecessors=True)
+                if len(self._pred) >= PRED_KEPT:  # the oldest tree goes
+                    del self._pred[next(iter(self._pred))]
+                self._pred[key[0]] = pred
+            cells = _walk(pred, na, nb)[self.step - 1::self.step]
             bits = np.zeros(self.views.shape[1], dtype=np.uint8)
-            if cells:
+            if cells.size:
                 got = self.see(self.rows[cells].astype(np.int64),
                                self.cols[cells].astype(np.int64))
                 bits = np.bitwise_or.reduce(got, axis=0)
@@ -400,15 +523,20 @@ class _Plan:
         door does not beat a room; > 0), counting what the path there sees."""
         order = [0]
         seen = self.views[0].copy()
+        if self._gain0 is None:  # each row's unseen bits: counted once, then only the bits
+            self._gain0 = _row_bits(self.views, ~seen)  # each step newly sees are taken off
+        gain = self._gain0.copy()
         while self.count(seen) < self.want:
-            d = dijkstra(self.graph, directed=False, indices=self.cand_node[order[-1]])
-            gain = _row_bits(self.views, ~seen)
-            dist = d[self.cand_node]
+            dist = self.dist([order[-1]])[0]
             score = np.where((gain > 0) & np.isfinite(dist), gain / (dist + overhead), -1.0)
             k = int(np.argmax(score))
             if score[k] <= 0:
                 break
-            seen |= self.views[k] | self.seg(order[-1], k)
+            new = seen | self.views[k] | self.seg(order[-1], k)
+            fresh = new & ~seen
+            at = np.flatnonzero(fresh)
+            gain -= _and_popcount_at(self.views, fresh, at, _POP)
+            seen = new
             order.append(k)
         return order
 
@@ -433,16 +561,15 @@ class _Plan:
         or a corridor, where a nearer one sees enough."""
         for p in range(1, len(order)):
             alone = self.views[order[p]] & ~self.seen(order, skip=p)
-            fits = np.concatenate([np.all((self.views[i:i + 256] & alone) == alone, axis=1)
-                                   for i in range(0, len(self.views), 256)])
+            fits = _covers(self.views, alone, np.flatnonzero(alone))
             fits[order] = False
             cand = np.nonzero(fits)[0]
             if cand.size == 0:
                 continue
             ends = [order[p - 1]] + ([order[p + 1]] if p + 1 < len(order) else [])
-            d = dijkstra(self.graph, directed=False, indices=self.cand_node[ends])
-            detour = d[:, self.cand_node[cand]].sum(axis=0)
-            now = d[:, self.cand_node[order[p]]].sum()
+            d = self.dist(ends)
+            detour = d[:, cand].sum(axis=0)
+            now = d[:, order[p]].sum()
             best = int(np.argmin(detour))
             if detour[best] < now - 1e-9:
                 new = order[:p] + [int(cand[best])] + order[p + 1:]

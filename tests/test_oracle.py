@@ -8,7 +8,9 @@ import math
 
 import numpy as np
 import pytest
+from scipy.sparse.csgraph import dijkstra
 
+from topoexplore.sim import oracle as sim_oracle
 from topoexplore.sim.oracle import exhaustive_tour, greedy_cover, open_tour, oracle_tour
 from topoexplore.sim.world import load_world, parse_world
 from topoexplore.tools.bench import oracle as bench_oracle
@@ -56,6 +58,44 @@ def test_greedy_cover_takes_the_start_then_the_largest_gain():
     assert chosen == [0, 2, 3] and seen == 8
     chosen, seen = greedy_cover(rows, 8, 0.75)  # 6 of 8 bits: the start and row 2
     assert chosen == [0, 2] and seen == 6
+
+
+def test_row_bits_counts_the_bits_of_each_row_and_the_mask():
+    rng = np.random.default_rng(1)
+    rows = rng.integers(0, 256, (37, 11), dtype=np.uint8)
+    mask = rng.integers(0, 256, 11, dtype=np.uint8)
+    bits = np.unpackbits(rows, axis=1)
+    assert sim_oracle._row_bits(rows).tolist() == bits.sum(axis=1).tolist()
+    assert (sim_oracle._row_bits(rows, mask).tolist()
+            == (bits & np.unpackbits(mask)).sum(axis=1).tolist())
+    assert sim_oracle._row_bits(rows[:0]).shape == (0,)
+    sparse = np.where(np.arange(11) % 4 == 1, mask, 0).astype(np.uint8)  # _Plan.sequential
+    at = np.flatnonzero(sparse)  # counts only the bytes a step newly sees
+    assert (sim_oracle._and_popcount_at(rows, sparse, at, sim_oracle._POP).tolist()
+            == sim_oracle._row_bits(rows, sparse).tolist())
+
+
+def test_the_plans_kept_path_lengths_and_trees_are_the_graphs():
+    """_Plan.dist keeps each candidate's row of path lengths, and seg its shortest path tree
+    (both searched once): the same numbers as a search of the graph each time, and _walk the
+    path the predecessors give (a cell's predecessor walked back to the start)."""
+    ctx = sim_oracle._Context(load_world("small-house"), sim_oracle.LASER_RANGE,
+                              sim_oracle.ROBOT_RADIUS, sim_oracle.RESOLUTION)
+    plan, _, _ = ctx.plan(8, 0.99)
+    cands = [0, 5, 3, 5, 17]
+    want = dijkstra(plan.graph, directed=False, indices=plan.cand_node[cands])
+    assert np.array_equal(plan.dist(cands), want[:, plan.cand_node])
+    assert np.array_equal(plan.dist([17, 0]), want[[4, 0]][:, plan.cand_node])
+    _, pred = dijkstra(plan.graph, directed=False, indices=int(plan.cand_node[0]),
+                       return_predecessors=True)
+    src, dst = int(plan.cand_node[0]), int(plan.cand_node[17])
+    path, v = [], dst
+    while v != src:
+        path.append(v)
+        v = int(pred[v])
+    assert sim_oracle._walk(pred, src, dst).tolist() == path[::-1]
+    assert sim_oracle._walk(pred, src, src).tolist() == []
+    assert plan.seg(0, 17).tobytes() == plan.seg(17, 0).tobytes()
 
 
 CORRIDOR = {
