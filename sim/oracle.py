@@ -216,9 +216,11 @@ def open_tour(d: np.ndarray) -> tuple[list[int], float, float]:
         order.append(nxt)
         left.discard(nxt)
     greedy = _length(d, order)
+    dd, arr = np.ascontiguousarray(d, dtype=np.float64), np.asarray(order, dtype=np.int64)
     improved = True
-    while improved:
-        improved = _two_opt(d, order) | _or_opt(d, order)
+    while improved:  # arr is changed in place
+        improved = bool(_two_opt(dd, arr) | _or_opt(dd, arr))
+    order = arr.tolist()
     return order, _length(d, order), greedy
 
 
@@ -226,17 +228,10 @@ def _length(d: np.ndarray, order: list[int]) -> float:
     return float(sum(d[a, b] for a, b in zip(order[:-1], order[1:], strict=True)))
 
 
-def _two_opt(d: np.ndarray, order: list[int]) -> bool:
-    """Reverse order[i..j] where that shortens the open tour (order[0] stays first); True if
-    any move was made (order is changed in place)."""
-    a = np.asarray(order, dtype=np.int64)
-    any_ = bool(_two_opt_kernel(np.ascontiguousarray(d, dtype=np.float64), a))
-    order[:] = a.tolist()
-    return any_
-
-
 @njit(cache=True, nogil=True)
-def _two_opt_kernel(d, order):  # pragma: no cover - compiled
+def _two_opt(d, order):  # pragma: no cover - compiled
+    """Reverse order[i..j] (int64, in place) where that shortens the open tour (order[0]
+    stays first); True if any move was made."""
     n = order.shape[0]
     any_ = False
     improved = True
@@ -260,17 +255,10 @@ def _two_opt_kernel(d, order):  # pragma: no cover - compiled
     return any_
 
 
-def _or_opt(d: np.ndarray, order: list[int]) -> bool:
-    """Move a segment of 1 to 3 nodes (either way round) to where it shortens the open tour
-    (order[0] stays first); True if any move was made (order is changed in place)."""
-    a = np.asarray(order, dtype=np.int64)
-    any_ = bool(_or_opt_kernel(np.ascontiguousarray(d, dtype=np.float64), a))
-    order[:] = a.tolist()
-    return any_
-
-
 @njit(cache=True, nogil=True)
-def _or_opt_kernel(d, order):  # pragma: no cover - compiled
+def _or_opt(d, order):  # pragma: no cover - compiled
+    """Move a segment of 1 to 3 nodes (either way round) of order (int64, in place) to where
+    it shortens the open tour (order[0] stays first); True if any move was made."""
     n = order.shape[0]
     any_ = False
     rest = np.empty(n, dtype=np.int64)
