@@ -89,7 +89,7 @@ def world_key(world) -> str:
 @functools.lru_cache(maxsize=64)
 def _tour(path: str) -> dict[str, Any]:
     """The figures of the oracle tour of the world file path: kept on disk by world and
-    code (:func:`world_key`; a tour of a large floor takes minutes, and every benchmark of
+    code (:func:`world_key`; a tour of a 60 x 60 m floor takes about 40 s, and every benchmark of
     it asks again), and per process."""
     from topoexplore.sim.oracle import oracle_tour
     from topoexplore.sim.world import load_world
