@@ -99,6 +99,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 SAMPLE_EVERY_M = 0.25  # [m] of travel between two points of the coverage timeline ...
 SAMPLE_EVERY_S = 5.0  # [s] ... and of sim time at most
 TRAIL_STEP_M = 0.02  # [m] a trail point when the robot moved further than this
+WAITING_POINTS = 10_000  # map coverages the monitor keeps while their scans' sim status is
+#   on its way
 
 
 def timeline_due(last: tuple[float, float, float] | None, sim_time: float, path_length: float,
@@ -319,8 +321,6 @@ class Monitor:
         if self._due(sim):
             self.timeline.append((sim.sim_time, sim.path_length, cov))
 
-
-WAITING_POINTS = 10_000  # map coverages kept while their scans' sim status is on its way
 
 
 def _keep(by_seq: dict[int, Any], seq: int, value: Any, status_seq: int) -> None:

@@ -1,5 +1,5 @@
-"""``topoexplore bench explore --inproc``: the suite's explorations in process, and a sample
-of them checked on the real processes.
+"""``topoexplore bench explore`` (without ``--bus``): the suite's explorations in process,
+and a sample of them checked on the real processes.
 
 Each run is ``bench inproc``'s pipeline (the six cores called in the order the services run
 them in lockstep, no bus), followed as ``topoexplore run``'s monitor follows a run on the bus,
@@ -10,9 +10,10 @@ distance, sampled on map updates every 0.25 m of travel and at least every 5 s),
 ``trail.csv``, ``map.yaml`` and ``final.png``. A run costs its compute alone: about a third of
 the CPU of the same run on the bus (docs/benchmarks.md, "The suite in process").
 
-:func:`bus_check` then runs some of the same runs through ``topoexplore run --lockstep`` (the
-real processes and the bus) and compares outcome and path: the in-process figures stand for
-the bus runs only as long as these agree.
+``bench explore`` then runs some of the same runs (:func:`pick_bus_runs`) through
+``topoexplore run --lockstep`` (the real processes and the bus) and compares outcome and path
+(:func:`compare`): the in-process figures stand for the bus runs only as long as these
+agree.
 """
 
 from __future__ import annotations
