@@ -322,7 +322,6 @@ class Monitor:
             self.timeline.append((sim.sim_time, sim.path_length, cov))
 
 
-
 def _keep(by_seq: dict[int, Any], seq: int, value: Any, status_seq: int) -> None:
     """by_seq[seq] = value, forgetting the scans before the newest one at or before
     ``status_seq`` (the run cannot end on them), and all but the GRIDS_KEPT latest."""
