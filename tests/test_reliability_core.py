@@ -12,10 +12,17 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from topoexplore.common.domain import Belief, Graph, GridMap, Node, Pose
-from topoexplore.common.grid import GridGeometry, near_frontier, nearest_occupied, open_unknown
+from topoexplore.common.grid import (
+    GridGeometry,
+    OpenUnknown,
+    near_frontier,
+    nearest_occupied,
+    open_unknown,
+)
 from topoexplore.common.messages import Reliability, decode, encode, header
 from topoexplore.common.params import LaserParams, ReliabilityParams
 from topoexplore.services.reliability.core import (
+    FrontierOwnership,
     ReliabilityCore,
     ReliabilityError,
     angle_index,
@@ -535,6 +542,39 @@ def test_a_chain_between_two_end_nodes_is_split_between_them():
     assert frontier_owned([1, 9], edges3, g, GEOM, 0.35, 4, 8.0) == {1: 10}
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2 ** 31 - 1), st.integers(1, 6), st.sampled_from(["never", "open", "lazy"]))
+def test_ownership_read_from_a_window_is_the_whole_grids(seed, min_cells, unknown):
+    """FrontierOwnership.cells from the window round a node's chain equals the same count on
+    the whole grid: random trees of straight edges (with chains of corner nodes, a chain
+    joining two end nodes, edges both ways), on grids of free, occupied, undecided and
+    never-observed blocks with speckle, the unknown mask absent, an array or an
+    OpenUnknown."""
+    rng = np.random.default_rng(seed)
+    geom = GridGeometry(resolution=0.1, origin_x=0.0, origin_y=0.0, width=90, height=70)
+    g = rng.choice(np.array([-1, 0, 0, 0, 50, 100], np.int8), size=(7, 9)).repeat(10, 0).repeat(
+        10, 1)
+    speck = rng.random(g.shape) < 0.05
+    g[speck] = rng.choice(np.array([-1, 0, 100, 40], np.int8), size=int(speck.sum()))
+    n = int(rng.integers(2, 12))
+    xy = rng.uniform((0.2, 0.2), (8.8, 6.8), size=(n, 2))
+    pairs = [(i, int(rng.integers(0, i))) for i in range(1, n)] + [(n, n + 1)]
+    xy = np.vstack([xy, rng.uniform((0.2, 0.2), (8.8, 6.8), size=(2, 2))])
+    edges = []
+    for a, b in pairs:
+        mid = (xy[a] + xy[b]) / 2 + rng.normal(0.0, 0.3, 2)
+        pts = [tuple(xy[a]), tuple(mid), tuple(xy[b])]
+        edges.append((a, b, pts) if rng.random() < 0.7 else (b, a, pts[::-1]))
+    deg = np.bincount(np.array(pairs).ravel(), minlength=n + 2)
+    ends = [int(i) for i in np.flatnonzero(deg == 1)]
+    gr = graph([], (), edges)
+    mask = {"never": None, "open": open_unknown(g, 30), "lazy": OpenUnknown(g, 30)}[unknown]
+    for max_dist in (0.6, 1.5):
+        win = FrontierOwnership(ends, gr, g, geom, 0.35, min_cells, max_dist, mask)
+        whole = FrontierOwnership(ends, gr, g, geom, 0.35, min_cells, max_dist, mask, whole=True)
+        assert [win.cells(e) for e in ends] == [whole.cells(e) for e in ends]
+
+
 def test_observations_of_a_node_owning_a_frontier_do_not_count():
     """Rule 3 (reliability.frontier_group > 0; 1 m by default, docs/design.md)."""
     g = side_opening_grid()
@@ -563,14 +603,15 @@ def test_observations_of_a_node_owning_a_frontier_do_not_count():
 
 
 def test_frontier_ownership_is_worked_out_only_when_an_observation_can_count(monkeypatch):
-    """Rule 3's test runs once on an update with a node in sight from a new viewpoint, and
-    not at all on one without (the robot looking away); Beliefs keep the count as last
-    worked out."""
+    """Rule 3's test runs once on an update with a node in sight from a new viewpoint (for
+    that node alone), and not at all on one without (the robot looking away); Beliefs keep
+    the count as last worked out."""
     import topoexplore.services.reliability.core as rc
 
     calls = []
-    real = rc.frontier_owned
-    monkeypatch.setattr(rc, "frontier_owned", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = rc.FrontierOwnership.cells
+    monkeypatch.setattr(rc.FrontierOwnership, "cells",
+                        lambda *a, **k: calls.append(1) or real(*a, **k))
     g, edges = side_opening_grid(), chain_edges()
     core = ReliabilityCore(msgspec.structs.replace(P, frontier_group=0.4))
     ends = [(1, -4.5, 0.0), (4, -0.5, -0.8)]
