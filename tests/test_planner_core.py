@@ -791,6 +791,34 @@ def test_polyline_cache_gives_the_index_a_fresh_build_gives():
         assert _index_figures(kept) == _index_figures(gr.build_index(g, 0.25, clear, 0.3))
 
 
+def test_the_index_is_kept_while_graph_and_clearance_stay_the_same():
+    """The same graph sent again (a new object, equal in every node, edge and point) with the
+    same clearance along it gives the index made before; a moved point, another node kind,
+    a clearance changed at one polyline point or another argument make it afresh, as a
+    build without the cache would."""
+    narrow_at = [3.0]
+    clear = lambda p: np.where(np.abs(p[:, 0] - narrow_at[0]) < 0.3, 0.1, 0.5)  # noqa: E731
+
+    def make(kind="end", y3=3.0):
+        return topo([node(1, "end", 0.0, 0.5), node(2, "branch", 6.0, 0.5),
+                     node(3, kind, 6.0, y3)],
+                    [edge(1, 2, [(0.0, 0.5), (6.0, 0.5)]), edge(2, 3, [(6.0, 0.5), (6.0, y3)])])
+
+    cache = gr.PolylineCache()
+    first = gr.build_index(make(), 0.25, clear, 0.3, cache)
+    assert gr.build_index(make(), 0.25, clear, 0.3, cache) is first and cache.reused == 1
+    for g, args in ((make(y3=3.2), (0.25, 0.3)), (make(kind="branch"), (0.25, 0.3)),
+                    (make(), (0.3, 0.3)), (make(), (0.25, 0.0))):
+        got = gr.build_index(g, *args[:1], clear, args[1], cache)
+        assert got is not first
+        assert _index_figures(got) == _index_figures(gr.build_index(g, args[0], clear, args[1]))
+        first = got
+    narrow_at[0] = 2.0  # the clearance changed along edge 1-2
+    got = gr.build_index(make(), 0.25, clear, 0.0, cache)
+    assert got is not first and cache.reused == 1
+    assert _index_figures(got) == _index_figures(gr.build_index(make(), 0.25, clear, 0.0))
+
+
 def test_clearance_keeper_gives_the_whole_maps_capped_clearance_bit_for_bit():
     """Update after update (a few cells changed, none, a wall drawn, one erased, the grid
     grown), the kept clearance is exactly the capped clearance of the whole map made afresh,

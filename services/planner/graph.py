@@ -156,8 +156,13 @@ def build_index(graph: Graph, min_clearance: float,
     to a node that is not in the graph. ``polylines``: the edges' polylines kept from the last
     update (:class:`PolylineCache`; the same index either way).
     """
+    cache = polylines or PolylineCache()
+    if clearance_at is not None:
+        same = cache.same_index(graph, (min_clearance, tip_length), clearance_at)
+        if same is not None:
+            return same
     nodes = {n.id: (n.kind, float(n.x), float(n.y)) for n in graph.nodes}
-    kept, P, o, cum_all = (polylines or PolylineCache()).make(graph, nodes)
+    kept, P, o, cum_all = cache.make(graph, nodes)
     b = _IndexBuilder(nodes)
     if not kept:
         return b.index()
@@ -174,7 +179,9 @@ def build_index(graph: Graph, min_clearance: float,
         else:
             b.add_narrow(e.a, e.b, P[sl], cum_all[sl], m.inner[sl], m.c_all[sl],
                          np.flatnonzero(m.bad[sl]), float(m.clear[k]))
-    return b.index()
+    index = b.index()
+    cache.keep_index(graph, (min_clearance, tip_length), P, m.c_all, index)
+    return index
 
 
 class PolylineCache:
@@ -187,6 +194,34 @@ class PolylineCache:
 
     def __init__(self) -> None:
         self._made: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+        self._index: tuple | None = None  # the last index made with a clearance: (graph,
+        #   its arguments, the flat polylines, the clearance at them, the index)
+        self.reused = 0  # updates whose index was the one before (:meth:`same_index`)
+
+    def same_index(self, graph: Graph, args: tuple, clearance_at: Callable[[np.ndarray],
+                   np.ndarray]) -> TopoIndex | None:
+        """The index kept by :meth:`keep_index` if it is the one ``build_index`` would make
+        now: the same nodes, edges and polylines, the same arguments, and the same clearance
+        at every polyline point. While the robot drives through mapped space the topology
+        sends the same graph again and again (the index is read, never changed)."""
+        if self._index is None:
+            return None
+        old, old_args, P, c_all, index = self._index
+        if (old_args != args or len(old.edges) != len(graph.edges) or old.nodes != graph.nodes
+                or not np.array_equal(old.offsets, graph.offsets)
+                or not np.array_equal(old.points, graph.points)
+                or any(e.a != f.a or e.b != f.b for e, f in zip(old.edges, graph.edges,
+                                                                 strict=True))
+                or not np.array_equal(np.asarray(clearance_at(P), np.float64), c_all)):
+            return None
+        self.reused += 1
+        return index
+
+    def keep_index(self, graph: Graph, args: tuple, P: np.ndarray, c_all: np.ndarray,
+                   index: TopoIndex) -> None:
+        """Keep the index just made from graph with args, and the clearance c_all [m] it
+        read at the flat polyline points P, for :meth:`same_index`."""
+        self._index = (graph, args, P, c_all, index)
 
     def make(self, graph: Graph, nodes: dict[int, tuple[str, float, float]]
              ) -> tuple[list, np.ndarray, np.ndarray, np.ndarray]:
