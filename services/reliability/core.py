@@ -440,32 +440,17 @@ class FrontierOwnership:
         a0, a1, b0, b1 = max(0, r0 - m - 1), min(h, r1 + m + 1), max(0, c0 - m - 1), min(w, c1 + m + 1)
         unknown = self.unknown
         sub_u = None if unknown is None else np.asarray(unknown[a0:a1, b0:b1], bool)
-        edge = _inner_sides(a0, a1, b0, b1, h, w)
         cells = frontier_cells(self.grid[a0:a1, b0:b1], self.p_free, 1, sub_u)
-        keep = ~_on_sides(cells, a1 - a0, b1 - b0, edge)  # judged without their neighbours
-        cells = cells[keep]
+        # less the window's sides inside the grid: judged without their neighbours
+        rows, cols = cells[:, 0] + a0, cells[:, 1] + b0
+        cells = cells[(rows >= a0 + (a0 > 0)) & (rows < a1 - (a1 < h))
+                      & (cols >= b0 + (b0 > 0)) & (cols < b1 - (b1 < w))]
         if m > 1 and len(cells):
             cells = cells[group_sizes(cells, b1 - b0) >= m]
         cells = cells + np.array([a0, b0])
         inside = ((cells[:, 0] >= r0) & (cells[:, 0] < r1) & (cells[:, 1] >= c0)
                   & (cells[:, 1] < c1))
         return cells[inside]
-
-
-def _inner_sides(a0: int, a1: int, b0: int, b1: int, h: int, w: int
-                 ) -> tuple[bool, bool, bool, bool]:
-    """Which sides (top, bottom, left, right) of the window rows a0..a1, cols b0..b1 of an
-    h x w grid lie inside the grid (their cells have neighbours outside the window)."""
-    return a0 > 0, a1 < h, b0 > 0, b1 < w
-
-
-def _on_sides(cells: np.ndarray, h: int, w: int, sides: tuple[bool, bool, bool, bool]
-              ) -> np.ndarray:
-    """Per (row, col) cell of an h x w window: on one of the given sides."""
-    top, bottom, left, right = sides
-    r, c = cells[:, 0], cells[:, 1]
-    return ((top & (r == 0)) | (bottom & (r == h - 1)) | (left & (c == 0))
-            | (right & (c == w - 1)))
 
 
 def leaf_headings(graph: Graph, back: float = 0.5) -> dict[int, float]:
