@@ -355,6 +355,8 @@ class FrontierOwnership:
         self.chains = leaf_chains(end_ids, self.pairs) if self.pairs else {}
         self._arcs: tuple | None = None
         self._tree: cKDTree | None = None
+        self._whole_cells: np.ndarray | None = None  # the whole map's frontier cells, made
+        #   once where a window would hold most of the map
         self._by_edge: dict[int, list[int]] | None = None  # edge -> the end nodes whose
         #   chains hold it (one, or the two ends of a chain with no branch)
 
@@ -424,7 +426,9 @@ class FrontierOwnership:
         within max_dist of the points mine: those in the box of the points grown by max_dist,
         worked out from the box grown by min_cells more (a group cut there has at least
         min_cells cells inside it) and by one more cell (the neighbours a frontier cell is
-        judged by; the grid's own side counts as unknown, as in :func:`frontier_cells`)."""
+        judged by; the grid's own side counts as unknown, as in :func:`frontier_cells`). Where
+        that window holds half the map or more (a small map), the whole map's cells instead,
+        made once for every node asked."""
         h, w = self.grid.shape
         if self.whole:
             return frontier_cells(self.grid, self.p_free, self.min_cells, self.unknown)
@@ -437,6 +441,11 @@ class FrontierOwnership:
         if r0 >= r1 or c0 >= c1:
             return np.zeros((0, 2), np.int64)
         m = self.min_cells
+        if (min(h, r1 + m + 1) - max(0, r0 - m - 1)) * (min(w, c1 + m + 1) - max(0, c0 - m - 1)
+                ) * 2 >= h * w:  # most of the map: the whole map's cells, once an update
+            if self._whole_cells is None:
+                self._whole_cells = frontier_cells(self.grid, self.p_free, m, self.unknown)
+            return self._whole_cells
         a0, a1, b0, b1 = max(0, r0 - m - 1), min(h, r1 + m + 1), max(0, c0 - m - 1), min(w, c1 + m + 1)
         unknown = self.unknown
         sub_u = None if unknown is None else np.asarray(unknown[a0:a1, b0:b1], bool)
