@@ -430,23 +430,18 @@ class FrontierOwnership:
         that window holds half the map or more (a small map), the whole map's cells instead,
         made once for every node asked."""
         h, w = self.grid.shape
-        if self.whole:
-            return frontier_cells(self.grid, self.p_free, self.min_cells, self.unknown)
-        geom = self.geom
-        rows, cols = geom.world_to_cell(*self.graph.points[mine].T)
-        reach = cells_for(self.max_dist, geom.resolution) + 1
-        box = (int(rows.min()) - reach, int(rows.max()) + reach + 1,
-               int(cols.min()) - reach, int(cols.max()) + reach + 1)
-        r0, r1, c0, c1 = (max(0, box[0]), min(h, box[1]), max(0, box[2]), min(w, box[3]))
+        rows, cols = self.geom.world_to_cell(*self.graph.points[mine].T)
+        reach = cells_for(self.max_dist, self.geom.resolution) + 1
+        r0, r1 = max(0, int(rows.min()) - reach), min(h, int(rows.max()) + reach + 1)
+        c0, c1 = max(0, int(cols.min()) - reach), min(w, int(cols.max()) + reach + 1)
         if r0 >= r1 or c0 >= c1:
             return np.zeros((0, 2), np.int64)
         m = self.min_cells
-        if (min(h, r1 + m + 1) - max(0, r0 - m - 1)) * (min(w, c1 + m + 1) - max(0, c0 - m - 1)
-                ) * 2 >= h * w:  # most of the map: the whole map's cells, once an update
-            if self._whole_cells is None:
+        a0, a1, b0, b1 = max(0, r0 - m - 1), min(h, r1 + m + 1), max(0, c0 - m - 1), min(w, c1 + m + 1)
+        if self.whole or 2 * (a1 - a0) * (b1 - b0) >= h * w:  # most of the map: the whole
+            if self._whole_cells is None:  # map's cells, made once an update
                 self._whole_cells = frontier_cells(self.grid, self.p_free, m, self.unknown)
             return self._whole_cells
-        a0, a1, b0, b1 = max(0, r0 - m - 1), min(h, r1 + m + 1), max(0, c0 - m - 1), min(w, c1 + m + 1)
         unknown = self.unknown
         sub_u = None if unknown is None else np.asarray(unknown[a0:a1, b0:b1], bool)
         cells = frontier_cells(self.grid[a0:a1, b0:b1], self.p_free, 1, sub_u)
